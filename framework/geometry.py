@@ -1,0 +1,158 @@
+"""Homography helpers shared by every stage.
+
+Conventions (see ``docs/conventions.md``): a homography acts on homogeneous pixel
+coordinates ``(x, y, 1)`` with x to the right, y down and pixel centres at integer
+coordinates (the OpenCV convention). Homography stacks are ``(N, 3, 3)`` float64 and are
+kept normalised so that ``H[2, 2] == 1``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+
+__all__ = [
+    "normalize",
+    "params_from_homographies",
+    "homographies_from_params",
+    "corners",
+    "apply",
+    "scale_matrix",
+    "translation",
+    "footprint_bounds",
+]
+
+
+def normalize(homographies: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Scale homographies so that their bottom-right entry is 1.
+
+    Args:
+        homographies: (..., 3, 3) float array.
+
+    Returns:
+        (..., 3, 3) float64 array, a new array.
+
+    Raises:
+        ValueError: if a bottom-right entry is zero (a degenerate homography).
+    """
+    h = np.asarray(homographies, dtype=np.float64)
+    scale = h[..., 2:3, 2:3]
+    if np.any(scale == 0):
+        raise ValueError("degenerate homography: H[2, 2] == 0")
+    return h / scale
+
+
+def params_from_homographies(homographies: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Return the 8 Lucas-Kanade parameters p1..p8 of each homography.
+
+    ``H = [[1+p1, p3, p5], [p2, 1+p4, p6], [p7, p8, 1]]`` (paper Eq. 4; Baker and
+    Matthews, "Lucas-Kanade 20 years on", 2004).
+
+    Args:
+        homographies: (N, 3, 3) float array.
+
+    Returns:
+        (N, 8) float64 array of ``p1..p8``.
+    """
+    h = normalize(homographies)
+    return np.stack(
+        [h[..., 0, 0] - 1, h[..., 1, 0], h[..., 0, 1], h[..., 1, 1] - 1,
+         h[..., 0, 2], h[..., 1, 2], h[..., 2, 0], h[..., 2, 1]],
+        axis=-1,
+    )
+
+
+def homographies_from_params(params: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Inverse of :func:`params_from_homographies`.
+
+    Args:
+        params: (N, 8) float array of ``p1..p8``.
+
+    Returns:
+        (N, 3, 3) float64 homographies.
+    """
+    p = np.asarray(params, dtype=np.float64)
+    h = np.empty(p.shape[:-1] + (3, 3))
+    h[..., 0, 0] = 1 + p[..., 0]
+    h[..., 1, 0] = p[..., 1]
+    h[..., 0, 1] = p[..., 2]
+    h[..., 1, 1] = 1 + p[..., 3]
+    h[..., 0, 2] = p[..., 4]
+    h[..., 1, 2] = p[..., 5]
+    h[..., 2, 0] = p[..., 6]
+    h[..., 2, 1] = p[..., 7]
+    h[..., 2, 2] = 1
+    return h
+
+
+def corners(width: int, height: int, *, edges: bool = False) -> NDArray[np.float64]:
+    """Return the four corners of a ``width`` x ``height`` frame.
+
+    Args:
+        width: frame width in pixels.
+        height: frame height in pixels.
+        edges: if False (default) the centres of the four corner pixels, e.g. ``(0, 0)``
+            and ``(width - 1, height - 1)``; if True the outer edges of the frame
+            (``-0.5`` and ``width - 0.5``), which bound its footprint.
+
+    Returns:
+        (4, 2) float64 ``(x, y)`` in pixels, clockwise from the top-left.
+    """
+    lo, hx, hy = (-0.5, width - 0.5, height - 0.5) if edges else (0.0, width - 1.0, height - 1.0)
+    return np.array([[lo, lo], [hx, lo], [hx, hy], [lo, hy]], dtype=np.float64)
+
+
+def apply(homographies: NDArray[np.float64], points: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Map points through each homography.
+
+    Args:
+        homographies: (N, 3, 3) or (3, 3) float array.
+        points: (K, 2) float array of ``(x, y)`` pixel coordinates.
+
+    Returns:
+        (N, K, 2) float64 (or (K, 2) for a single homography) mapped coordinates.
+    """
+    h = np.asarray(homographies, dtype=np.float64)
+    pts = np.asarray(points, dtype=np.float64)
+    hom = np.concatenate([pts, np.ones((len(pts), 1))], axis=1)  # (K, 3)
+    out = hom @ np.swapaxes(h, -1, -2)  # (..., K, 3)
+    return out[..., :2] / out[..., 2:3]
+
+
+def scale_matrix(scale: float) -> NDArray[np.float64]:
+    """Return the homography that maps pixel coordinates to a grid ``scale`` times finer.
+
+    With pixel centres at integers, pixel ``i`` covers ``[i - 0.5, i + 0.5]``, so the
+    map is ``x' = scale * (x + 0.5) - 0.5``.
+
+    Args:
+        scale: super-resolution scale (> 0), e.g. 2.0.
+
+    Returns:
+        (3, 3) float64.
+    """
+    off = 0.5 * (scale - 1.0)
+    return np.array([[scale, 0, off], [0, scale, off], [0, 0, 1.0]])
+
+
+def translation(dx: float, dy: float) -> NDArray[np.float64]:
+    """Return the (3, 3) float64 homography translating by ``(dx, dy)`` pixels."""
+    return np.array([[1.0, 0, dx], [0, 1.0, dy], [0, 0, 1.0]])
+
+
+def footprint_bounds(
+    homographies: NDArray[np.float64], width: int, height: int
+) -> tuple[float, float, float, float]:
+    """Return the bounding box of the frames' footprints after warping.
+
+    Args:
+        homographies: (N, 3, 3) frame-to-target homographies.
+        width: frame width in pixels.
+        height: frame height in pixels.
+
+    Returns:
+        ``(x_min, y_min, x_max, y_max)`` in target pixel coordinates (outer edges).
+    """
+    pts = apply(homographies, corners(width, height, edges=True)).reshape(-1, 2)
+    return (float(pts[:, 0].min()), float(pts[:, 1].min()),
+            float(pts[:, 0].max()), float(pts[:, 1].max()))

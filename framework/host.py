@@ -1,0 +1,195 @@
+"""Plugin discovery and the per-stage registries.
+
+Every plugin, built-in or third-party, is a module named by an entry point in the
+``photonpano.plugins`` group and registered with the same ``PluginManager.register``
+call. A plugin that fails to import or registers bad objects is recorded as broken and
+reported by ``photonpano plugins``; it does not stop the others.
+
+Environment controls:
+    PHOTONPANO_DISABLE_PLUGINS: comma-separated entry-point names to block.
+    PHOTONPANO_DISABLE_PLUGIN_AUTOLOAD: if set, load no entry points (for tests).
+    PHOTONPANO_TRACE_PLUGINS: if set, print every hook call to stderr.
+"""
+
+from __future__ import annotations
+
+import importlib.metadata
+import os
+import sys
+from dataclasses import dataclass
+from typing import Any
+
+import pluggy
+
+from . import hookspecs
+from .errors import PluginError
+from .stages import STAGES, StageConfig
+
+__all__ = ["GROUP", "PluginInfo", "PluginHost"]
+
+GROUP = "photonpano.plugins"
+"""The entry-point group that names plugin modules."""
+
+_REGISTER_HOOKS = {
+    "source": "photonpano_register_sources",
+    "resampler": "photonpano_register_resamplers",
+    "merger": "photonpano_register_mergers",
+    "locator": "photonpano_register_locators",
+    "interpolator": "photonpano_register_interpolators",
+}
+
+
+@dataclass(frozen=True)
+class PluginInfo:
+    """One row of ``photonpano plugins``.
+
+    Attributes:
+        key: the plugin key used in specs (e.g. ``"opencv-sift"``), or the entry-point
+            name for a module that failed to load.
+        stage: stage kind (``source``, ``locator``, ...), or ``"?"`` if unknown.
+        module: the Python module that defines it.
+        distribution: the installed distribution that provides it.
+        version: that distribution's version.
+        status: ``"ok"``, ``"unavailable: ..."`` (missing optional dependency, with the
+            install command) or ``"broken: ..."``.
+    """
+
+    key: str
+    stage: str
+    module: str
+    distribution: str
+    version: str
+    status: str
+
+
+class PluginHost:
+    """Typed facade over pluggy: discovery, blocking and per-stage registries.
+
+    Args:
+        autoload: load plugins from the ``photonpano.plugins`` entry points (the only
+            route, built-ins included) unless ``PHOTONPANO_DISABLE_PLUGIN_AUTOLOAD`` is set.
+
+    Attributes:
+        pm: the pluggy plugin manager (use the methods below rather than ``pm.hook``).
+        broken: entry-point or plugin name -> reason it is broken.
+    """
+
+    def __init__(self, autoload: bool = True) -> None:
+        self.pm = pluggy.PluginManager("photonpano")
+        self.pm.add_hookspecs(hookspecs)
+        self.broken: dict[str, str] = {}
+        self._dists: dict[str, tuple[str, str]] = {}
+        self._registries: dict[str, dict[str, type[StageConfig]]] | None = None
+        for name in filter(None, os.environ.get("PHOTONPANO_DISABLE_PLUGINS", "").split(",")):
+            self.pm.set_blocked(name.strip())
+        if autoload and not os.environ.get("PHOTONPANO_DISABLE_PLUGIN_AUTOLOAD"):
+            self.load_entry_points()
+        if os.environ.get("PHOTONPANO_TRACE_PLUGINS"):
+            self.pm.trace.root.setwriter(sys.stderr.write)
+            self.pm.enable_tracing()
+
+    def load_entry_points(self) -> None:
+        """Register every module named in the ``photonpano.plugins`` entry-point group."""
+        for ep in importlib.metadata.entry_points(group=GROUP):
+            if self.pm.is_blocked(ep.name) or self.pm.has_plugin(ep.name):
+                continue
+            dist = ep.dist.name if ep.dist else "?"
+            version = ep.dist.version if ep.dist else "?"
+            try:
+                self.register(ep.load(), name=ep.name)
+            except Exception as exc:  # a broken plugin is reported, not fatal
+                self.broken[ep.name] = f"{dist}: cannot load {ep.value}: {type(exc).__name__}: {exc}"
+                continue
+            self._dists[ep.name] = (dist, version)
+
+    def register(self, plugin: object, name: str) -> None:
+        """Register a plugin object or module under ``name`` (also used by tests).
+
+        Raises:
+            PluginError: if a hook implementation matches no spec or has bad arguments.
+        """
+        try:
+            self.pm.register(plugin, name=name)
+            self.pm.check_pending()
+        except pluggy.PluginValidationError as exc:
+            if self.pm.is_registered(plugin):
+                self.pm.unregister(plugin)
+            raise PluginError(f"plugin {name!r}: {exc}") from None
+        self._registries = None
+
+    def unregister(self, name: str) -> None:
+        """Remove the plugin registered under ``name``."""
+        self.pm.unregister(name=name)
+        self._registries = None
+
+    @property
+    def hook(self) -> Any:
+        """The hook relay, for lifecycle calls (``host.hook.photonpano_run_start(...)``)."""
+        return self.pm.hook
+
+    def _build_registries(self) -> dict[str, dict[str, type[StageConfig]]]:
+        registries: dict[str, dict[str, type[StageConfig]]] = {s: {} for s in STAGES}
+        for stage, hook_name in _REGISTER_HOOKS.items():
+            base = STAGES[stage]
+            # Registration hooks take no arguments: call each implementation on its own
+            # so that errors name the plugin that caused them.
+            for impl in reversed(getattr(self.pm.hook, hook_name).get_hookimpls()):
+                try:
+                    offered = list(impl.function() or [])
+                except Exception as exc:
+                    self.broken[impl.plugin_name] = f"{hook_name} raised {type(exc).__name__}: {exc}"
+                    continue
+                for cls in offered:
+                    problem = _check_config_class(cls, base, stage)
+                    key = cls.model_fields["plugin"].default if not problem else None
+                    if not problem and key in registries[stage]:
+                        other = registries[stage][key]
+                        problem = f"{stage} key {key!r} already registered by {other.__module__}"
+                    if problem:
+                        self.broken[impl.plugin_name] = f"{hook_name}: {problem}"
+                        continue
+                    registries[stage][key] = cls
+        return registries
+
+    def registry(self, stage: str) -> dict[str, type[StageConfig]]:
+        """Return plugin key -> config class for one stage kind.
+
+        Args:
+            stage: one of ``source``, ``resampler``, ``merger``, ``locator``,
+                ``interpolator``.
+
+        Raises:
+            KeyError: for an unknown stage kind.
+        """
+        if self._registries is None:
+            self._registries = self._build_registries()
+        return self._registries[stage]
+
+    def plugin_infos(self) -> list[PluginInfo]:
+        """Return one :class:`PluginInfo` per registered key and per broken plugin."""
+        rows: list[PluginInfo] = []
+        modules = {getattr(p, "__name__", ""): n for n, p in self.pm.list_name_plugin()}
+        for stage in STAGES:
+            for key, cls in sorted(self.registry(stage).items()):
+                ep_name = modules.get(cls.__module__, "")
+                dist, version = self._dists.get(ep_name, ("(registered in code)", ""))
+                missing = cls.missing_requirements()
+                status = f"unavailable: needs {', '.join(missing)}: {cls.install_hint}" if missing else "ok"
+                rows.append(PluginInfo(key, stage, cls.__module__, dist, version, status))
+        for name, reason in sorted(self.broken.items()):
+            rows.append(PluginInfo(name, "?", "", *self._dists.get(name, ("?", "?")), f"broken: {reason}"))
+        return rows
+
+    def versions(self) -> dict[str, str]:
+        """Return distribution name -> version of every loaded plugin distribution."""
+        return {dist: version for dist, version in self._dists.values()}
+
+
+def _check_config_class(cls: Any, base: type[StageConfig], stage: str) -> str | None:
+    """Return why ``cls`` is not a valid config class of ``stage``, or None."""
+    if not (isinstance(cls, type) and issubclass(cls, base)):
+        return f"returned {cls!r}, expected a {base.__name__} subclass"
+    default = cls.model_fields.get("plugin").default if "plugin" in cls.model_fields else None
+    if not isinstance(default, str) or not default:
+        return f"{cls.__name__}.plugin must default to its plugin key (a Literal string)"
+    return None

@@ -1,0 +1,234 @@
+"""Photon-level numerics: counting bits of binary frames, the flux MLE and tone mapping.
+
+Binary frames are stored either unpacked, ``(T, H, W)`` uint8/bool with values 0/1, or
+bit-packed along the width, ``(T, H, W/8)`` uint8 with the most significant bit first
+(exactly ``np.packbits(frames, axis=-1)``, the SwissSPAD ``.npy`` layout).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+from numpy.typing import NDArray
+
+__all__ = [
+    "sum_packed_ranges",
+    "sum_unpacked_ranges",
+    "simulate_packed_frames",
+    "flux_mle",
+    "srgb_to_linear",
+    "linear_to_srgb",
+    "tone_map",
+]
+
+# _LANES[v] spreads the 8 bits of byte v (MSB first) into the 8 bytes of a uint64
+# (little-endian lane k holds bit 7 - k), so one 64-bit add counts 8 pixels at once.
+_LANES = np.zeros(256, dtype=np.uint64)
+for _v in range(256):
+    for _k in range(8):
+        _LANES[_v] |= np.uint64(((_v >> (7 - _k)) & 1) << (8 * _k))
+
+
+@njit(cache=True, nogil=True)
+def _sum_packed_ranges(cube, edges, lanes, out):  # pragma: no cover - compiled
+    rows, nbytes = cube.shape[1], cube.shape[2]
+    acc = np.zeros((rows, nbytes), dtype=np.uint64)
+    for b in range(len(edges) - 1):
+        t = edges[b]
+        while t < edges[b + 1]:
+            stop = min(edges[b + 1], t + 255)  # a lane saturates after 255 frames
+            acc[:] = 0
+            for u in range(t, stop):
+                for y in range(rows):
+                    for j in range(nbytes):
+                        acc[y, j] += lanes[cube[u, y, j]]
+            for y in range(rows):
+                for j in range(nbytes):
+                    a = acc[y, j]
+                    for k in range(8):
+                        out[b, y, 8 * j + k] += (a >> np.uint64(8 * k)) & np.uint64(0xFF)
+            t = stop
+
+
+def sum_packed_ranges(cube: NDArray[np.uint8], edges: NDArray[np.int64]) -> NDArray[np.uint16]:
+    """Count photon detections of bit-packed binary frames over consecutive frame ranges.
+
+    Args:
+        cube: (T, H, W/8) uint8 bit-packed binary frames (MSB first); a memory map is
+            fine, only the frames in ``edges[0]:edges[-1]`` are touched.
+        edges: (B + 1,) increasing frame indices; range ``b`` is ``edges[b]:edges[b+1]``.
+
+    Returns:
+        (B, H, W) uint16 detection counts per range (a range may hold at most 65535
+        frames).
+
+    Raises:
+        ValueError: if the edges are not increasing, leave the cube or a range is too long.
+    """
+    edges = _check_edges(edges, len(cube))
+    out = np.zeros((len(edges) - 1, cube.shape[1], cube.shape[2] * 8), dtype=np.uint16)
+    if len(edges) > 1:
+        block = np.asarray(cube[edges[0]:edges[-1]])
+        _sum_packed_ranges(block, edges - edges[0], _LANES, out)
+    return out
+
+
+def sum_unpacked_ranges(frames: NDArray, edges: NDArray[np.int64]) -> NDArray[np.uint16]:
+    """Count detections of unpacked (T, H, W) 0/1 binary frames over frame ranges.
+
+    Args:
+        frames: (T, H, W) uint8 or bool binary frames.
+        edges: (B + 1,) increasing frame indices, as in :func:`sum_packed_ranges`.
+
+    Returns:
+        (B, H, W) uint16 detection counts per range.
+    """
+    edges = _check_edges(edges, len(frames))
+    out = np.empty((len(edges) - 1,) + frames.shape[1:], dtype=np.uint16)
+    for b in range(len(edges) - 1):
+        np.sum(frames[edges[b]:edges[b + 1]], axis=0, dtype=np.uint16, out=out[b])
+    return out
+
+
+def _check_edges(edges, n_frames: int) -> NDArray[np.int64]:
+    edges = np.asarray(edges, dtype=np.int64)
+    if edges.ndim != 1 or np.any(np.diff(edges) <= 0):
+        raise ValueError(f"frame range edges must be strictly increasing, got {edges}")
+    if len(edges) and (edges[0] < 0 or edges[-1] > n_frames):
+        raise ValueError(f"frame ranges {edges[0]}:{edges[-1]} leave the capture of {n_frames} frames")
+    if len(edges) > 1 and np.max(np.diff(edges)) > 65535:
+        raise ValueError("a frame range longer than 65535 frames would overflow uint16 counts")
+    return edges
+
+
+@njit(cache=True, nogil=True)
+def _splitmix64(state):  # pragma: no cover - compiled
+    state = state + np.uint64(0x9E3779B97F4A7C15)
+    z = state
+    z = (z ^ (z >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
+    z = (z ^ (z >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
+    return state, z ^ (z >> np.uint64(31))
+
+
+@njit(cache=True, nogil=True)
+def _simulate_packed(thresholds, seed, frame_index, out):  # pragma: no cover - compiled
+    rows, cols = thresholds.shape
+    state = np.uint64(seed) * np.uint64(0x9E3779B97F4A7C15) + np.uint64(frame_index)
+    state, word = _splitmix64(state)
+    left = 4
+    for y in range(rows):
+        for j in range(cols // 8):
+            byte = 0
+            for k in range(8):
+                if left == 0:
+                    state, word = _splitmix64(state)
+                    left = 4
+                u = word & np.uint64(0xFFFF)
+                word = word >> np.uint64(16)
+                left -= 1
+                if u < thresholds[y, 8 * j + k]:
+                    byte |= 1 << (7 - k)
+            out[y, j] = byte
+
+
+def simulate_packed_frames(
+    probability: NDArray[np.float32], seed: int, frame_index: int
+) -> NDArray[np.uint8]:
+    """Draw one bit-packed binary frame with per-pixel detection probability.
+
+    Each pixel is 1 with probability ``probability`` (paper Eq. 2 gives
+    ``1 - exp(-phi * tau)``), quantised to 1/65536. The draw depends only on
+    ``(seed, frame_index)``, so frames can be simulated in any order or in parallel.
+
+    Args:
+        probability: (H, W) float probabilities in [0, 1]; W must be a multiple of 8.
+        seed: random seed (non-negative int).
+        frame_index: index of the frame in the capture (non-negative int).
+
+    Returns:
+        (H, W/8) uint8 bit-packed frame, MSB first.
+
+    Raises:
+        ValueError: if W is not a multiple of 8.
+    """
+    h, w = probability.shape
+    if w % 8:
+        raise ValueError(f"frame width {w} must be a multiple of 8 to bit-pack")
+    thresholds = np.rint(np.clip(probability, 0, 1) * 65536).astype(np.uint32)
+    out = np.empty((h, w // 8), dtype=np.uint8)
+    _simulate_packed(thresholds, np.uint64(seed), np.uint64(frame_index), out)
+    return out
+
+
+def flux_mle(
+    counts: NDArray, n_frames: NDArray | float, exposure_s: float, *, min_frames: float = 0.5
+) -> NDArray[np.float32]:
+    """Estimate flux from detection counts with the maximum-likelihood estimator.
+
+    ``phi = -ln(1 - S / n) / tau`` (paper Eq. 3; Yang et al., "Bits from photons", 2011).
+    A pixel that saw a photon in every frame (``S == n``) is clipped to ``S = n - 0.5``
+    so the estimate stays finite.
+
+    Args:
+        counts: (H, W) detections ``S`` (any real dtype; warped counts are fractional).
+        n_frames: (H, W) or scalar number of binary frames ``n`` behind each pixel.
+        exposure_s: exposure time ``tau`` of one binary frame, in seconds.
+        min_frames: pixels observed by fewer frames than this are NaN (unobserved).
+
+    Returns:
+        (H, W) float32 flux in photons per second; NaN where unobserved.
+    """
+    s = np.asarray(counts, dtype=np.float32)
+    n = np.broadcast_to(np.asarray(n_frames, dtype=np.float32), s.shape)
+    seen = n >= min_frames
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ratio = np.where(seen, np.minimum(s, n - 0.5) / np.maximum(n, 1e-12), np.nan)
+        flux = -np.log1p(-np.maximum(ratio, 0)) / np.float32(exposure_s)
+    return flux.astype(np.float32)
+
+
+def srgb_to_linear(srgb: NDArray) -> NDArray[np.float32]:
+    """Undo the sRGB transfer curve (IEC 61966-2-1).
+
+    Args:
+        srgb: array of sRGB values in [0, 1].
+
+    Returns:
+        float32 array of linear intensities in [0, 1].
+    """
+    c = np.asarray(srgb, dtype=np.float32)
+    return np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4).astype(np.float32)
+
+
+def linear_to_srgb(linear: NDArray) -> NDArray[np.float32]:
+    """Apply the sRGB transfer curve (IEC 61966-2-1) to linear values in [0, 1]."""
+    c = np.clip(np.asarray(linear, dtype=np.float32), 0, 1)
+    return np.where(c <= 0.0031308, 12.92 * c, 1.055 * c ** (1 / 2.4) - 0.055).astype(np.float32)
+
+
+def tone_map(flux: NDArray, *, percentile: float = 99.5, bits: int = 8) -> NDArray:
+    """Tone-map a linear flux image to sRGB integers for display or feature matching.
+
+    The flux is divided by its ``percentile``-th percentile (over observed pixels),
+    clipped to [0, 1] and sRGB-encoded.
+
+    Args:
+        flux: (H, W) float linear flux; NaN marks unobserved pixels (mapped to 0).
+        percentile: white point, as a percentile of the observed flux.
+        bits: 8 (uint8 output) or 16 (uint16 output).
+
+    Returns:
+        (H, W) uint8 or uint16 image.
+
+    Raises:
+        ValueError: if ``bits`` is not 8 or 16.
+    """
+    if bits not in (8, 16):
+        raise ValueError(f"tone_map: bits must be 8 or 16, got {bits}")
+    f = np.asarray(flux, dtype=np.float32)
+    seen = np.isfinite(f)
+    white = float(np.percentile(f[seen], percentile)) if seen.any() else 1.0
+    white = white if white > 0 else 1.0
+    scaled = linear_to_srgb(np.where(seen, f, 0) / white)
+    top = 255 if bits == 8 else 65535
+    return np.rint(scaled * top).astype(np.uint8 if bits == 8 else np.uint16)

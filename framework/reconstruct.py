@@ -1,0 +1,330 @@
+"""The stratified re-sampling loop and the final panorama, on built stage objects.
+
+``estimate_motion`` iterates the paper's four steps (Sec. 4) over levels; each level's
+locate step is chained into keyframe homographies and turned into a smooth correction of
+the per-frame trajectory. ``assemble_panorama`` warps every binary frame onto one canvas.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Any, Callable
+
+import numpy as np
+from numpy.typing import NDArray
+
+from . import geometry
+from .errors import StageError
+from .stages import Groups, Interpolator, Locator, MergedFrames, Merger, PairRegistrations, PhotonSource, Resampler
+
+__all__ = ["LevelResult", "chain_keyframes", "estimate_motion", "Panorama", "assemble_panorama"]
+
+
+@dataclass
+class LevelResult:
+    """What one level produced.
+
+    Attributes:
+        level: 1-based level number.
+        groups: the level's virtual exposures.
+        merged: the merged frames (dropped after the level unless kept for dumps).
+        pairs: the level's pair registrations.
+        keyframes: (G, 3, 3) float64 chained homographies at the reference frames.
+        homographies: (T, 3, 3) float64 per-frame homographies after the level.
+        timings_s: wall time of each stage in seconds.
+    """
+
+    level: int
+    groups: Groups
+    merged: MergedFrames | None
+    pairs: PairRegistrations
+    keyframes: NDArray[np.float64]
+    homographies: NDArray[np.float64]
+    timings_s: dict[str, float] = field(default_factory=dict)
+
+    def statistics(self) -> dict[str, Any]:
+        """Return JSON-ready per-level statistics (groups, matches, inliers, failures)."""
+        p = self.pairs
+        return {
+            "level": self.level,
+            "groups": len(self.groups),
+            "pairs": len(p.ok),
+            "failed_pairs": int((~p.ok).sum()),
+            "failed_pair_indices": np.flatnonzero(~p.ok).tolist(),
+            "median_matches": float(np.median(p.matches)) if len(p.ok) else 0.0,
+            "median_inliers": float(np.median(p.inliers)) if len(p.ok) else 0.0,
+            "min_inliers": int(p.inliers.min()) if len(p.ok) else 0,
+            "timings_s": self.timings_s,
+        }
+
+
+def chain_keyframes(current: NDArray[np.float64], pairs: PairRegistrations) -> NDArray[np.float64]:
+    """Chain consecutive pair registrations into homographies of the keyframes.
+
+    Pair g maps merged frame g+1 to merged frame g. Its *residual* with respect to the
+    current estimate, ``inv(current[g]^-1 current[g+1]) @ M_g``, is what the locator
+    adds; a failed pair's residual is bridged by linear interpolation of its
+    neighbours' residual parameters (p1..p8). The first keyframe keeps its current
+    homography, which fixes the panorama's coordinate frame.
+
+    Args:
+        current: (G, 3, 3) float64 current frame-to-panorama homographies of the
+            reference frames.
+        pairs: G - 1 registrations of consecutive merged frames.
+
+    Returns:
+        (G, 3, 3) float64 new frame-to-panorama homographies of the reference frames.
+
+    Raises:
+        StageError: if every pair failed to register.
+    """
+    predicted = np.linalg.inv(current[:-1]) @ current[1:]
+    residual = geometry.params_from_homographies(np.linalg.inv(predicted) @ pairs.homographies)
+    ok = pairs.ok
+    if len(ok) and not ok.any():
+        raise StageError("locator", "?", f"all {len(ok)} pairs of merged frames failed to register")
+    if not ok.all():
+        idx = np.arange(len(ok))
+        for k in range(8):
+            residual[~ok, k] = np.interp(idx[~ok], idx[ok], residual[ok, k])
+    steps = predicted @ geometry.homographies_from_params(residual)
+    out = np.empty_like(current)
+    out[0] = current[0]
+    for g, step in enumerate(steps):
+        out[g + 1] = out[g] @ step
+    return geometry.normalize(out)
+
+
+def refine_keyframes(initial: NDArray[np.float64], pair_index: NDArray[np.int64],
+                     pairs: PairRegistrations, width: int, height: int) -> NDArray[np.float64]:
+    """Adjust keyframe homographies to agree with every registered pair at once.
+
+    A pose-graph least-squares problem (as in bundle adjustment for stitching, Brown and
+    Lowe 2007, here on homographies): for each successful pair ``(a, b)`` with
+    homography ``M`` (b to a), a 3x3 grid of points ``x`` of frame b should land on the
+    same panorama point through both keyframes, ``K_a M x == K_b x``. Residuals are in
+    panorama pixels, weighted by the square root of the pair's inlier count, with a
+    soft-L1 loss against outliers. The first keyframe is held fixed (gauge). With only
+    consecutive pairs this reproduces the chain; pairs further apart in time remove the
+    random-walk drift of chaining.
+
+    Args:
+        initial: (G, 3, 3) float64 starting keyframe homographies (e.g. the chain).
+        pair_index: (P, 2) int64 keyframe indices ``(a, b)`` of each pair.
+        pairs: the P pair registrations; failed pairs are ignored.
+        width: frame width in pixels.
+        height: frame height in pixels.
+
+    Returns:
+        (G, 3, 3) float64 refined keyframe homographies.
+    """
+    from scipy.optimize import least_squares
+    from scipy.sparse import lil_matrix
+
+    g = len(initial)
+    use = pairs.ok & (pair_index[:, 0] != pair_index[:, 1])
+    if g < 2 or not use.any():
+        return initial
+    a, b = pair_index[use, 0], pair_index[use, 1]
+    gx, gy = np.meshgrid(np.linspace(0, width - 1, 3), np.linspace(0, height - 1, 3))
+    grid = np.stack([gx.ravel(), gy.ravel()], axis=1)  # (9, 2) points of frame b
+    mapped = geometry.apply(pairs.homographies[use], grid)  # (E, 9, 2) points of frame a
+    weight = np.sqrt(np.maximum(pairs.inliers[use], 1) / max(np.median(pairs.inliers[use]), 1))[:, None, None]
+    x0 = geometry.params_from_homographies(initial)
+
+    def residuals(free: NDArray[np.float64]) -> NDArray[np.float64]:
+        params = np.concatenate([x0[:1], free.reshape(g - 1, 8)])
+        k = geometry.homographies_from_params(params)
+        via_a = _apply_each(k[a], mapped)
+        via_b = _apply_each(k[b], np.broadcast_to(grid, mapped.shape))
+        return ((via_a - via_b) * weight).ravel()
+
+    sparsity = lil_matrix((len(a) * 18, (g - 1) * 8), dtype=np.int8)
+    for e, (ia, ib) in enumerate(zip(a, b)):
+        for idx in (ia, ib):
+            if idx > 0:
+                sparsity[e * 18:(e + 1) * 18, (idx - 1) * 8:idx * 8] = 1
+    fit = least_squares(residuals, x0[1:].ravel(), jac_sparsity=sparsity, method="trf",
+                        x_scale="jac", loss="soft_l1", f_scale=1.0, max_nfev=50)
+    params = np.concatenate([x0[:1], fit.x.reshape(g - 1, 8)])
+    return geometry.homographies_from_params(params)
+
+
+def _apply_each(homographies: NDArray[np.float64], points: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Map (E, K, 2) points through (E, 3, 3) homographies, one homography per row."""
+    hom = np.concatenate([points, np.ones(points.shape[:-1] + (1,))], axis=-1)
+    out = np.einsum("eij,ekj->eki", homographies, hom)
+    return out[..., :2] / out[..., 2:3]
+
+
+def pairs_at_offsets(count: int, offsets: tuple[int, ...]) -> NDArray[np.int64]:
+    """Return (P, 2) int64 pairs ``(g, g + k)`` of ``count`` merged frames for each offset k.
+
+    Offset 1 (consecutive pairs) is always included, so the pairs chain all frames.
+    """
+    ks = sorted({1, *offsets})
+    rows = [np.stack([np.arange(count - k), np.arange(k, count)], axis=1) for k in ks if k < count]
+    return np.concatenate(rows).astype(np.int64) if rows else np.zeros((0, 2), np.int64)
+
+
+def estimate_motion(
+    source: PhotonSource,
+    resampler: Resampler,
+    merger: Merger,
+    locator: Locator,
+    interpolator: Interpolator,
+    *,
+    levels: int,
+    group_size: int,
+    pair_offsets: tuple[int, ...] = (1,),
+    keep_merged: bool = False,
+    on_level: Callable[[LevelResult], None] | None = None,
+    progress: Callable[[str, int], Callable[[int], None]] | None = None,
+) -> tuple[NDArray[np.float64], list[LevelResult]]:
+    """Estimate a homography for every binary frame by stratified re-sampling.
+
+    Each level: re-sample groups, merge them with the current homographies (relative to
+    each group's reference frame), register consecutive merged frames, chain them into
+    keyframe homographies, and interpolate the keyframe *corrections*
+    ``K_g @ inv(H[ref_g])`` to every frame, so that detail resolved at earlier, denser
+    levels is kept (at level 1, where ``H`` is the identity, this is the paper's plain
+    interpolation of the keyframe homographies).
+
+    Args:
+        source: the capture.
+        resampler, merger, locator, interpolator: built stage objects.
+        levels: number of levels (>= 1).
+        group_size: binary frames per group m.
+        pair_offsets: register merged frames g and g + k for each k; (1,) is the
+            paper's chain of consecutive pairs, more offsets feed :func:`refine_keyframes`.
+        keep_merged: keep each level's merged frames in its result.
+        on_level: called with each finished level.
+        progress: ``progress(description, total)`` returns an ``advance(n)`` callable.
+
+    Returns:
+        ``(homographies, levels)``: (T, 3, 3) float64 frame-to-panorama homographies
+        (frame coordinates of the first reference frame at level 1) and one
+        :class:`LevelResult` per level.
+
+    Raises:
+        StageError: if a level cannot register any pair.
+        ValueError: if the capture is too short for ``group_size``.
+    """
+    n = source.n_frames
+    homographies = np.repeat(np.eye(3)[None], n, axis=0)
+    results: list[LevelResult] = []
+    for level in range(1, levels + 1):
+        timings: dict[str, float] = {}
+        t0 = time.perf_counter()
+        groups = resampler.groups(n, group_size, level)
+        t1 = time.perf_counter()
+        advance = progress(f"level {level}: merge", len(groups)) if progress else None
+        merged = merger.merge(source, homographies, groups, progress=advance)
+        t2 = time.perf_counter()
+        refs = groups.reference
+        current = homographies[refs]
+        pair_index = pairs_at_offsets(len(refs), pair_offsets)
+        initial = np.linalg.inv(current[pair_index[:, 0]]) @ current[pair_index[:, 1]]
+        pairs = locator.register_pairs(merged, pair_index, initial)
+        consecutive = pair_index[:, 1] - pair_index[:, 0] == 1
+        chain = PairRegistrations(*(getattr(pairs, f)[consecutive] for f in ("homographies", "matches", "inliers", "ok")))
+        try:
+            keyframes = chain_keyframes(current, chain)
+        except StageError as err:
+            raise StageError("locator", type(locator).__name__, f"level {level}: {err.reason}") from None
+        if len(pair_offsets) > 1:
+            keyframes = refine_keyframes(keyframes, pair_index, pairs, source.width, source.height)
+        t3 = time.perf_counter()
+        correction = keyframes @ np.linalg.inv(current)
+        homographies = geometry.normalize(interpolator.interpolate(refs, correction, n) @ homographies)
+        t4 = time.perf_counter()
+        timings.update(resample=t1 - t0, merge=t2 - t1, locate=t3 - t2, interpolate=t4 - t3)
+        result = LevelResult(level, groups, merged if keep_merged else None, pairs, keyframes,
+                             homographies, timings)
+        results.append(result)
+        if on_level is not None:
+            on_level(result)
+    return homographies, results
+
+
+@dataclass(frozen=True)
+class Panorama:
+    """A panorama canvas.
+
+    Attributes:
+        flux: (Hc, Wc) float32 linear flux in photons/s; NaN where no frame looked.
+        frames: (Hc, Wc) float32 number of binary frames behind each canvas pixel.
+        homographies: (T, 3, 3) float64 frame-to-canvas homographies (canvas pixels,
+            including the super-resolution scale).
+    """
+
+    flux: NDArray[np.float32]
+    frames: NDArray[np.float32]
+    homographies: NDArray[np.float64]
+
+
+def canvas_homographies(homographies: NDArray[np.float64], width: int, height: int,
+                        scale: float, max_pixels: int = 200_000_000) -> tuple[NDArray[np.float64], tuple[int, int]]:
+    """Shift (and scale) frame-to-panorama homographies onto a canvas that holds all frames.
+
+    Args:
+        homographies: (T, 3, 3) float64 frame-to-panorama homographies.
+        width: frame width in pixels.
+        height: frame height in pixels.
+        scale: super-resolution scale (canvas pixels per panorama pixel).
+        max_pixels: refuse canvases larger than this.
+
+    Returns:
+        ``(canvas_homographies, (canvas_height, canvas_width))``.
+
+    Raises:
+        StageError: if the canvas would exceed ``max_pixels`` (the motion estimate
+            diverged).
+    """
+    x0, y0, x1, y1 = geometry.footprint_bounds(homographies, width, height)
+    shift = geometry.translation(-x0 - 0.5, -y0 - 0.5)
+    out = geometry.normalize(geometry.scale_matrix(scale) @ shift @ homographies)
+    cw, ch = int(np.ceil((x1 - x0) * scale)), int(np.ceil((y1 - y0) * scale))
+    if cw * ch > max_pixels:
+        raise StageError("panorama", "canvas", f"canvas of {cw}x{ch} pixels is too large: "
+                         "the motion estimate diverged")
+    return out, (ch, cw)
+
+
+def assemble_panorama(source: PhotonSource, homographies: NDArray[np.float64], *, scale: float = 1.0,
+                      subbatch_px: float = 0.25, chunk_batches: int = 128,
+                      progress: Callable[[int], None] | None = None) -> Panorama:
+    """Warp every binary frame onto one canvas and estimate the flux per canvas pixel.
+
+    Frames are summed in sub-batches whose canvas warps differ by < ``subbatch_px``
+    canvas pixels, warped inside their footprint only, and the flux is the MLE of
+    paper Eq. (3) per canvas pixel.
+
+    Args:
+        source: the capture.
+        homographies: (T, 3, 3) float64 frame-to-panorama homographies.
+        scale: super-resolution scale (e.g. 2.0 for a canvas twice as fine).
+        subbatch_px: sub-batch tolerance in canvas pixels.
+        chunk_batches: sub-batches counted per call to the source (bounds memory).
+        progress: called with the number of binary frames done.
+
+    Returns:
+        The panorama (see :class:`Panorama`).
+    """
+    from .photons import flux_mle
+    from .warping import WarpAccumulator, subbatch_edges
+
+    to_canvas, (ch, cw) = canvas_homographies(homographies, source.width, source.height, scale)
+    edges = subbatch_edges(to_canvas, source.width, source.height, subbatch_px)
+    acc = WarpAccumulator(ch, cw)
+    for c in range(0, len(edges) - 1, chunk_batches):
+        chunk = edges[c:c + chunk_batches + 1]
+        counts = source.sum_ranges(chunk)
+        for b in range(len(chunk) - 1):
+            middle = (chunk[b] + chunk[b + 1]) // 2
+            acc.add(counts[b], int(chunk[b + 1] - chunk[b]), to_canvas[middle])
+        if progress is not None:
+            progress(int(chunk[-1] - chunk[0]))
+    flux = flux_mle(acc.counts, acc.frames, source.exposure_s)
+    return Panorama(flux=flux, frames=acc.frames, homographies=to_canvas)

@@ -1,0 +1,324 @@
+"""Stage interfaces: one config base class and one working class per stage kind.
+
+A plugin registers *config classes* (cheap pydantic models, importable without heavy
+dependencies). The pipeline validates a spec into those configs and calls ``build()`` on
+each to get the working stage object. Stages exchange the frozen records defined here.
+
+Stage kinds, in pipeline order: source, resampler, merger, locator, interpolator.
+"""
+
+from __future__ import annotations
+
+import abc
+import importlib.util
+from dataclasses import dataclass
+from typing import Any, ClassVar
+
+import numpy as np
+from numpy.typing import NDArray
+from pydantic import BaseModel, ConfigDict
+
+from .errors import MissingDependency
+from .types import check_shape
+
+__all__ = [
+    "StageConfig",
+    "SourceConfig",
+    "ResamplerConfig",
+    "MergerConfig",
+    "LocatorConfig",
+    "InterpolatorConfig",
+    "PhotonSource",
+    "Groups",
+    "Resampler",
+    "MergedFrames",
+    "Merger",
+    "PairRegistrations",
+    "Locator",
+    "Interpolator",
+    "STAGES",
+]
+
+
+class StageConfig(BaseModel):
+    """Base of every plugin config: a validated, immutable, documented record.
+
+    Subclasses pin ``plugin`` to a ``Literal`` key (kebab-case, e.g. ``"opencv-sift"``),
+    document each field with a docstring on the line below it (units in the text and,
+    where ambiguous, in the name), and implement :meth:`build`.
+
+    Class attributes:
+        stage: the stage kind, set by the stage base classes.
+        requires: import names of optional packages the plugin needs.
+        install_hint: the command that installs them, e.g. ``pip install 'photonpano[kornia]'``.
+    """
+
+    model_config = ConfigDict(extra="forbid", frozen=True, use_attribute_docstrings=True)
+
+    plugin: str
+    stage: ClassVar[str] = ""
+    requires: ClassVar[tuple[str, ...]] = ()
+    install_hint: ClassVar[str] = ""
+
+    @classmethod
+    def missing_requirements(cls) -> list[str]:
+        """Return the import names in ``requires`` that are not installed (no import)."""
+        return [name for name in cls.requires if importlib.util.find_spec(name) is None]
+
+    @classmethod
+    def check_available(cls) -> None:
+        """Raise :class:`MissingDependency` if an optional requirement is missing."""
+        missing = cls.missing_requirements()
+        if missing:
+            key = cls.model_fields["plugin"].default
+            raise MissingDependency(
+                f"{cls.stage} {key!r} needs {', '.join(missing)}: {cls.install_hint or 'install it'}"
+            )
+
+    def build(self) -> Any:
+        """Return the working stage object configured by this record."""
+        raise NotImplementedError(f"{type(self).__name__}.build")
+
+
+# --- source: where binary frames come from -----------------------------------------
+
+
+class SourceConfig(StageConfig):
+    """Config base of sources; ``build()`` returns a :class:`PhotonSource`."""
+
+    stage: ClassVar[str] = "source"
+
+
+class PhotonSource(abc.ABC):
+    """A capture of binary frames (a photon cube) with random access by frame range.
+
+    Attributes:
+        n_frames: number of binary frames T.
+        height: frame height H in pixels.
+        width: frame width W in pixels.
+        exposure_s: exposure time tau of one binary frame, in seconds.
+        frame_rate_hz: binary frames per second.
+        ground_truth: (T, 3, 3) float64 true frame-to-scene homographies, or None.
+        scene_flux: (Hs, Ws) float32 true flux of the scene in photons/s (in the
+            coordinates ``ground_truth`` maps to), or None.
+        name: a short description for logs and ``run.json``.
+    """
+
+    n_frames: int
+    height: int
+    width: int
+    exposure_s: float
+    frame_rate_hz: float
+    ground_truth: NDArray[np.float64] | None = None
+    scene_flux: NDArray[np.float32] | None = None
+    name: str = ""
+
+    @abc.abstractmethod
+    def sum_ranges(self, edges: NDArray[np.int64]) -> NDArray[np.uint16]:
+        """Count detections per pixel over consecutive frame ranges.
+
+        Args:
+            edges: (B + 1,) strictly increasing frame indices within ``[0, T]``.
+
+        Returns:
+            (B, H, W) uint16 counts; range ``b`` covers frames ``edges[b]:edges[b+1]``.
+        """
+
+    def describe(self) -> dict[str, Any]:
+        """Return a JSON-serialisable summary of the capture for ``run.json``."""
+        return {"name": self.name, "frames": self.n_frames, "height": self.height,
+                "width": self.width, "exposure_s": self.exposure_s,
+                "frame_rate_hz": self.frame_rate_hz}
+
+
+# --- resampler: which frames form each virtual exposure ---------------------------
+
+
+class ResamplerConfig(StageConfig):
+    """Config base of resamplers; ``build()`` returns a :class:`Resampler`."""
+
+    stage: ClassVar[str] = "resampler"
+
+
+@dataclass(frozen=True)
+class Groups:
+    """The virtual exposures of one level.
+
+    Attributes:
+        start: (G,) int64 first binary frame of each group.
+        stop: (G,) int64 one past the last frame of each group.
+        reference: (G,) int64 frame whose pixel grid the group is merged into and whose
+            homography the locator estimates; strictly increasing.
+    """
+
+    start: NDArray[np.int64]
+    stop: NDArray[np.int64]
+    reference: NDArray[np.int64]
+
+    def __post_init__(self) -> None:
+        g = check_shape(self.reference, "G", name="Groups.reference")["G"]
+        check_shape(self.start, "G", name="Groups.start", G=g)
+        check_shape(self.stop, "G", name="Groups.stop", G=g)
+        if g and not (np.all(self.start <= self.reference) and np.all(self.reference < self.stop)):
+            raise ValueError("Groups: each reference frame must lie inside its group")
+        if np.any(np.diff(self.reference) <= 0):
+            raise ValueError("Groups: reference frames must be strictly increasing")
+
+    def __len__(self) -> int:
+        return len(self.reference)
+
+
+class Resampler(abc.ABC):
+    """Chooses the groups of binary frames (virtual exposures) of each level."""
+
+    @abc.abstractmethod
+    def groups(self, n_frames: int, group_size: int, level: int) -> Groups:
+        """Return the groups of ``level`` (1-based) for a capture of ``n_frames`` frames.
+
+        Args:
+            n_frames: number of binary frames T.
+            group_size: frames per group m.
+            level: 1 for the first level.
+
+        Raises:
+            ValueError: if the capture holds fewer than ``2 * group_size`` frames.
+        """
+
+
+# --- merger: virtual exposures from photons -------------------------------------
+
+
+class MergerConfig(StageConfig):
+    """Config base of mergers; ``build()`` returns a :class:`Merger`."""
+
+    stage: ClassVar[str] = "merger"
+
+
+@dataclass(frozen=True)
+class MergedFrames:
+    """Merged virtual exposures, each in the pixel grid of its group's reference frame.
+
+    Attributes:
+        flux: (G, H, W) float32 linear flux in photons/s; NaN where unobserved.
+        frames: (G, H, W) float32 number of binary frames behind each pixel.
+        images: (G, H, W) uint8 tone-mapped sRGB images for the locator.
+        masks: (G, H, W) bool pixels observed by enough frames to be trusted.
+    """
+
+    flux: NDArray[np.float32]
+    frames: NDArray[np.float32]
+    images: NDArray[np.uint8]
+    masks: NDArray[np.bool_]
+
+    def __len__(self) -> int:
+        return len(self.flux)
+
+
+class Merger(abc.ABC):
+    """Warps and merges the binary frames of each group into one virtual exposure."""
+
+    @abc.abstractmethod
+    def merge(self, source: PhotonSource, homographies: NDArray[np.float64], groups: Groups,
+              progress: Any = None) -> MergedFrames:
+        """Merge every group.
+
+        Args:
+            source: the capture.
+            homographies: (T, 3, 3) float64 current frame-to-panorama homographies.
+            groups: the groups to merge.
+            progress: optional callable ``progress(n)`` advanced by groups done.
+
+        Returns:
+            One merged frame per group, in its reference frame's pixel grid.
+        """
+
+
+# --- locator: registration of merged frames --------------------------------------
+
+
+class LocatorConfig(StageConfig):
+    """Config base of locators; ``build()`` returns a :class:`Locator`."""
+
+    stage: ClassVar[str] = "locator"
+
+
+@dataclass(frozen=True)
+class PairRegistrations:
+    """Homographies between pairs of merged frames.
+
+    Attributes:
+        homographies: (P, 3, 3) float64; entry p maps pixel coordinates of merged frame
+            ``pairs[p, 1]`` to those of merged frame ``pairs[p, 0]``.
+        matches: (P,) int64 tentative correspondences (0 for direct methods).
+        inliers: (P,) int64 correspondences consistent with the homography.
+        ok: (P,) bool False where the pair failed to register (its homography is then
+            meaningless and is bridged by the framework).
+    """
+
+    homographies: NDArray[np.float64]
+    matches: NDArray[np.int64]
+    inliers: NDArray[np.int64]
+    ok: NDArray[np.bool_]
+
+    def __post_init__(self) -> None:
+        p = check_shape(self.homographies, "P 3 3", name="PairRegistrations.homographies")["P"]
+        for name in ("matches", "inliers", "ok"):
+            check_shape(getattr(self, name), "P", name=f"PairRegistrations.{name}", P=p)
+
+
+class Locator(abc.ABC):
+    """Estimates homographies between pairs of merged frames."""
+
+    @abc.abstractmethod
+    def register_pairs(self, merged: MergedFrames, pairs: NDArray[np.int64],
+                       initial: NDArray[np.float64]) -> PairRegistrations:
+        """Register each pair ``(a, b)``: find H mapping frame b's pixels to frame a's.
+
+        Args:
+            merged: the merged frames of this level.
+            pairs: (P, 2) int64 indices into ``merged``.
+            initial: (P, 3, 3) float64 current estimate of each pair's homography (for
+                direct methods or to guide matching; feature methods may ignore it).
+
+        Returns:
+            One result per pair. A pair that cannot be registered is returned with
+            ``ok=False``; raising is reserved for programming errors.
+        """
+
+
+# --- interpolator: homographies for every binary frame ---------------------------
+
+
+class InterpolatorConfig(StageConfig):
+    """Config base of interpolators; ``build()`` returns an :class:`Interpolator`."""
+
+    stage: ClassVar[str] = "interpolator"
+
+
+class Interpolator(abc.ABC):
+    """Interpolates homographies known at some frames to every binary frame."""
+
+    @abc.abstractmethod
+    def interpolate(self, keyframes: NDArray[np.int64], homographies: NDArray[np.float64],
+                    n_frames: int) -> NDArray[np.float64]:
+        """Interpolate ``homographies`` known at ``keyframes`` to frames ``0..n_frames-1``.
+
+        Args:
+            keyframes: (G,) int64 strictly increasing frame indices, G >= 1.
+            homographies: (G, 3, 3) float64 homographies at those frames.
+            n_frames: number of binary frames T.
+
+        Returns:
+            (T, 3, 3) float64, normalised (``H[2, 2] == 1``); frames before the first
+            and after the last keyframe get extrapolated values.
+        """
+
+
+STAGES: dict[str, type[StageConfig]] = {
+    "source": SourceConfig,
+    "resampler": ResamplerConfig,
+    "merger": MergerConfig,
+    "locator": LocatorConfig,
+    "interpolator": InterpolatorConfig,
+}
+"""Stage kind -> config base class, in pipeline order."""

@@ -1,0 +1,96 @@
+"""Resamplers ``midpoint`` (the paper's stratified re-sampling) and ``constant`` (ablation).
+
+Paper Sec. 4, "Re-sample": level 1 splits the n binary frames into floor(n/m)
+non-overlapping groups of m frames, each referenced to its centre frame; every later
+level adds groups centred between the previous ones, so the trajectory is sampled ever
+more densely. ``constant`` keeps the level-1 groups at every level (paper Fig. 5).
+"""
+
+from __future__ import annotations
+
+from typing import Annotated, Literal
+
+import numpy as np
+from pydantic import Field
+
+from photonpano import hookimpl
+from photonpano.stages import Groups, Resampler, ResamplerConfig
+
+
+def level_one_references(n_frames: int, group_size: int) -> np.ndarray:
+    """Return the (G1,) int64 centre frames of the level-1 groups.
+
+    Raises:
+        ValueError: if the capture holds fewer than ``2 * group_size`` frames.
+    """
+    count = n_frames // group_size
+    if count < 2:
+        raise ValueError(f"a capture of {n_frames} frames gives {count} group(s) of "
+                         f"{group_size} frames; at least 2 are needed (lower group_size)")
+    return np.arange(count, dtype=np.int64) * group_size + group_size // 2
+
+
+def groups_around(references: np.ndarray, n_frames: int, group_size: int) -> Groups:
+    """Return groups of ``group_size`` frames centred on each reference, kept in the capture.
+
+    A group that would leave the capture is shifted inside it; its reference frame is
+    then off-centre (paper suppl. S.2: localising off-centre time slices).
+    """
+    refs = np.unique(np.asarray(references, dtype=np.int64))
+    start = np.clip(refs - group_size // 2, 0, n_frames - group_size)
+    return Groups(start=start, stop=start + group_size, reference=refs)
+
+
+class MidpointConfig(ResamplerConfig):
+    """Stratified re-sampling: each level adds groups centred between the previous ones."""
+
+    plugin: Literal["midpoint"] = "midpoint"
+    anchor_ends: bool = True
+    """From level 2 on, also reference the first and the last binary frame (groups at
+    the ends of the capture), so the ends of the trajectory are estimated rather than
+    extrapolated (paper suppl. S.2, edge effects)."""
+
+    def build(self) -> MidpointResampler:
+        """Return the resampler."""
+        return MidpointResampler(self)
+
+
+class MidpointResampler(Resampler):
+    """Level k has (G1 - 1) * 2**(k-1) + 1 groups, spaced m / 2**(k-1) frames apart."""
+
+    def __init__(self, config: MidpointConfig) -> None:
+        self.config = config
+
+    def groups(self, n_frames: int, group_size: int, level: int) -> Groups:
+        """Return the groups of ``level`` (see :meth:`Resampler.groups`)."""
+        base = level_one_references(n_frames, group_size)
+        steps = 2 ** (level - 1)
+        fine = np.linspace(base[0], base[-1], (len(base) - 1) * steps + 1)
+        refs = np.rint(fine).astype(np.int64)
+        if self.config.anchor_ends and level >= 2:
+            refs = np.concatenate([[0], refs, [n_frames - 1]])
+        return groups_around(refs, n_frames, group_size)
+
+
+class ConstantConfig(ResamplerConfig):
+    """The same level-1 groups at every level (the paper's ablation, Fig. 5)."""
+
+    plugin: Literal["constant"] = "constant"
+
+    def build(self) -> ConstantResampler:
+        """Return the resampler."""
+        return ConstantResampler()
+
+
+class ConstantResampler(Resampler):
+    """floor(n/m) non-overlapping groups of m frames at every level."""
+
+    def groups(self, n_frames: int, group_size: int, level: int) -> Groups:
+        """Return the level-1 groups whatever ``level`` is."""
+        return groups_around(level_one_references(n_frames, group_size), n_frames, group_size)
+
+
+@hookimpl
+def photonpano_register_resamplers() -> list[type[ResamplerConfig]]:
+    """Register ``midpoint`` and ``constant``."""
+    return [MidpointConfig, ConstantConfig]

@@ -1,0 +1,136 @@
+"""Source ``npy-cube``: a photon cube stored as a NumPy ``.npy`` file.
+
+The SwissSPAD layout is ``(T, H, W/8)`` uint8, bit-packed along the width with the most
+significant bit first (exactly ``np.packbits(frames, axis=-1)``); unpacked ``(T, H, W)``
+bool or uint8 0/1 cubes are accepted too. The file is memory-mapped read-only and only
+the frames being merged are touched, so captures larger than memory work.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated, Any, Literal
+
+import numpy as np
+from numpy.typing import NDArray
+from pydantic import Field
+
+from photonpano import hookimpl
+from photonpano.errors import SourceError
+from photonpano.stages import PhotonSource, SourceConfig
+
+
+class NpyCubeConfig(SourceConfig):
+    """A SwissSPAD ``.npy`` photon cube, bit-packed or unpacked, memory-mapped."""
+
+    plugin: Literal["npy-cube"] = "npy-cube"
+    path: Path
+    """The ``.npy`` file."""
+    layout: Literal["auto", "packed", "unpacked"] = "auto"
+    """``packed``: (T, H, W/8) uint8, MSB first; ``unpacked``: (T, H, W) bool/uint8 0/1;
+    ``auto``: bool is unpacked, uint8 is packed if any of the first frames holds a
+    byte above 1."""
+    start: Annotated[int, Field(ge=0)] = 0
+    """First binary frame to use."""
+    stop: Annotated[int, Field(ge=1)] | None = None
+    """One past the last frame to use (default: the end of the cube)."""
+    frame_rate_hz: Annotated[float, Field(gt=0)] = 100_000.0
+    """Binary frames per second of the capture (SwissSPAD2: up to ~100 kHz)."""
+    exposure_s: Annotated[float, Field(gt=0)] | None = None
+    """Exposure time of one binary frame in seconds (default: 1 / frame_rate_hz)."""
+
+    def build(self) -> NpyCube:
+        """Open the cube (memory-mapped, read-only)."""
+        return NpyCube(self)
+
+
+class NpyCube(PhotonSource):
+    """A memory-mapped ``.npy`` photon cube (see :class:`NpyCubeConfig`).
+
+    Attributes:
+        cube: (T_file, H, W/8) or (T_file, H, W) read-only memory map.
+        packed: True for the bit-packed layout.
+    """
+
+    def __init__(self, config: NpyCubeConfig) -> None:
+        """Open and check the cube.
+
+        Raises:
+            SourceError: missing or unreadable file, wrong dtype or number of
+                dimensions, or a frame range outside the cube; messages name the file.
+        """
+        self.config = config
+        path = config.path
+        if not path.is_file():
+            raise SourceError(f"source (npy-cube): {path} does not exist")
+        try:
+            cube = np.load(path, mmap_mode="r", allow_pickle=False)
+        except (ValueError, OSError, EOFError) as exc:
+            raise SourceError(f"source (npy-cube): {path} is not a readable .npy file ({exc})") from None
+        if cube.ndim != 3:
+            raise SourceError(f"source (npy-cube): {path} has shape {cube.shape}; expected a photon cube "
+                              "(T, H, W/8) bit-packed or (T, H, W) unpacked")
+        if cube.dtype not in (np.uint8, np.bool_):
+            raise SourceError(f"source (npy-cube): {path} has dtype {cube.dtype}; expected uint8 "
+                              "(bit-packed, or 0/1 unpacked) or bool")
+        self.cube = cube
+        self.packed = _is_packed(cube, config.layout, path)
+        total = len(cube)
+        stop = total if config.stop is None else config.stop
+        if not config.start < stop <= total:
+            raise SourceError(f"source (npy-cube): frames {config.start}:{stop} are outside {path}, "
+                              f"which holds {total} frames")
+        self.offset = config.start
+        self.n_frames = stop - config.start
+        self.height = cube.shape[1]
+        self.width = cube.shape[2] * (8 if self.packed else 1)
+        self.frame_rate_hz = config.frame_rate_hz
+        self.exposure_s = config.exposure_s or 1.0 / config.frame_rate_hz
+        self.name = f"npy-cube({path.name}, {'packed' if self.packed else 'unpacked'})"
+
+    def sum_ranges(self, edges: NDArray[np.int64]) -> NDArray[np.uint16]:
+        """Count detections over frame ranges (see :meth:`PhotonSource.sum_ranges`)."""
+        from photonpano.photons import sum_packed_ranges, sum_unpacked_ranges
+
+        edges = np.asarray(edges, dtype=np.int64)
+        if len(edges) and (edges[0] < 0 or edges[-1] > self.n_frames):
+            raise ValueError(f"frame ranges {edges[0]}:{edges[-1]} leave the capture of {self.n_frames} frames")
+        view = self.cube[self.offset:self.offset + self.n_frames]
+        if self.packed:
+            return sum_packed_ranges(view, edges)
+        return sum_unpacked_ranges(view, edges)
+
+    def describe(self) -> dict[str, Any]:
+        """Return the capture summary with the file, layout and frame range."""
+        return {**super().describe(), "path": str(self.config.path), "packed": self.packed,
+                "start": self.offset}
+
+
+def _is_packed(cube: np.ndarray, layout: str, path: Path) -> bool:
+    if cube.dtype == np.bool_:
+        if layout == "packed":
+            raise SourceError(f"source (npy-cube): {path} holds bool frames, which cannot be bit-packed; "
+                              "use layout: unpacked or auto")
+        return False
+    if layout == "packed":
+        return True
+    sample = np.asarray(cube[: min(len(cube), 64)])
+    above_one = bool(sample.max(initial=0) > 1)
+    if layout == "unpacked" and above_one:
+        raise SourceError(f"source (npy-cube): {path} holds bytes above 1, so it is not an unpacked "
+                          "0/1 cube; use layout: packed or auto")
+    return above_one
+
+
+@hookimpl
+def photonpano_register_sources() -> list[type[SourceConfig]]:
+    """Register the ``npy-cube`` source."""
+    return [NpyCubeConfig]
+
+
+@hookimpl
+def photonpano_source_for_input(path: Path) -> dict[str, Any] | None:
+    """Read ``*.npy`` inputs of ``photonpano pano`` with this source."""
+    if path.suffix.lower() == ".npy":
+        return {"plugin": "npy-cube", "path": str(path)}
+    return None

@@ -1,0 +1,227 @@
+"""Source ``simulate``: a SPAD capture simulated from a real photograph.
+
+As in the paper (Sec. 5, "Simulation Details"): the photograph's sRGB tone curve is
+undone to get linear intensity, the camera's field of view follows a known path across
+it, and every binary frame is drawn from Eq. (2), ``P(1) = 1 - exp(-flux * I)``.
+"""
+
+from __future__ import annotations
+
+from importlib import resources
+from pathlib import Path
+from typing import Annotated, Literal
+
+import numpy as np
+from numpy.typing import NDArray
+from pydantic import Field
+
+from photonpano import hookimpl
+from photonpano.errors import SourceError
+from photonpano.stages import PhotonSource, SourceConfig
+
+BUNDLED_PHOTO = "office_equirect.jpg"
+
+
+def bundled_photo() -> Path:
+    """Return the path of the bundled real photograph (see ``plugins/data/SOURCES.md``)."""
+    return Path(str(resources.files("photonpano.plugins") / "data" / BUNDLED_PHOTO))
+
+
+class SimulateConfig(SourceConfig):
+    """Simulate binary frames of a camera moving across a real photograph."""
+
+    plugin: Literal["simulate"] = "simulate"
+    photo: Path | None = None
+    """sRGB photograph (JPEG/PNG) to look at; default: the bundled office photo."""
+    scene_width: Annotated[int, Field(gt=0)] = 1440
+    """The photo is resized to this width in pixels before simulation. Camera pixels
+    have unit size in the resized photo at zoom 1, so errors are in these "scene pixels"."""
+    frames: Annotated[int, Field(gt=0)] = 20_000
+    """Number of binary frames T."""
+    height: Annotated[int, Field(gt=0)] = 254
+    """Frame height in pixels (254 for a SwissSPAD2 half array after the colour fix)."""
+    width: Annotated[int, Field(gt=0, multiple_of=8)] = 496
+    """Frame width in pixels, a multiple of 8 (frames are bit-packed)."""
+    frame_rate_hz: Annotated[float, Field(gt=0)] = 100_000.0
+    """Binary frames per second; the exposure of one frame is 1 / frame_rate_hz."""
+    flux: Annotated[float, Field(gt=0)] = 0.5
+    """Light level: mean photons per pixel per binary frame where the photo is white."""
+    path: Literal["pan", "zigzag", "shake"] = "pan"
+    """Camera path: horizontal pan; pan with a vertical triangle sweep; or a pan plus a
+    smooth random shake (sum of seeded random sinusoids)."""
+    speed_px_per_frame: float = 0.02
+    """Horizontal pan speed in scene pixels per binary frame."""
+    sweep_px: Annotated[float, Field(ge=0)] = 40.0
+    """zigzag: peak vertical excursion in scene pixels."""
+    sweep_period_frames: Annotated[int, Field(gt=0)] = 20_000
+    """zigzag: frames per full up-and-down sweep."""
+    shake_px: Annotated[float, Field(ge=0)] = 8.0
+    """shake: RMS displacement of the random shake in scene pixels (0.5-10 Hz content)."""
+    vibration_px: Annotated[float, Field(ge=0)] = 5.0
+    """Amplitude of a circular high-frequency vibration in scene pixels."""
+    vibration_hz: Annotated[float, Field(ge=0)] = 30.0
+    """Frequency of the vibration in Hz."""
+    rotation_deg: Annotated[float, Field(ge=0)] = 0.0
+    """Amplitude of an in-plane rotation oscillation in degrees."""
+    rotation_hz: Annotated[float, Field(ge=0)] = 2.0
+    """Frequency of the rotation oscillation in Hz."""
+    zoom: Annotated[float, Field(ge=0, lt=0.5)] = 0.0
+    """Relative amplitude of a zoom oscillation (0.05 = +-5 % scale)."""
+    zoom_hz: Annotated[float, Field(ge=0)] = 2.0
+    """Frequency of the zoom oscillation in Hz."""
+    seed: Annotated[int, Field(ge=0)] = 0
+    """Random seed of the photon draws and of the shake path."""
+    cube_path: Path | None = None
+    """Also write the binary frames to this bit-packed ``.npy`` cube (must not exist)."""
+
+    def build(self) -> SimulatedCapture:
+        """Simulate the capture (takes about 0.5 ms per binary frame)."""
+        return SimulatedCapture(self)
+
+
+def camera_path(config: SimulateConfig, scene_shape: tuple[int, int]) -> NDArray[np.float64]:
+    """Return the true frame-to-scene homographies of the simulated camera.
+
+    ``H[t] = T(centre + offset(t)) R(theta(t)) S(zoom(t)) T(-frame_centre)``: a frame
+    pixel ``(x, y)`` of binary frame t sees scene pixel ``H[t] @ (x, y, 1)``.
+
+    Args:
+        config: the simulation settings.
+        scene_shape: ``(height, width)`` of the scene in pixels.
+
+    Returns:
+        (T, 3, 3) float64 homographies.
+
+    Raises:
+        SourceError: if the camera's field of view leaves the scene.
+    """
+    n, fps = config.frames, config.frame_rate_hz
+    t = np.arange(n, dtype=np.float64)
+    s = t / fps
+    x = config.speed_px_per_frame * (t - (n - 1) / 2)
+    y = np.zeros(n)
+    if config.path == "zigzag":
+        phase = (t / config.sweep_period_frames) % 1.0
+        y = config.sweep_px * (4 * np.abs(phase - 0.5) - 1)
+    elif config.path == "shake":
+        rng = np.random.default_rng(config.seed + 7919)
+        freqs = rng.uniform(0.5, 10.0, size=(2, 6))
+        phases = rng.uniform(0, 2 * np.pi, size=(2, 6))
+        amps = 1.0 / freqs
+        shake = np.einsum("ak,akn->an", amps, np.sin(2 * np.pi * freqs[..., None] * s + phases[..., None]))
+        shake *= config.shake_px / max(float(np.sqrt(np.mean(shake ** 2))), 1e-12) / np.sqrt(2)
+        x, y = x + shake[0], y + shake[1]
+    w = 2 * np.pi * config.vibration_hz * s
+    x = x + config.vibration_px * np.sin(w)
+    y = y + config.vibration_px * np.cos(w)
+    theta = np.deg2rad(config.rotation_deg) * np.sin(2 * np.pi * config.rotation_hz * s)
+    zoom = 1.0 + config.zoom * np.sin(2 * np.pi * config.zoom_hz * s)
+
+    hs, ws = scene_shape
+    cx, cy = (config.width - 1) / 2, (config.height - 1) / 2
+    c, si = np.cos(theta) * zoom, np.sin(theta) * zoom
+    h = np.zeros((n, 3, 3))
+    h[:, 0, 0], h[:, 0, 1] = c, -si
+    h[:, 1, 0], h[:, 1, 1] = si, c
+    h[:, 0, 2] = (ws - 1) / 2 + x - (c * cx - si * cy)
+    h[:, 1, 2] = (hs - 1) / 2 + y - (si * cx + c * cy)
+    h[:, 2, 2] = 1
+
+    from photonpano.geometry import footprint_bounds
+
+    x0, y0, x1, y1 = footprint_bounds(h, config.width, config.height)
+    if x0 < 0 or y0 < 0 or x1 > ws - 1 or y1 > hs - 1:
+        raise SourceError(
+            f"source (simulate): the camera path leaves the {ws}x{hs} scene "
+            f"(field of view spans x {x0:.0f}..{x1:.0f}, y {y0:.0f}..{y1:.0f}); "
+            "reduce frames, speed_px_per_frame or the motion amplitudes, or raise scene_width"
+        )
+    return h
+
+
+def load_scene(photo: Path, scene_width: int) -> NDArray[np.float32]:
+    """Load a photograph as linear luminance resized to ``scene_width`` pixels.
+
+    Args:
+        photo: path of an sRGB image readable by OpenCV.
+        scene_width: output width in pixels (the height keeps the aspect ratio).
+
+    Returns:
+        (Hs, Ws) float32 linear luminance in [0, 1] (Rec. 709 weights).
+
+    Raises:
+        SourceError: if the file is missing or cannot be decoded.
+    """
+    import cv2
+
+    from photonpano.photons import srgb_to_linear
+
+    if not photo.is_file():
+        raise SourceError(f"source (simulate): photo {photo} does not exist")
+    bgr = cv2.imread(str(photo), cv2.IMREAD_COLOR)
+    if bgr is None:
+        raise SourceError(f"source (simulate): {photo} is not an image OpenCV can decode")
+    linear = srgb_to_linear(bgr.astype(np.float32) / 255.0)
+    lum = linear @ np.array([0.0722, 0.7152, 0.2126], dtype=np.float32)  # BGR order
+    height = max(1, round(bgr.shape[0] * scene_width / bgr.shape[1]))
+    return cv2.resize(lum, (scene_width, height), interpolation=cv2.INTER_AREA)
+
+
+class SimulatedCapture(PhotonSource):
+    """A simulated photon cube held bit-packed in memory (or in ``cube_path``).
+
+    Attributes:
+        cube: (T, H, W/8) uint8 bit-packed binary frames, MSB first.
+        ground_truth: (T, 3, 3) float64 true frame-to-scene homographies.
+        scene_flux: (Hs, Ws) float32 true scene flux in photons/s.
+    """
+
+    def __init__(self, config: SimulateConfig) -> None:
+        """Simulate every binary frame of ``config``.
+
+        Raises:
+            SourceError: if the photo is unreadable, the path leaves the scene or
+                ``cube_path`` already exists.
+        """
+        import cv2
+
+        from photonpano.photons import simulate_packed_frames
+
+        self.config = config
+        photo = config.photo or bundled_photo()
+        scene = load_scene(photo, config.scene_width)
+        self.n_frames, self.height, self.width = config.frames, config.height, config.width
+        self.frame_rate_hz = config.frame_rate_hz
+        self.exposure_s = 1.0 / config.frame_rate_hz
+        self.ground_truth = camera_path(config, scene.shape)
+        self.scene_flux = (config.flux * scene / self.exposure_s).astype(np.float32)
+        self.name = f"simulate({photo.name}, {config.path}, flux {config.flux})"
+
+        shape = (config.frames, config.height, config.width // 8)
+        if config.cube_path is not None:
+            if config.cube_path.exists():
+                raise SourceError(f"source (simulate): cube_path {config.cube_path} exists; "
+                                  "refusing to overwrite it")
+            self.cube = np.lib.format.open_memmap(config.cube_path, mode="w+", dtype=np.uint8, shape=shape)
+        else:
+            self.cube = np.empty(shape, dtype=np.uint8)
+        size = (config.width, config.height)
+        flags = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
+        for t in range(config.frames):
+            intensity = cv2.warpPerspective(scene, self.ground_truth[t], size, flags=flags)
+            probability = -np.expm1(-config.flux * intensity)
+            self.cube[t] = simulate_packed_frames(probability, config.seed, t)
+        if isinstance(self.cube, np.memmap):
+            self.cube.flush()
+
+    def sum_ranges(self, edges: NDArray[np.int64]) -> NDArray[np.uint16]:
+        """Count detections over frame ranges (see :meth:`PhotonSource.sum_ranges`)."""
+        from photonpano.photons import sum_packed_ranges
+
+        return sum_packed_ranges(self.cube, edges)
+
+
+@hookimpl
+def photonpano_register_sources() -> list[type[SourceConfig]]:
+    """Register the ``simulate`` source."""
+    return [SimulateConfig]
