@@ -14,6 +14,7 @@ from typing import Annotated, Any, Optional
 
 import typer
 
+from . import hookimpl
 from .errors import PhotonpanoError
 
 app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False,
@@ -47,32 +48,32 @@ class _RichProgress:
                              TimeElapsedColumn(), transient=False)
         self.tasks: dict[str, Any] = {}
 
+    @hookimpl
     def photonpano_run_start(self, source) -> None:
         typer.echo(f"source: {source.name}: {source.n_frames} frames of {source.height}x{source.width}")
         self.bars.start()
 
+    @hookimpl
     def photonpano_progress(self, task: str, total, advance: int) -> None:
         if task not in self.tasks:
             self.tasks[task] = self.bars.add_task(task, total=total)
         self.bars.advance(self.tasks[task], advance)
 
+    @hookimpl
     def photonpano_level_finished(self, level) -> None:
         s = level.statistics()
         self.bars.console.print(f"level {s['level']}: {s['groups']} groups, median {s['median_inliers']:.0f} "
                                 f"inliers, {s['failed_pairs']} failed pairs")
 
+    @hookimpl
     def photonpano_run_finished(self, summary) -> None:
         self.bars.stop()
 
 
 def _execute(spec, out: Path, force: bool, host) -> dict[str, Any]:
-    from . import hookimpl
     from .pipeline import run_pipeline
 
     observer = _RichProgress()
-    for name in ("photonpano_run_start", "photonpano_progress", "photonpano_level_finished",
-                 "photonpano_run_finished"):
-        setattr(observer, name, hookimpl(getattr(observer, name)))
     host.register(observer, name="cli-progress")
     try:
         return run_pipeline(spec, out, host, force=force)

@@ -123,8 +123,7 @@ def run_pipeline(spec: BaseModel, out_dir: Path, host: PluginHost, *, force: boo
     }
     if source.ground_truth is not None:
         t0 = time.perf_counter()
-        summary["ground_truth"] = ground_truth_report(source, homographies, pano, spec.scale,
-                                                      spec.panorama_subbatch_px)
+        summary["ground_truth"] = ground_truth_report(source, homographies, pano, spec.panorama_subbatch_px)
         timings["ground_truth_report"] = time.perf_counter() - t0
     if spec.outputs.trajectory_plot:
         _plot_trajectory(out_dir / "trajectory.png", homographies, source)
@@ -139,63 +138,47 @@ def _rmse(homographies: np.ndarray, source) -> float:
     return trajectory_error(homographies, source.ground_truth, source.width, source.height).rmse_px
 
 
-def ground_truth_report(source, homographies: np.ndarray, pano, scale: float, subbatch_px: float) -> dict[str, Any]:
+def ground_truth_report(source, homographies: np.ndarray, pano, subbatch_px: float) -> dict[str, Any]:
     """Measure a reconstruction against a capture's ground truth.
 
-    Computes the trajectory error after the best global alignment and the PSNR of the
-    panorama against the true scene flux, next to the PSNR of a panorama merged with the
-    true homographies (the best the merge can do).
+    The trajectory error is taken after the best global alignment G (the panorama's
+    coordinate frame is arbitrary). For the panorama, the true homographies are carried
+    into the estimated canvas through G and a second panorama is merged with them *on
+    the same canvas*; both are compared with the true scene flux resampled onto that
+    canvas, so the PSNR gap measures only what the estimated motion costs.
 
     Args:
-        source: a capture with ``ground_truth`` and ``scene_flux``.
+        source: a capture with ``ground_truth`` (and ``scene_flux`` for the PSNR).
         homographies: (T, 3, 3) float64 estimated frame-to-panorama homographies.
         pano: the estimated :class:`~photonpano.reconstruct.Panorama`.
-        scale: its super-resolution scale.
         subbatch_px: sub-batch tolerance used for the reference panorama.
 
     Returns:
-        ``{"trajectory_rmse_px", "trajectory_max_px", "psnr_db", "psnr_true_homographies_db",
-        "psnr_gap_db"}``.
+        ``{"trajectory_rmse_px", "trajectory_max_px"}`` and, with a scene, ``"psnr_db",
+        "psnr_true_homographies_db", "psnr_gap_db"``.
     """
-    from .metrics import trajectory_error
+    import cv2
+
+    from .metrics import psnr, trajectory_error
     from .reconstruct import assemble_panorama
 
     err = trajectory_error(homographies, source.ground_truth, source.width, source.height)
     report: dict[str, Any] = {"trajectory_rmse_px": err.rmse_px,
                               "trajectory_max_px": float(err.per_frame_px.max())}
-    if source.scene_flux is not None:
-        truth_pano = assemble_panorama(source, source.ground_truth, scale=scale, subbatch_px=subbatch_px)
-        estimated_db, true_db = panorama_psnrs(source, pano, truth_pano, err.alignment @ homographies[0])
-        report.update(psnr_db=estimated_db, psnr_true_homographies_db=true_db, psnr_gap_db=true_db - estimated_db)
+    if source.scene_flux is None:
+        return report
+    canvas_from_pano = pano.homographies[0] @ np.linalg.inv(homographies[0])
+    canvas_from_scene = canvas_from_pano @ np.linalg.inv(err.alignment)
+    shape = pano.flux.shape
+    truth = assemble_panorama(source, canvas_from_scene @ source.ground_truth, subbatch_px=subbatch_px,
+                              canvas_shape=shape)
+    scene = cv2.warpPerspective(source.scene_flux, canvas_from_scene, shape[::-1], flags=cv2.INTER_LINEAR,
+                                borderMode=cv2.BORDER_CONSTANT, borderValue=np.nan)
+    both = np.isfinite(pano.flux) & np.isfinite(truth.flux) & np.isfinite(scene)
+    mask = cv2.erode(both.astype(np.uint8), np.ones((7, 7), np.uint8)).astype(bool)
+    estimated_db, true_db = psnr(pano.flux, scene, mask), psnr(truth.flux, scene, mask)
+    report.update(psnr_db=estimated_db, psnr_true_homographies_db=true_db, psnr_gap_db=true_db - estimated_db)
     return report
-
-
-def panorama_psnrs(source, pano, truth_pano, frame0_to_scene: np.ndarray) -> tuple[float, float]:
-    """PSNR of an estimated and a true-homography panorama against the scene flux.
-
-    Both canvases are resampled into scene coordinates (the estimated one through the
-    best global alignment) and compared on the pixels both observe, eroded by 3 pixels
-    to leave out partially covered borders; a gain is fitted before each PSNR.
-
-    Returns:
-        ``(psnr_estimated_db, psnr_true_homographies_db)``.
-    """
-    import cv2
-
-    from .metrics import psnr
-
-    hs, ws = source.scene_flux.shape
-
-    def to_scene(flux, canvas_from_scene):
-        filled = np.nan_to_num(flux, nan=-1.0).astype(np.float32)
-        return cv2.warpPerspective(filled, canvas_from_scene, (ws, hs), flags=cv2.INTER_LINEAR,
-                                   borderMode=cv2.BORDER_CONSTANT, borderValue=-1.0)
-
-    # canvas <- scene: canvas_from_frame0 @ inv(scene_from_frame0)
-    est = to_scene(pano.flux, pano.homographies[0] @ np.linalg.inv(frame0_to_scene))
-    tru = to_scene(truth_pano.flux, truth_pano.homographies[0] @ np.linalg.inv(source.ground_truth[0]))
-    mask = cv2.erode(((est >= 0) & (tru >= 0)).astype(np.uint8), np.ones((7, 7), np.uint8)).astype(bool)
-    return psnr(est, source.scene_flux, mask), psnr(tru, source.scene_flux, mask)
 
 
 def _write_png(path: Path, image: np.ndarray) -> None:

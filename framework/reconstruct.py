@@ -30,6 +30,7 @@ class LevelResult:
         groups: the level's virtual exposures.
         merged: the merged frames (dropped after the level unless kept for dumps).
         pairs: the level's pair registrations.
+        pair_index: (P, 2) int64 merged-frame indices ``(a, b)`` of each pair.
         keyframes: (G, 3, 3) float64 chained homographies at the reference frames.
         homographies: (T, 3, 3) float64 per-frame homographies after the level.
         timings_s: wall time of each stage in seconds.
@@ -39,22 +40,30 @@ class LevelResult:
     groups: Groups
     merged: MergedFrames | None
     pairs: PairRegistrations
+    pair_index: NDArray[np.int64]
     keyframes: NDArray[np.float64]
     homographies: NDArray[np.float64]
     timings_s: dict[str, float] = field(default_factory=dict)
 
     def statistics(self) -> dict[str, Any]:
-        """Return JSON-ready per-level statistics (groups, matches, inliers, failures)."""
+        """Return JSON-ready per-level statistics.
+
+        ``failed_pairs`` counts consecutive pairs that failed and were bridged;
+        ``extra_pairs_used`` counts longer-offset pairs that passed the checks; matches
+        and inliers are over consecutive pairs.
+        """
         p = self.pairs
+        consecutive = self.pair_index[:, 1] - self.pair_index[:, 0] == 1
         return {
             "level": self.level,
             "groups": len(self.groups),
             "pairs": len(p.ok),
-            "failed_pairs": int((~p.ok).sum()),
-            "failed_pair_indices": np.flatnonzero(~p.ok).tolist(),
-            "median_matches": float(np.median(p.matches)) if len(p.ok) else 0.0,
-            "median_inliers": float(np.median(p.inliers)) if len(p.ok) else 0.0,
-            "min_inliers": int(p.inliers.min()) if len(p.ok) else 0,
+            "failed_pairs": int((~p.ok[consecutive]).sum()),
+            "failed_pair_indices": self.pair_index[consecutive][~p.ok[consecutive], 0].tolist(),
+            "extra_pairs_used": int(p.ok[~consecutive].sum()),
+            "median_matches": float(np.median(p.matches[consecutive])) if consecutive.any() else 0.0,
+            "median_inliers": float(np.median(p.inliers[consecutive])) if consecutive.any() else 0.0,
+            "min_inliers": int(p.inliers[consecutive].min()) if consecutive.any() else 0,
             "timings_s": self.timings_s,
         }
 
@@ -168,6 +177,103 @@ def pairs_at_offsets(count: int, offsets: tuple[int, ...]) -> NDArray[np.int64]:
     return np.concatenate(rows).astype(np.int64) if rows else np.zeros((0, 2), np.int64)
 
 
+def plausible(homographies: NDArray[np.float64], width: int, height: int,
+              max_area_change: float = 2.0) -> NDArray[np.bool_]:
+    """Flag homographies that could relate two frames of a continuous capture.
+
+    A homography is implausible when it folds the frame (the warped corners are not a
+    convex quadrilateral in the same orientation) or changes its area by more than a
+    factor ``max_area_change``; such results come from spurious feature matches.
+
+    Args:
+        homographies: (P, 3, 3) float64.
+        width: frame width in pixels.
+        height: frame height in pixels.
+        max_area_change: largest accepted area ratio (and inverse).
+
+    Returns:
+        (P,) bool.
+    """
+    q = geometry.apply(homographies, geometry.corners(width, height))  # (P, 4, 2)
+    edge = np.roll(q, -1, axis=1) - q
+    cross = edge[..., 0] * np.roll(edge, -1, axis=1)[..., 1] - edge[..., 1] * np.roll(edge, -1, axis=1)[..., 0]
+    area = 0.5 * np.abs(np.sum(q[..., 0] * np.roll(q[..., 1], -1, axis=1) - np.roll(q[..., 0], -1, axis=1) * q[..., 1], axis=1))
+    ratio = area / ((width - 1) * (height - 1))
+    finite = np.all(np.isfinite(q), axis=(1, 2))
+    return finite & np.all(cross > 0, axis=1) & (ratio < max_area_change) & (ratio > 1 / max_area_change)
+
+
+def _concat(a: PairRegistrations, b: PairRegistrations) -> PairRegistrations:
+    return PairRegistrations(*(np.concatenate([getattr(a, f), getattr(b, f)])
+                               for f in ("homographies", "matches", "inliers", "ok")))
+
+
+def locate_keyframes(locator: Locator, merged: MergedFrames, current: NDArray[np.float64],
+                     pair_offsets: tuple[int, ...], width: int, height: int, *,
+                     min_overlap: float = 0.5, outlier_fraction: float = 0.02
+                     ) -> tuple[NDArray[np.float64], NDArray[np.int64], PairRegistrations]:
+    """Register merged frames and solve for the homographies of their reference frames.
+
+    1. Consecutive pairs are registered and chained (:func:`chain_keyframes`), failed
+       or implausible pairs bridged.
+    2. For each offset k > 1, pairs ``(g, g + k)`` that the chain predicts to overlap by
+       at least ``min_overlap`` are registered too; a result that disagrees with the
+       chain by more than ``outlier_fraction`` of the frame diagonal (corner distance)
+       is rejected as an outlier.
+    3. All accepted pairs are solved jointly (:func:`refine_keyframes`).
+
+    Args:
+        locator: the built locator.
+        merged: the level's G merged frames.
+        current: (G, 3, 3) float64 current homographies of the reference frames.
+        pair_offsets: offsets k (1 is always used).
+        width: frame width in pixels.
+        height: frame height in pixels.
+        min_overlap: predicted overlap (fraction of the frame) needed to try a pair.
+        outlier_fraction: rejection threshold, as a fraction of the frame diagonal.
+
+    Returns:
+        ``(keyframes, pair_index, pairs)``: (G, 3, 3) float64 homographies, (P, 2)
+        int64 pairs tried and their registrations (``ok`` False where failed or rejected).
+
+    Raises:
+        StageError: if every consecutive pair failed.
+    """
+    g = len(current)
+    chain_index = pairs_at_offsets(g, (1,))
+    predicted = np.linalg.inv(current[:-1]) @ current[1:]
+    chain = locator.register_pairs(merged, chain_index, predicted)
+    chain = PairRegistrations(chain.homographies, chain.matches, chain.inliers,
+                              chain.ok & plausible(chain.homographies, width, height))
+    keyframes = chain_keyframes(current, chain)
+    offsets = tuple(k for k in sorted(set(pair_offsets)) if 1 < k < g)
+    if not offsets:
+        return keyframes, chain_index, chain
+    extra = pairs_at_offsets(g, offsets)
+    extra = extra[extra[:, 1] - extra[:, 0] > 1]
+    expected = np.linalg.inv(keyframes[extra[:, 0]]) @ keyframes[extra[:, 1]]
+    shift = geometry.apply(expected, np.array([[(width - 1) / 2, (height - 1) / 2]]))[:, 0] - [(width - 1) / 2, (height - 1) / 2]
+    overlap = np.clip(1 - np.abs(shift[:, 0]) / width, 0, 1) * np.clip(1 - np.abs(shift[:, 1]) / height, 0, 1)
+    extra, expected = extra[overlap >= min_overlap], expected[overlap >= min_overlap]
+    if not len(extra):
+        return keyframes, chain_index, chain
+    found = locator.register_pairs(merged, extra, expected)
+    c = geometry.corners(width, height)
+    disagreement = np.linalg.norm(geometry.apply(found.homographies, c) - geometry.apply(expected, c), axis=-1).max(-1)
+    limit = outlier_fraction * np.hypot(width, height)
+    found = PairRegistrations(found.homographies, found.matches, found.inliers,
+                              found.ok & plausible(found.homographies, width, height) & (disagreement < limit))
+    pair_index = np.concatenate([chain_index, extra])
+    pairs = _concat(chain, found)
+    # Bridged consecutive pairs enter the solve with a token weight (one inlier) so
+    # that the pose graph stays connected across registration failures.
+    steps = np.linalg.inv(keyframes[:-1]) @ keyframes[1:]
+    bridged = PairRegistrations(steps, chain.matches, np.where(chain.ok, chain.inliers, 1),
+                                np.ones(len(steps), bool))
+    solved = refine_keyframes(keyframes, pair_index, _concat(bridged, found), width, height)
+    return solved, pair_index, pairs
+
+
 def estimate_motion(
     source: PhotonSource,
     resampler: Resampler,
@@ -178,6 +284,7 @@ def estimate_motion(
     levels: int,
     group_size: int,
     pair_offsets: tuple[int, ...] = (1,),
+    update: str = "compose",
     keep_merged: bool = False,
     on_level: Callable[[LevelResult], None] | None = None,
     progress: Callable[[str, int], Callable[[int], None]] | None = None,
@@ -203,9 +310,10 @@ def estimate_motion(
         progress: ``progress(description, total)`` returns an ``advance(n)`` callable.
 
     Returns:
-        ``(homographies, levels)``: (T, 3, 3) float64 frame-to-panorama homographies
-        (frame coordinates of the first reference frame at level 1) and one
-        :class:`LevelResult` per level.
+        ``(homographies, levels)``: (T, 3, 3) float64 frame-to-panorama homographies,
+        where panorama coordinates are the pixel coordinates of the middle binary frame
+        ``T // 2`` (its homography is the identity), and one :class:`LevelResult` per
+        level (their homographies in the same coordinates).
 
     Raises:
         StageError: if a level cannot register any pair.
@@ -224,28 +332,31 @@ def estimate_motion(
         t2 = time.perf_counter()
         refs = groups.reference
         current = homographies[refs]
-        pair_index = pairs_at_offsets(len(refs), pair_offsets)
-        initial = np.linalg.inv(current[pair_index[:, 0]]) @ current[pair_index[:, 1]]
-        pairs = locator.register_pairs(merged, pair_index, initial)
-        consecutive = pair_index[:, 1] - pair_index[:, 0] == 1
-        chain = PairRegistrations(*(getattr(pairs, f)[consecutive] for f in ("homographies", "matches", "inliers", "ok")))
         try:
-            keyframes = chain_keyframes(current, chain)
+            keyframes, pair_index, pairs = locate_keyframes(locator, merged, current, pair_offsets,
+                                                            source.width, source.height)
         except StageError as err:
             raise StageError("locator", type(locator).__name__, f"level {level}: {err.reason}") from None
-        if len(pair_offsets) > 1:
-            keyframes = refine_keyframes(keyframes, pair_index, pairs, source.width, source.height)
         t3 = time.perf_counter()
-        correction = keyframes @ np.linalg.inv(current)
-        homographies = geometry.normalize(interpolator.interpolate(refs, correction, n) @ homographies)
+        if update == "compose":
+            correction = keyframes @ np.linalg.inv(current)
+            homographies = geometry.normalize(interpolator.interpolate(refs, correction, n, groups) @ homographies)
+        else:
+            homographies = geometry.normalize(interpolator.interpolate(refs, keyframes, n, groups))
         t4 = time.perf_counter()
         timings.update(resample=t1 - t0, merge=t2 - t1, locate=t3 - t2, interpolate=t4 - t3)
-        result = LevelResult(level, groups, merged if keep_merged else None, pairs, keyframes,
+        result = LevelResult(level, groups, merged if keep_merged else None, pairs, pair_index, keyframes,
                              homographies, timings)
         results.append(result)
         if on_level is not None:
             on_level(result)
-    return homographies, results
+    # Gauge: panorama coordinates are the pixel coordinates of the middle binary frame,
+    # so the panorama has that frame's scale and perspective (as a stitching reference
+    # image in the middle of the sequence keeps distortion low).
+    middle = np.linalg.inv(homographies[n // 2])
+    for result in results:
+        result.homographies = geometry.normalize(middle @ result.homographies)
+    return geometry.normalize(middle @ homographies), results
 
 
 @dataclass(frozen=True)
@@ -294,7 +405,8 @@ def canvas_homographies(homographies: NDArray[np.float64], width: int, height: i
 
 def assemble_panorama(source: PhotonSource, homographies: NDArray[np.float64], *, scale: float = 1.0,
                       subbatch_px: float = 0.25, chunk_batches: int = 128,
-                      progress: Callable[[int], None] | None = None) -> Panorama:
+                      progress: Callable[[int], None] | None = None,
+                      canvas_shape: tuple[int, int] | None = None) -> Panorama:
     """Warp every binary frame onto one canvas and estimate the flux per canvas pixel.
 
     Frames are summed in sub-batches whose canvas warps differ by < ``subbatch_px``
@@ -308,6 +420,8 @@ def assemble_panorama(source: PhotonSource, homographies: NDArray[np.float64], *
         subbatch_px: sub-batch tolerance in canvas pixels.
         chunk_batches: sub-batches counted per call to the source (bounds memory).
         progress: called with the number of binary frames done.
+        canvas_shape: ``(height, width)`` to render onto a given canvas; then
+            ``homographies`` already map frames to canvas pixels and ``scale`` is unused.
 
     Returns:
         The panorama (see :class:`Panorama`).
@@ -315,7 +429,10 @@ def assemble_panorama(source: PhotonSource, homographies: NDArray[np.float64], *
     from .photons import flux_mle
     from .warping import WarpAccumulator, subbatch_edges
 
-    to_canvas, (ch, cw) = canvas_homographies(homographies, source.width, source.height, scale)
+    if canvas_shape is None:
+        to_canvas, (ch, cw) = canvas_homographies(homographies, source.width, source.height, scale)
+    else:
+        to_canvas, (ch, cw) = geometry.normalize(homographies), canvas_shape
     edges = subbatch_edges(to_canvas, source.width, source.height, subbatch_px)
     acc = WarpAccumulator(ch, cw)
     for c in range(0, len(edges) - 1, chunk_batches):

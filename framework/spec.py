@@ -93,7 +93,7 @@ def spec_model(host: PluginHost) -> type[BaseModel]:
                                          "exposure length, in frames).")], 500),
         pair_offsets=(Annotated[list[Annotated[int, Field(ge=1)]], Field(
             min_length=1, description="Register merged frames g and g+k for each k; [1] is the "
-            "paper's chain, more offsets are solved jointly against chaining drift.")], [1, 2, 4, 8]),
+            "paper's chain, more offsets are solved jointly against chaining drift.")], [1, 2, 4, 8, 16, 32, 64]),
         scale=(Annotated[float, Field(gt=0, le=8, description="Super-resolution scale of the "
                                       "panorama canvas (canvas pixels per frame pixel).")], 1.0),
         panorama_subbatch_px=(Annotated[float, Field(gt=0, le=2, description="Frames whose canvas "

@@ -300,13 +300,16 @@ class Interpolator(abc.ABC):
 
     @abc.abstractmethod
     def interpolate(self, keyframes: NDArray[np.int64], homographies: NDArray[np.float64],
-                    n_frames: int) -> NDArray[np.float64]:
+                    n_frames: int, groups: Groups | None = None) -> NDArray[np.float64]:
         """Interpolate ``homographies`` known at ``keyframes`` to frames ``0..n_frames-1``.
 
         Args:
             keyframes: (G,) int64 strictly increasing frame indices, G >= 1.
             homographies: (G, 3, 3) float64 homographies at those frames.
             n_frames: number of binary frames T.
+            groups: the groups whose merged frames gave the keyframes (their
+                ``reference`` equals ``keyframes``), for interpolators that model a
+                keyframe as the average over its group's frames; None if unknown.
 
         Returns:
             (T, 3, 3) float64, normalised (``H[2, 2] == 1``); frames before the first

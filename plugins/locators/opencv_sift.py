@@ -33,10 +33,20 @@ class OpenCVSiftConfig(LocatorConfig):
     """Robust estimator of the homography."""
     reprojection_px: Annotated[float, Field(gt=0)] = 1.5
     """Inlier threshold of the robust estimator, in pixels."""
-    min_inliers: Annotated[int, Field(ge=4)] = 20
+    min_inliers: Annotated[int, Field(ge=4)] = 12
     """A pair with fewer inliers is flagged as failed (and bridged)."""
-    refine: bool = True
-    """Refit the homography to all inliers by least squares (Levenberg-Marquardt)."""
+    refine: Literal["none", "lm", "ecc"] = "ecc"
+    """Polish of the robust estimate: ``lm`` refits it to all inliers by least squares
+    (Levenberg-Marquardt, the paper's setting); ``ecc`` then maximises the enhanced
+    correlation coefficient between the two merged flux images (Evangelidis and Psarakis,
+    2008), a dense sub-pixel refinement that keeps the feature result if it fails."""
+    ecc_iterations: Annotated[int, Field(gt=0)] = 30
+    """ecc: maximum Gauss-Newton iterations per pair."""
+    ecc_blur: Annotated[int, Field(ge=1, le=15)] = 5
+    """ecc: size of the Gaussian pre-filter in pixels (odd, 1 = none); merged frames are noisy."""
+    ecc_max_change_px: Annotated[float, Field(gt=0)] = 2.0
+    """ecc: a refinement that moves a frame corner further than this (pixels) from the
+    feature estimate is discarded as a divergence."""
 
     def build(self) -> OpenCVSiftLocator:
         """Return the locator."""
@@ -99,12 +109,43 @@ class OpenCVSiftLocator(Locator):
             return (np.eye(3), len(good), 0, False)
         inl = inlier_mask.ravel().astype(bool)
         n_in = int(inl.sum())
-        if self.config.refine and n_in >= 8:
+        if self.config.refine != "none" and n_in >= 8:
             refined, _ = cv2.findHomography(src[inl], dst[inl], 0)
             if refined is not None:
                 h = refined
         ok = n_in >= self.config.min_inliers and abs(np.linalg.det(h[:2, :2])) > 1e-3
         return h / h[2, 2], len(good), n_in, bool(ok)
+
+    def refine_ecc(self, image_a: NDArray[np.float32], image_b: NDArray[np.float32],
+                   mask_b: NDArray[np.bool_], homography: NDArray[np.float64]) -> NDArray[np.float64]:
+        """Polish a homography (b to a) by ECC maximisation; return the input on failure.
+
+        Args:
+            image_a: (H, W) float32 normalised flux of frame a (the moving image).
+            image_b: (H, W) float32 normalised flux of frame b (the template).
+            mask_b: (H, W) bool pixels of frame b to use.
+            homography: (3, 3) float64 starting estimate mapping b's pixels to a's.
+
+        Returns:
+            (3, 3) float64 refined homography, or ``homography`` if ECC fails or moves
+            a corner by more than ``ecc_max_change_px``.
+        """
+        import cv2
+
+        from photonpano import geometry
+
+        criteria = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, self.config.ecc_iterations, 1e-5)
+        try:
+            _, warp = cv2.findTransformECC(image_b, image_a, homography.astype(np.float32),
+                                           cv2.MOTION_HOMOGRAPHY, criteria, mask_b.astype(np.uint8),
+                                           self.config.ecc_blur | 1)
+        except cv2.error:  # did not converge
+            return homography
+        warp = warp.astype(np.float64) / warp[2, 2]
+        h, w = image_b.shape
+        corners = geometry.corners(w, h)
+        change = np.abs(geometry.apply(warp, corners) - geometry.apply(homography, corners)).max()
+        return warp if np.isfinite(change) and change < self.config.ecc_max_change_px else homography
 
     def register_pairs(self, merged: MergedFrames, pairs: NDArray[np.int64],
                        initial: NDArray[np.float64]) -> PairRegistrations:
@@ -117,12 +158,40 @@ class OpenCVSiftLocator(Locator):
             return cache[i]
 
         results = [self.match(feats(int(a)), feats(int(b))) for a, b in pairs]
+        if self.config.refine == "ecc":
+            images: dict[int, NDArray[np.float32]] = {}
+            for p, (a, b) in enumerate(pairs):
+                if results[p][3]:
+                    for i in (int(a), int(b)):
+                        if i not in images:
+                            images[i] = ecc_image(merged.flux[i], merged.masks[i])
+                    refined = self.refine_ecc(images[int(a)], images[int(b)], merged.masks[int(b)], results[p][0])
+                    results[p] = (refined, *results[p][1:])
         return PairRegistrations(
             homographies=np.array([r[0] for r in results]).reshape(-1, 3, 3),
             matches=np.array([r[1] for r in results], dtype=np.int64),
             inliers=np.array([r[2] for r in results], dtype=np.int64),
             ok=np.array([r[3] for r in results], dtype=bool),
         )
+
+
+def ecc_image(flux: NDArray[np.float32], mask: NDArray[np.bool_]) -> NDArray[np.float32]:
+    """Return a merged flux image scaled to about [0, 1] for ECC.
+
+    Every observed pixel keeps its (possibly noisier) flux: zeroing the untrusted border
+    would put false edges into the moving image and bias the alignment. Unobserved
+    (NaN) pixels are 0.
+
+    Args:
+        flux: (H, W) float32 flux, NaN where unobserved.
+        mask: (H, W) bool trusted pixels, used to pick the white level.
+
+    Returns:
+        (H, W) float32 image.
+    """
+    trusted = mask & np.isfinite(flux)
+    white = float(np.percentile(flux[trusted], 99)) if trusted.any() else 1.0
+    return (np.nan_to_num(flux, nan=0.0) / (white if white > 0 else 1.0)).astype(np.float32)
 
 
 @hookimpl

@@ -37,6 +37,7 @@ def groups_around(references: np.ndarray, n_frames: int, group_size: int) -> Gro
     then off-centre (paper suppl. S.2: localising off-centre time slices).
     """
     refs = np.unique(np.asarray(references, dtype=np.int64))
+    group_size = min(group_size, n_frames)
     start = np.clip(refs - group_size // 2, 0, n_frames - group_size)
     return Groups(start=start, stop=start + group_size, reference=refs)
 
@@ -45,10 +46,14 @@ class MidpointConfig(ResamplerConfig):
     """Stratified re-sampling: each level adds groups centred between the previous ones."""
 
     plugin: Literal["midpoint"] = "midpoint"
+    growth: Annotated[float, Field(ge=0.25, le=4)] = 1.0
+    """Group length at level k is m * growth**(k-1) frames, centred on the same reference
+    frames. Later levels merge motion-compensated frames, so longer groups gather more
+    photons without adding blur and sharpen registration; 1 is the paper's constant m."""
     anchor_ends: bool = True
-    """From level 2 on, also reference the first and the last binary frame (groups at
-    the ends of the capture), so the ends of the trajectory are estimated rather than
-    extrapolated (paper suppl. S.2, edge effects)."""
+    """From level 2 on, also reference the first and the last binary frame (groups of
+    m/2 frames at the ends of the capture), so the ends of the trajectory are estimated
+    rather than extrapolated (paper suppl. S.2, edge effects)."""
 
     def build(self) -> MidpointResampler:
         """Return the resampler."""
@@ -67,9 +72,17 @@ class MidpointResampler(Resampler):
         steps = 2 ** (level - 1)
         fine = np.linspace(base[0], base[-1], (len(base) - 1) * steps + 1)
         refs = np.rint(fine).astype(np.int64)
-        if self.config.anchor_ends and level >= 2:
-            refs = np.concatenate([[0], refs, [n_frames - 1]])
-        return groups_around(refs, n_frames, group_size)
+        length = int(round(group_size * self.config.growth ** (level - 1)))
+        groups = groups_around(refs, n_frames, length)
+        if not (self.config.anchor_ends and level >= 2):
+            return groups
+        # A merged frame shows the scene displaced by the *mean* error of its frames, so
+        # the end groups are half as long: their mean error stays closer to the error
+        # of the end frame they are referenced to.
+        half = max(group_size // 2, 1)
+        return Groups(start=np.concatenate([[0], groups.start, [n_frames - half]]),
+                      stop=np.concatenate([[half], groups.stop, [n_frames]]),
+                      reference=np.concatenate([[0], groups.reference, [n_frames - 1]]))
 
 
 class ConstantConfig(ResamplerConfig):
