@@ -68,7 +68,6 @@ def run_pipeline(spec: BaseModel, out_dir: Path, host: PluginHost, *, force: boo
         PhotonpanoError: bad output folder, unreadable source, failed stage.
     """
     from .photons import tone_map
-    from .reconstruct import assemble_panorama, estimate_motion
 
     for stage in ("source", "resampler", "merger", "locator", "interpolator"):
         type(getattr(spec, stage)).check_available()
@@ -82,28 +81,11 @@ def run_pipeline(spec: BaseModel, out_dir: Path, host: PluginHost, *, force: boo
     timings["source"] = time.perf_counter() - t0
     host.hook.photonpano_run_start(spec=spec, source=source, out_dir=out_dir)
 
-    stats: list[dict[str, Any]] = []
-
     def on_level(result):
         host.hook.photonpano_level_finished(level=result, spec=spec, source=source, out_dir=out_dir)
-        row = result.statistics()
-        if source.ground_truth is not None:
-            row["trajectory_rmse_px"] = _rmse(result.homographies, source)
-        stats.append(row)
-        result.merged = None  # free memory; observers have seen it
 
-    t0 = time.perf_counter()
-    homographies, _ = estimate_motion(
-        source, spec.resampler.build(), spec.merger.build(), spec.locator.build(), spec.interpolator.build(),
-        levels=spec.levels, group_size=spec.group_size, pair_offsets=tuple(spec.pair_offsets),
-        keep_merged=spec.outputs.merged_frames, on_level=on_level, progress=progress)
-    timings["levels"] = time.perf_counter() - t0
-
-    t0 = time.perf_counter()
-    advance = progress("panorama", source.n_frames)
-    pano = assemble_panorama(source, homographies, scale=spec.scale, subbatch_px=spec.panorama_subbatch_px,
-                             progress=advance)
-    timings["panorama"] = time.perf_counter() - t0
+    homographies, stats, pano, stage_timings = reconstruct(spec, source, on_level=on_level, progress=progress)
+    timings.update(stage_timings)
 
     np.save(out_dir / "homographies.npy", pano.homographies)
     np.save(out_dir / "panorama.npy", pano.flux)
@@ -130,6 +112,49 @@ def run_pipeline(spec: BaseModel, out_dir: Path, host: PluginHost, *, force: boo
     (out_dir / "run.json").write_text(json.dumps(summary, indent=2, default=_json_default))
     host.hook.photonpano_run_finished(spec=spec, summary=summary, out_dir=out_dir)
     return summary
+
+
+def reconstruct(spec: BaseModel, source, *, on_level=None, progress=None):
+    """Estimate the motion of ``source`` and assemble its panorama as ``spec`` says.
+
+    Args:
+        spec: a validated ``PipelineSpec`` (its ``source`` section is not used).
+        source: the opened capture.
+        on_level: called with each :class:`~photonpano.reconstruct.LevelResult`.
+        progress: ``progress(task, total)`` returning an ``advance(n)`` callable.
+
+    Returns:
+        ``(homographies, level_statistics, panorama, timings_s)``: (T, 3, 3) float64
+        frame-to-canvas homographies, one statistics dict per level (with the
+        trajectory RMSE when the source has ground truth), the
+        :class:`~photonpano.reconstruct.Panorama` and wall times in seconds.
+    """
+    from .reconstruct import assemble_panorama, estimate_motion
+
+    stats: list[dict[str, Any]] = []
+
+    def level_done(result):
+        if on_level is not None:
+            on_level(result)
+        row = result.statistics()
+        if source.ground_truth is not None:
+            row["trajectory_rmse_px"] = _rmse(result.homographies, source)
+        stats.append(row)
+        result.merged = None  # free memory; observers have seen it
+
+    timings: dict[str, float] = {}
+    t0 = time.perf_counter()
+    homographies, _ = estimate_motion(
+        source, spec.resampler.build(), spec.merger.build(), spec.locator.build(), spec.interpolator.build(),
+        levels=spec.levels, group_size=spec.group_size, pair_offsets=tuple(spec.pair_offsets),
+        keep_merged=spec.outputs.merged_frames, on_level=level_done, progress=progress)
+    timings["levels"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    advance = progress("panorama", source.n_frames) if progress else None
+    pano = assemble_panorama(source, homographies, scale=spec.scale, subbatch_px=spec.panorama_subbatch_px,
+                             progress=advance)
+    timings["panorama"] = time.perf_counter() - t0
+    return homographies, stats, pano, timings
 
 
 def _rmse(homographies: np.ndarray, source) -> float:

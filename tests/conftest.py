@@ -1,0 +1,52 @@
+"""Shared fixtures: plugin hosts and small simulated captures with ground truth."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+os.environ.setdefault("NUMBA_NUM_THREADS", "1")
+
+DATA = Path(__file__).parent / "data"
+
+
+@pytest.fixture(autouse=True, scope="session")
+def _one_thread():
+    """Keep OpenCV on one thread: the CI machine has two cores, shared."""
+    import cv2
+
+    cv2.setNumThreads(1)
+
+
+@pytest.fixture
+def host():
+    """A plugin host with every installed plugin (built-ins come through entry points)."""
+    from photonpano.host import PluginHost
+
+    return PluginHost()
+
+
+@pytest.fixture
+def bare_host(monkeypatch):
+    """A plugin host with no plugins loaded; register what a test needs."""
+    from photonpano.host import PluginHost
+
+    monkeypatch.setenv("PHOTONPANO_DISABLE_PLUGIN_AUTOLOAD", "1")
+    return PluginHost()
+
+
+@pytest.fixture(scope="session")
+def tiny_capture():
+    """2 400 binary frames of 128x248 panning across the bundled photo (flux 0.5)."""
+    from photonpano.plugins.sources.simulate import SimulateConfig
+
+    return SimulateConfig(frames=2400, height=128, width=248, flux=0.5, vibration_px=2.0).build()
+
+
+def packed_cube(capture) -> np.ndarray:
+    """Return the bit-packed (T, H, W/8) cube of a simulated capture."""
+    return np.asarray(capture.cube)

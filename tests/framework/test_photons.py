@@ -1,0 +1,65 @@
+import numpy as np
+import pytest
+
+from photonpano import photons
+
+
+def test_sum_packed_ranges_matches_unpacked_sum():
+    rng = np.random.default_rng(1)
+    frames = (rng.random((700, 5, 24)) < 0.4).astype(np.uint8)
+    packed = np.packbits(frames, axis=-1)
+    edges = np.array([3, 4, 300, 700])  # includes ranges longer than 255 frames
+    got = photons.sum_packed_ranges(packed, edges)
+    want = np.stack([frames[a:b].sum(0) for a, b in zip(edges[:-1], edges[1:])])
+    assert got.dtype == np.uint16 and got.shape == (3, 5, 24)
+    np.testing.assert_array_equal(got, want)
+    np.testing.assert_array_equal(photons.sum_unpacked_ranges(frames, edges), want)
+
+
+@pytest.mark.parametrize("edges", [[5, 5], [0, 701], [-1, 3]])
+def test_sum_ranges_rejects_bad_edges(edges):
+    with pytest.raises(ValueError):
+        photons.sum_packed_ranges(np.zeros((700, 2, 1), np.uint8), np.array(edges))
+
+
+def test_simulated_frames_follow_bernoulli_and_are_reproducible():
+    p = np.full((64, 64), 0.3, dtype=np.float32)
+    p[:, :32] = 0.05
+    a = np.stack([np.unpackbits(photons.simulate_packed_frames(p, 7, t), axis=-1) for t in range(400)])
+    b = photons.simulate_packed_frames(p, 7, 11)
+    np.testing.assert_array_equal(np.unpackbits(b, axis=-1), a[11])
+    # mean detection rate within 4 standard errors of the probability
+    for cols, prob in ((slice(0, 32), 0.05), (slice(32, 64), 0.3)):
+        rate = a[:, :, cols].mean()
+        assert abs(rate - prob) < 4 * np.sqrt(prob * (1 - prob) / a[:, :, cols].size)
+    assert not np.array_equal(a[0], a[1])
+
+
+def test_simulate_rejects_unpackable_width():
+    with pytest.raises(ValueError, match="multiple of 8"):
+        photons.simulate_packed_frames(np.zeros((4, 12), np.float32), 0, 0)
+
+
+def test_flux_mle_recovers_flux():
+    # Eq. (3): phi = -ln(1 - S/n) / tau
+    rng = np.random.default_rng(2)
+    tau, phi = 1e-5, np.array([[2e3, 5e4, 2e5]])
+    n = 20_000
+    counts = rng.binomial(n, 1 - np.exp(-phi * tau))
+    est = photons.flux_mle(counts, n, tau)
+    np.testing.assert_allclose(est, phi, rtol=0.03)
+    assert est.dtype == np.float32
+
+
+def test_flux_mle_marks_unobserved_and_saturated():
+    est = photons.flux_mle(np.array([[0.0, 10.0]]), np.array([[0.0, 10.0]]), 1e-5)
+    assert np.isnan(est[0, 0]) and np.isfinite(est[0, 1])
+
+
+def test_srgb_roundtrip_and_tone_map():
+    x = np.linspace(0, 1, 11, dtype=np.float32)
+    np.testing.assert_allclose(photons.srgb_to_linear(photons.linear_to_srgb(x)), x, atol=1e-6)
+    img = photons.tone_map(np.array([[np.nan, 0.0, 1.0, 2.0]]), percentile=100, bits=16)
+    assert img.dtype == np.uint16 and img[0, 0] == 0 and img[0, 3] == 65535
+    with pytest.raises(ValueError):
+        photons.tone_map(np.zeros((2, 2)), bits=12)

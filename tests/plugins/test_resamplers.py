@@ -1,0 +1,38 @@
+import numpy as np
+import pytest
+
+from photonpano.plugins.resamplers.midpoint import ConstantConfig, MidpointConfig
+
+
+def test_midpoint_level_one_is_floor_n_over_m_centred_groups():
+    g = MidpointConfig().build().groups(10_250, 500, 1)
+    assert len(g) == 20
+    np.testing.assert_array_equal(g.reference, np.arange(20) * 500 + 250)
+    np.testing.assert_array_equal(g.stop - g.start, 500)
+    np.testing.assert_array_equal(g.reference - g.start, 250)
+
+
+def test_midpoint_adds_groups_between_previous_ones():
+    resampler = MidpointConfig(anchor_ends=False).build()
+    levels = [resampler.groups(10_000, 500, k).reference for k in (1, 2, 3)]
+    assert [len(r) for r in levels] == [20, 39, 77]
+    for coarse, fine in zip(levels, levels[1:]):
+        assert set(coarse) <= set(fine)  # earlier centres are kept
+        np.testing.assert_array_equal(fine[1::2], (coarse[:-1] + coarse[1:]) // 2)
+
+
+def test_midpoint_anchors_the_ends_from_level_two():
+    g = MidpointConfig().build().groups(10_000, 500, 2)
+    assert g.reference[0] == 0 and g.reference[-1] == 9_999
+    assert (g.start[0], g.stop[0]) == (0, 250) and (g.start[-1], g.stop[-1]) == (9_750, 10_000)
+    assert MidpointConfig().build().groups(10_000, 500, 1).reference[0] == 250
+
+
+def test_constant_keeps_the_level_one_groups():
+    r = ConstantConfig().build()
+    np.testing.assert_array_equal(r.groups(5_000, 500, 3).reference, r.groups(5_000, 500, 1).reference)
+
+
+def test_too_short_capture_is_a_clear_error():
+    with pytest.raises(ValueError, match="at least 2"):
+        MidpointConfig().build().groups(700, 500, 1)
