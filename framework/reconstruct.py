@@ -284,7 +284,6 @@ def estimate_motion(
     levels: int,
     group_size: int,
     pair_offsets: tuple[int, ...] = (1,),
-    update: str = "compose",
     keep_merged: bool = False,
     on_level: Callable[[LevelResult], None] | None = None,
     progress: Callable[[str, int], Callable[[int], None]] | None = None,
@@ -325,7 +324,10 @@ def estimate_motion(
     for level in range(1, levels + 1):
         timings: dict[str, float] = {}
         t0 = time.perf_counter()
-        groups = resampler.groups(n, group_size, level)
+        try:
+            groups = resampler.groups(n, group_size, level)
+        except ValueError as exc:
+            raise StageError("resampler", type(resampler).__name__, str(exc)) from None
         t1 = time.perf_counter()
         advance = progress(f"level {level}: merge", len(groups)) if progress else None
         merged = merger.merge(source, homographies, groups, progress=advance)
@@ -338,11 +340,8 @@ def estimate_motion(
         except StageError as err:
             raise StageError("locator", type(locator).__name__, f"level {level}: {err.reason}") from None
         t3 = time.perf_counter()
-        if update == "compose":
-            correction = keyframes @ np.linalg.inv(current)
-            homographies = geometry.normalize(interpolator.interpolate(refs, correction, n, groups) @ homographies)
-        else:
-            homographies = geometry.normalize(interpolator.interpolate(refs, keyframes, n, groups))
+        correction = keyframes @ np.linalg.inv(current)
+        homographies = geometry.normalize(interpolator.interpolate(refs, correction, n, groups) @ homographies)
         t4 = time.perf_counter()
         timings.update(resample=t1 - t0, merge=t2 - t1, locate=t3 - t2, interpolate=t4 - t3)
         result = LevelResult(level, groups, merged if keep_merged else None, pairs, pair_index, keyframes,

@@ -205,7 +205,7 @@ def validate_spec(data: dict[str, Any], host: PluginHost, *, origin: str = "spec
                 problems.append(f"{where}{stage} ({key}): needs {', '.join(missing)}: "
                                 f"{registry[key].install_hint}")
     if problems:
-        raise SpecError(f"{origin}: invalid pipeline spec\n  " + "\n  ".join(problems))
+        raise SpecError(_listing(origin, problems))
     model = spec_model(host)
     try:
         return model.model_validate(data)
@@ -216,7 +216,14 @@ def validate_spec(data: dict[str, Any], host: PluginHost, *, origin: str = "spec
             lines.append(f"{_where(node, loc, origin, data)}{_describe_loc(loc, data)}: {err['msg']}"
                          + (f" (got {err['input']!r})" if err["type"] not in ("missing",) and
                             not isinstance(err["input"], dict) else ""))
-        raise SpecError(f"{origin}: invalid pipeline spec\n  " + "\n  ".join(lines)) from None
+        raise SpecError(_listing(origin, lines)) from None
+
+
+def _listing(origin: str, problems: list[str]) -> str:
+    """One line for one problem, else a header line and one indented line per problem."""
+    if len(problems) == 1:
+        return f"{origin}: {problems[0]}"
+    return f"{origin}: invalid pipeline spec ({len(problems)} problems)\n  " + "\n  ".join(problems)
 
 
 def _unknown_plugin(stage: str, key: str, host: PluginHost) -> str:
