@@ -210,17 +210,19 @@ def _concat(a: PairRegistrations, b: PairRegistrations) -> PairRegistrations:
 
 def locate_keyframes(locator: Locator, merged: MergedFrames, current: NDArray[np.float64],
                      pair_offsets: tuple[int, ...], width: int, height: int, *,
-                     min_overlap: float = 0.5, outlier_fraction: float = 0.02
+                     min_overlap: float = 0.5, outlier_px: float = 1.0
                      ) -> tuple[NDArray[np.float64], NDArray[np.int64], PairRegistrations]:
     """Register merged frames and solve for the homographies of their reference frames.
 
     1. Consecutive pairs are registered and chained (:func:`chain_keyframes`), failed
        or implausible pairs bridged.
     2. For each offset k > 1, pairs ``(g, g + k)`` that the chain predicts to overlap by
-       at least ``min_overlap`` are registered too; a result that disagrees with the
-       chain by more than ``outlier_fraction`` of the frame diagonal (corner distance)
-       is rejected as an outlier.
-    3. All accepted pairs are solved jointly (:func:`refine_keyframes`).
+       at least ``min_overlap`` are registered too.
+    3. All plausible pairs are solved jointly (:func:`refine_keyframes`, robust loss);
+       pairs whose corners disagree with that solution by more than
+       ``max(outlier_px, 4 x median disagreement)`` are rejected and the graph is
+       solved again. A wrong consecutive link is thereby outvoted by the longer pairs
+       spanning it.
 
     Args:
         locator: the built locator.
@@ -230,7 +232,7 @@ def locate_keyframes(locator: Locator, merged: MergedFrames, current: NDArray[np
         width: frame width in pixels.
         height: frame height in pixels.
         min_overlap: predicted overlap (fraction of the frame) needed to try a pair.
-        outlier_fraction: rejection threshold, as a fraction of the frame diagonal.
+        outlier_px: smallest rejection threshold, in pixels (corner distance).
 
     Returns:
         ``(keyframes, pair_index, pairs)``: (G, 3, 3) float64 homographies, (P, 2)
@@ -258,20 +260,35 @@ def locate_keyframes(locator: Locator, merged: MergedFrames, current: NDArray[np
     if not len(extra):
         return keyframes, chain_index, chain
     found = locator.register_pairs(merged, extra, expected)
-    c = geometry.corners(width, height)
-    disagreement = np.linalg.norm(geometry.apply(found.homographies, c) - geometry.apply(expected, c), axis=-1).max(-1)
-    limit = outlier_fraction * np.hypot(width, height)
     found = PairRegistrations(found.homographies, found.matches, found.inliers,
-                              found.ok & plausible(found.homographies, width, height) & (disagreement < limit))
+                              found.ok & plausible(found.homographies, width, height))
     pair_index = np.concatenate([chain_index, extra])
-    pairs = _concat(chain, found)
     # Bridged consecutive pairs enter the solve with a token weight (one inlier) so
     # that the pose graph stays connected across registration failures.
     steps = np.linalg.inv(keyframes[:-1]) @ keyframes[1:]
     bridged = PairRegistrations(steps, chain.matches, np.where(chain.ok, chain.inliers, 1),
                                 np.ones(len(steps), bool))
-    solved = refine_keyframes(keyframes, pair_index, _concat(bridged, found), width, height)
+    graph = _concat(bridged, found)
+    solved = refine_keyframes(keyframes, pair_index, graph, width, height)
+    # A wrong registration that looked plausible disagrees with the joint solution of
+    # all the others: drop such pairs and solve again.
+    measured = _concat(chain, found).ok
+    residual = _corner_disagreement(graph.homographies,
+                                    np.linalg.inv(solved[pair_index[:, 0]]) @ solved[pair_index[:, 1]], width, height)
+    limit = max(outlier_px, 4 * float(np.median(residual[measured]))) if measured.any() else np.inf
+    outliers = measured & (residual > limit)
+    if outliers.any():
+        graph = PairRegistrations(graph.homographies, graph.matches, graph.inliers, graph.ok & ~outliers)
+        solved = refine_keyframes(solved, pair_index, graph, width, height)
+    pairs = _concat(chain, found)
+    pairs = PairRegistrations(pairs.homographies, pairs.matches, pairs.inliers, pairs.ok & ~outliers)
     return solved, pair_index, pairs
+
+
+def _corner_disagreement(a: NDArray[np.float64], b: NDArray[np.float64], width: int, height: int) -> NDArray[np.float64]:
+    """Largest corner distance in pixels between (P, 3, 3) homographies ``a`` and ``b``."""
+    c = geometry.corners(width, height)
+    return np.linalg.norm(geometry.apply(a, c) - geometry.apply(b, c), axis=-1).max(axis=-1)
 
 
 def estimate_motion(

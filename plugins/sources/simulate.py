@@ -7,6 +7,7 @@ it, and every binary frame is drawn from Eq. (2), ``P(1) = 1 - exp(-flux * I)``.
 
 from __future__ import annotations
 
+import os
 from importlib import resources
 from pathlib import Path
 from typing import Annotated, Literal
@@ -207,10 +208,21 @@ class SimulatedCapture(PhotonSource):
             self.cube = np.empty(shape, dtype=np.uint8)
         size = (config.width, config.height)
         flags = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
-        for t in range(config.frames):
-            intensity = cv2.warpPerspective(scene, self.ground_truth[t], size, flags=flags)
-            probability = -np.expm1(-config.flux * intensity)
-            self.cube[t] = simulate_packed_frames(probability, config.seed, t)
+
+        def render(start: int, stop: int) -> None:
+            for t in range(start, stop):
+                intensity = cv2.warpPerspective(scene, self.ground_truth[t], size, flags=flags)
+                probability = -np.expm1(-config.flux * intensity)
+                self.cube[t] = simulate_packed_frames(probability, config.seed, t)
+
+        # Frames depend only on (seed, index), so threads give the same cube; OpenCV and
+        # the photon kernel release the GIL.
+        from concurrent.futures import ThreadPoolExecutor
+
+        workers = max(1, min(os.cpu_count() or 1, config.frames // 1000))
+        bounds = np.linspace(0, config.frames, workers * 4 + 1).astype(int)
+        with ThreadPoolExecutor(workers) as pool:
+            list(pool.map(render, bounds[:-1], bounds[1:]))
         if isinstance(self.cube, np.memmap):
             self.cube.flush()
 

@@ -1,0 +1,127 @@
+"""Performance benchmark (issue 5): a long SPAD capture reconstructed, against the floor.
+
+Simulates (once, cached under ``benchmarks/cache/``) a 254x496 capture of the bundled
+photo at 100 kHz (pan 0.004 px/frame + a 5 px, 30 Hz vibration, flux 0.5), then, in a
+fresh process, runs the default pipeline (3 levels + final panorama) on the cached
+bit-packed cube through the memory-mapped ``npy-cube`` source, and prints:
+
+- wall and CPU time per stage and level, and in total;
+- peak resident memory of that process;
+- the floor: one pass that unpacks and sums every bit of the same cube (numpy
+  ``unpackbits`` + sum, measured in the same process), and the ratio pipeline / floor;
+- the trajectory RMSE against ground truth.
+
+Usage::
+
+    python benchmarks/performance.py                  # 100 000 frames
+    python benchmarks/performance.py --frames 25000
+    python benchmarks/performance.py --scaling        # 12.5k, 25k, 50k, 100k, 200k frames
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import resource
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+CACHE = Path(__file__).parent / "cache"
+SIMULATION = {"plugin": "simulate", "speed_px_per_frame": 0.004, "vibration_px": 5.0, "vibration_hz": 30.0,
+              "flux": 0.5, "seed": 1}
+
+
+def cube_path(frames: int) -> Path:
+    """Return the cached cube for ``frames`` frames, simulating it first if needed."""
+    from photonpano.plugins.sources.simulate import SimulateConfig
+
+    path = CACHE / f"pan_{frames}.npy"
+    if not path.exists():
+        CACHE.mkdir(exist_ok=True)
+        partial = path.with_suffix(".partial.npy")
+        partial.unlink(missing_ok=True)
+        t0 = time.perf_counter()
+        SimulateConfig(**{**SIMULATION, "frames": frames, "cube_path": partial}).build()
+        partial.rename(path)
+        print(f"simulated {frames} frames in {time.perf_counter() - t0:.0f} s -> {path}", file=sys.stderr)
+    return path
+
+
+def floor_pass(path: Path, chunk: int = 2000) -> float:
+    """Seconds for one numpy pass that unpacks and sums every bit of the cube."""
+    import numpy as np
+
+    cube = np.load(path, mmap_mode="r")
+    t0 = time.perf_counter()
+    total = np.zeros((cube.shape[1], cube.shape[2] * 8), np.uint32)
+    for start in range(0, len(cube), chunk):
+        total += np.unpackbits(np.asarray(cube[start:start + chunk]), axis=-1).sum(axis=0, dtype=np.uint32)
+    return time.perf_counter() - t0
+
+
+def run_once(frames: int) -> dict:
+    """Reconstruct the cached capture in this process and return the measurements."""
+    from photonpano.host import PluginHost
+    from photonpano.metrics import trajectory_error
+    from photonpano.pipeline import reconstruct
+    from photonpano.plugins.sources.simulate import SimulateConfig, camera_path, load_scene, bundled_photo
+    from photonpano.spec import validate_spec
+
+    path = cube_path(frames)
+    floor_s = floor_pass(path)
+    spec = validate_spec({"source": {"plugin": "npy-cube", "path": str(path)}}, PluginHost(), origin="benchmark")
+    wall0, cpu0 = time.perf_counter(), time.process_time()
+    source = spec.source.build()
+    homographies, stats, pano, timings = reconstruct(spec, source)
+    wall, cpu = time.perf_counter() - wall0, time.process_time() - cpu0
+    config = SimulateConfig(**{**SIMULATION, "frames": frames})
+    truth = camera_path(config, load_scene(bundled_photo(), config.scene_width).shape)
+    rmse = trajectory_error(homographies, truth, source.width, source.height).rmse_px
+    return {"frames": frames, "wall_s": wall, "cpu_s": cpu, "floor_s": floor_s, "ratio": wall / floor_s,
+            "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+            "rmse_px": rmse, "timings_s": timings,
+            "levels": [{"level": s["level"], "groups": s["groups"], **s["timings_s"]} for s in stats]}
+
+
+def measure(frames: int) -> dict:
+    """Run :func:`run_once` in a fresh process (so peak memory is the pipeline's own)."""
+    cube_path(frames)  # simulate outside the measured process
+    out = subprocess.run([sys.executable, __file__, "--worker", str(frames)], capture_output=True, text=True,
+                         check=True)
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def report(r: dict) -> None:
+    """Print one run's figures."""
+    print(f"{r['frames']} frames: wall {r['wall_s']:.1f} s, CPU {r['cpu_s']:.1f} s, peak RSS {r['peak_rss_mb']:.0f} MB, "
+          f"floor {r['floor_s']:.2f} s, pipeline/floor {r['ratio']:.1f}x, trajectory RMSE {r['rmse_px']:.3f} px")
+    for level in r["levels"]:
+        print(f"  level {level['level']}: {level['groups']} groups, merge {level['merge']:.1f} s, "
+              f"locate {level['locate']:.1f} s, interpolate {level['interpolate']:.2f} s")
+    print(f"  panorama {r['timings_s']['panorama']:.1f} s")
+
+
+def main() -> None:
+    """Parse arguments and run the benchmark."""
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--frames", type=int, default=100_000)
+    parser.add_argument("--scaling", action="store_true", help="print the 12.5k..200k scaling table")
+    parser.add_argument("--worker", type=int, help=argparse.SUPPRESS)
+    args = parser.parse_args()
+    if args.worker:
+        print(json.dumps(run_once(args.worker)))
+        return
+    if not args.scaling:
+        report(measure(args.frames))
+        return
+    print(f"{'frames':>8} {'wall s':>7} {'CPU s':>7} {'floor s':>7} {'ratio':>6} {'RSS MB':>7} {'RMSE px':>8}")
+    for frames in (12_500, 25_000, 50_000, 100_000, 200_000):
+        r = measure(frames)
+        print(f"{frames:>8} {r['wall_s']:>7.1f} {r['cpu_s']:>7.1f} {r['floor_s']:>7.2f} {r['ratio']:>6.1f} "
+              f"{r['peak_rss_mb']:>7.0f} {r['rmse_px']:>8.3f}", flush=True)
+
+
+if __name__ == "__main__":
+    main()
