@@ -129,6 +129,7 @@ def reconstruct(spec: BaseModel, source, *, on_level=None, progress=None):
         trajectory RMSE when the source has ground truth), the
         :class:`~photonpano.reconstruct.Panorama` and wall times in seconds.
     """
+    from .executor import make_executor
     from .reconstruct import assemble_panorama, estimate_motion
 
     stats: list[dict[str, Any]] = []
@@ -143,17 +144,18 @@ def reconstruct(spec: BaseModel, source, *, on_level=None, progress=None):
         result.merged = None  # free memory; observers have seen it
 
     timings: dict[str, float] = {}
-    t0 = time.perf_counter()
-    homographies, _ = estimate_motion(
-        source, spec.resampler.build(), spec.merger.build(), spec.locator.build(), spec.interpolator.build(),
-        levels=spec.levels, group_size=spec.group_size, pair_offsets=tuple(spec.pair_offsets),
-        keep_merged=spec.outputs.merged_frames, on_level=level_done, progress=progress)
-    timings["levels"] = time.perf_counter() - t0
-    t0 = time.perf_counter()
-    advance = progress("panorama", source.n_frames) if progress else None
-    pano = assemble_panorama(source, homographies, scale=spec.scale, subbatch_px=spec.panorama_subbatch_px,
-                             progress=advance)
-    timings["panorama"] = time.perf_counter() - t0
+    with make_executor(spec.executor, spec.workers) as executor:
+        t0 = time.perf_counter()
+        homographies, _ = estimate_motion(
+            source, spec.resampler.build(), spec.merger.build(), spec.locator.build(), spec.interpolator.build(),
+            levels=spec.levels, group_size=spec.group_size, pair_offsets=tuple(spec.pair_offsets),
+            executor=executor, keep_merged=spec.outputs.merged_frames, on_level=level_done, progress=progress)
+        timings["levels"] = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        advance = progress("panorama", source.n_frames) if progress else None
+        pano = assemble_panorama(source, homographies, scale=spec.scale, subbatch_px=spec.panorama_subbatch_px,
+                                 progress=advance, executor=executor)
+        timings["panorama"] = time.perf_counter() - t0
     return homographies, stats, pano, timings
 
 

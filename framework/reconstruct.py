@@ -16,6 +16,7 @@ from numpy.typing import NDArray
 
 from . import geometry
 from .errors import StageError
+from .executor import Executor, SerialExecutor
 from .stages import Groups, Interpolator, Locator, MergedFrames, Merger, PairRegistrations, PhotonSource, Resampler
 
 __all__ = ["LevelResult", "chain_keyframes", "estimate_motion", "Panorama", "assemble_panorama"]
@@ -301,6 +302,7 @@ def estimate_motion(
     levels: int,
     group_size: int,
     pair_offsets: tuple[int, ...] = (1,),
+    executor: Executor | None = None,
     keep_merged: bool = False,
     on_level: Callable[[LevelResult], None] | None = None,
     progress: Callable[[str, int], Callable[[int], None]] | None = None,
@@ -321,6 +323,7 @@ def estimate_motion(
         group_size: binary frames per group m.
         pair_offsets: register merged frames g and g + k for each k; (1,) is the
             paper's chain of consecutive pairs, more offsets feed :func:`refine_keyframes`.
+        executor: runs independent groups in parallel (None: serially).
         keep_merged: keep each level's merged frames in its result.
         on_level: called with each finished level.
         progress: ``progress(description, total)`` returns an ``advance(n)`` callable.
@@ -347,7 +350,7 @@ def estimate_motion(
             raise StageError("resampler", type(resampler).__name__, str(exc)) from None
         t1 = time.perf_counter()
         advance = progress(f"level {level}: merge", len(groups)) if progress else None
-        merged = merger.merge(source, homographies, groups, progress=advance)
+        merged = merger.merge(source, homographies, groups, progress=advance, executor=executor)
         t2 = time.perf_counter()
         refs = groups.reference
         current = homographies[refs]
@@ -422,7 +425,8 @@ def canvas_homographies(homographies: NDArray[np.float64], width: int, height: i
 def assemble_panorama(source: PhotonSource, homographies: NDArray[np.float64], *, scale: float = 1.0,
                       subbatch_px: float = 0.25, chunk_batches: int = 128,
                       progress: Callable[[int], None] | None = None,
-                      canvas_shape: tuple[int, int] | None = None) -> Panorama:
+                      canvas_shape: tuple[int, int] | None = None,
+                      executor: Executor | None = None) -> Panorama:
     """Warp every binary frame onto one canvas and estimate the flux per canvas pixel.
 
     Frames are summed in sub-batches whose canvas warps differ by < ``subbatch_px``
@@ -438,6 +442,8 @@ def assemble_panorama(source: PhotonSource, homographies: NDArray[np.float64], *
         progress: called with the number of binary frames done.
         canvas_shape: ``(height, width)`` to render onto a given canvas; then
             ``homographies`` already map frames to canvas pixels and ``scale`` is unused.
+        executor: runs contiguous runs of chunks in parallel, each on its own canvas
+            (memory: one canvas per worker).
 
     Returns:
         The panorama (see :class:`Panorama`).
@@ -450,14 +456,26 @@ def assemble_panorama(source: PhotonSource, homographies: NDArray[np.float64], *
     else:
         to_canvas, (ch, cw) = geometry.normalize(homographies), canvas_shape
     edges = subbatch_edges(to_canvas, source.width, source.height, subbatch_px)
-    acc = WarpAccumulator(ch, cw)
-    for c in range(0, len(edges) - 1, chunk_batches):
-        chunk = edges[c:c + chunk_batches + 1]
-        counts = source.sum_ranges(chunk)
-        for b in range(len(chunk) - 1):
-            middle = (chunk[b] + chunk[b + 1]) // 2
-            acc.add(counts[b], int(chunk[b + 1] - chunk[b]), to_canvas[middle])
-        if progress is not None:
-            progress(int(chunk[-1] - chunk[0]))
+    executor = executor or SerialExecutor()
+    starts = list(range(0, len(edges) - 1, chunk_batches))
+    # Each worker fills its own canvas; contiguous runs of chunks keep memory bounded.
+    runs = np.array_split(np.arange(len(starts)), max(1, min(executor.workers, len(starts))))
+
+    def accumulate(run: NDArray[np.int64]) -> WarpAccumulator:
+        acc = WarpAccumulator(ch, cw)
+        for c in run:
+            chunk = edges[starts[c]:starts[c] + chunk_batches + 1]
+            counts = source.sum_ranges(chunk)
+            for b in range(len(chunk) - 1):
+                middle = (chunk[b] + chunk[b + 1]) // 2
+                acc.add(counts[b], int(chunk[b + 1] - chunk[b]), to_canvas[middle])
+            if progress is not None:
+                progress(int(chunk[-1] - chunk[0]))
+        return acc
+
+    parts = executor.map(accumulate, runs)
+    acc = parts[0]
+    for part in parts[1:]:
+        acc.merge(part)
     flux = flux_mle(acc.counts, acc.frames, source.exposure_s)
     return Panorama(flux=flux, frames=acc.frames, homographies=to_canvas)

@@ -98,6 +98,9 @@ def spec_model(host: PluginHost) -> type[BaseModel]:
                                       "panorama canvas (canvas pixels per frame pixel).")], 1.0),
         panorama_subbatch_px=(Annotated[float, Field(gt=0, le=2, description="Frames whose canvas "
                               "warps differ by less than this (canvas pixels) are warped together.")], 0.25),
+        executor=(Literal["serial", "threads"], Field("threads", description="Where independent work "
+                  "(groups, chunks) runs: the calling thread, or a pool of threads.")),
+        workers=(Annotated[int, Field(ge=0, description="Threads of the executor (0 = one per CPU core).")], 0),
         outputs=(OutputsConfig, Field(default_factory=OutputsConfig)),
     )
     model.__doc__ = "A photonpano pipeline: one plugin per stage and the method's settings."

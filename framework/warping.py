@@ -71,6 +71,7 @@ class WarpAccumulator:
         """Create an empty accumulator for a target grid of ``height`` x ``width`` pixels."""
         self.counts = np.zeros((height, width), dtype=np.float32)
         self.frames = np.zeros((height, width), dtype=np.float32)
+        self._ones: dict[tuple[int, int], np.ndarray] = {}
 
     def add(self, counts: NDArray, n_frames: int, homography: NDArray[np.float64]) -> None:
         """Warp ``counts`` of ``n_frames`` binary frames by ``homography`` and accumulate.
@@ -88,10 +89,18 @@ class WarpAccumulator:
         if x1 <= x0 or y1 <= y0:
             return
         shifted = geometry.translation(-x0, -y0) @ homography
-        planes = np.empty((h, w, 2), dtype=np.float32)
-        planes[..., 0] = counts
-        planes[..., 1] = n_frames
-        warped = cv2.warpPerspective(planes, shifted, (x1 - x0, y1 - y0), flags=cv2.INTER_LINEAR,
-                                     borderMode=cv2.BORDER_CONSTANT, borderValue=0)
-        self.counts[y0:y1, x0:x1] += warped[..., 0]
-        self.frames[y0:y1, x0:x1] += warped[..., 1]
+        size = (x1 - x0, y1 - y0)
+        # Two single-channel warps are about 2.5x faster than one two-channel warp.
+        flags, border = cv2.INTER_LINEAR, cv2.BORDER_CONSTANT
+        self.counts[y0:y1, x0:x1] += cv2.warpPerspective(np.asarray(counts, np.float32), shifted, size,
+                                                         flags=flags, borderMode=border, borderValue=0)
+        ones = self._ones.get((h, w))
+        if ones is None:
+            ones = self._ones[(h, w)] = np.ones((h, w), np.float32)
+        coverage = cv2.warpPerspective(ones, shifted, size, flags=flags, borderMode=border, borderValue=0)
+        self.frames[y0:y1, x0:x1] += np.float32(n_frames) * coverage
+
+    def merge(self, other: WarpAccumulator) -> None:
+        """Add another accumulator of the same grid (e.g. one filled by another thread)."""
+        self.counts += other.counts
+        self.frames += other.frames

@@ -15,6 +15,7 @@ from numpy.typing import NDArray
 from pydantic import Field
 
 from photonpano import hookimpl
+from photonpano.executor import Executor
 from photonpano.stages import Groups, MergedFrames, Merger, MergerConfig, PhotonSource
 
 
@@ -71,16 +72,23 @@ class FluxMLEMerger(Merger):
         self.config = config
 
     def merge(self, source: PhotonSource, homographies: NDArray[np.float64], groups: Groups,
-              progress: Any = None) -> MergedFrames:
-        """Merge each group (see :meth:`Merger.merge`)."""
+              progress: Any = None, executor: Executor | None = None) -> MergedFrames:
+        """Merge each group (see :meth:`Merger.merge`); groups run on ``executor``."""
+        from photonpano.executor import SerialExecutor
         from photonpano.photons import flux_mle, tone_map
 
+        if getattr(source, "kind", "binary") != "binary":
+            from photonpano.errors import StageError
+
+            raise StageError("merger", "flux-mle", f"{source.name} holds intensity frames, not photon "
+                             "detections; use merger: mean")
         g, h, w = len(groups), source.height, source.width
         flux = np.empty((g, h, w), np.float32)
         frames = np.empty((g, h, w), np.float32)
         images = np.empty((g, h, w), np.uint8)
         masks = np.empty((g, h, w), bool)
-        for i in range(g):
+
+        def merge_one(i: int) -> None:
             start, stop = int(groups.start[i]), int(groups.stop[i])
             counts, frames[i] = merge_group(source, homographies, start, stop,
                                             int(groups.reference[i]), self.config.subbatch_px)
@@ -89,6 +97,8 @@ class FluxMLEMerger(Merger):
             images[i] = tone_map(np.where(masks[i], flux[i], np.nan), percentile=self.config.white_percentile)
             if progress is not None:
                 progress(1)
+
+        (executor or SerialExecutor()).map(merge_one, range(g))
         return MergedFrames(flux=flux, frames=frames, images=images, masks=masks)
 
 

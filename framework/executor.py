@@ -1,0 +1,88 @@
+"""Executors: where independent pieces of work (groups, pairs, chunks) run.
+
+One setting in the spec, ``executor: serial | threads`` with ``workers: N``, selects the
+executor for the whole pipeline. Stages call :meth:`Executor.map` on independent tasks;
+this is the seam where a distributed engine (processes, a cluster) can plug in later by
+implementing the same method.
+
+The heavy work inside tasks (OpenCV warps, feature extraction, the numba photon
+kernels) releases the GIL, so threads scale over cores. To avoid oversubscription,
+OpenCV's own thread pool is set to one thread while a threaded executor runs.
+"""
+
+from __future__ import annotations
+
+import os
+from concurrent.futures import ThreadPoolExecutor
+from typing import Any, Callable, Iterable
+
+__all__ = ["Executor", "SerialExecutor", "ThreadExecutor", "make_executor"]
+
+
+class Executor:
+    """Runs a function over independent items and returns the results in order."""
+
+    workers: int = 1
+
+    def map(self, fn: Callable[..., Any], *items: Iterable[Any]) -> list[Any]:
+        """Return ``[fn(*args) for args in zip(*items)]``, in the order of the items."""
+        return [fn(*args) for args in zip(*items)]
+
+    def close(self) -> None:
+        """Release the workers (idempotent)."""
+
+    def __enter__(self) -> Executor:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+class SerialExecutor(Executor):
+    """Runs every task in the calling thread."""
+
+
+class ThreadExecutor(Executor):
+    """Runs tasks on a pool of ``workers`` threads (OpenCV kept to one thread each).
+
+    Args:
+        workers: number of threads (>= 1).
+    """
+
+    def __init__(self, workers: int) -> None:
+        import cv2
+
+        self.workers = max(1, workers)
+        self._pool = ThreadPoolExecutor(self.workers, thread_name_prefix="photonpano")
+        self._cv_threads = cv2.getNumThreads()
+        cv2.setNumThreads(1)
+
+    def map(self, fn: Callable[..., Any], *items: Iterable[Any]) -> list[Any]:
+        """Run ``fn`` over the items on the pool; exceptions propagate to the caller."""
+        return list(self._pool.map(fn, *items))
+
+    def close(self) -> None:
+        """Shut the pool down and restore OpenCV's thread count."""
+        import cv2
+
+        if self._pool is not None:
+            self._pool.shutdown()
+            self._pool = None
+            cv2.setNumThreads(self._cv_threads)
+
+
+def make_executor(kind: str = "serial", workers: int = 0) -> Executor:
+    """Build an executor.
+
+    Args:
+        kind: ``"serial"`` or ``"threads"``.
+        workers: threads for ``"threads"``; 0 means one per CPU core.
+
+    Raises:
+        ValueError: for an unknown kind.
+    """
+    if kind == "serial":
+        return SerialExecutor()
+    if kind == "threads":
+        return ThreadExecutor(workers or os.cpu_count() or 1)
+    raise ValueError(f"unknown executor {kind!r}; expected 'serial' or 'threads'")
