@@ -35,6 +35,8 @@ class LevelResult:
         keyframes: (G, 3, 3) float64 chained homographies at the reference frames.
         homographies: (T, 3, 3) float64 per-frame homographies after the level.
         timings_s: wall time of each stage in seconds.
+        rejected_keyframes: keyframes whose solved update was implausible and was
+            bridged from their neighbours instead.
     """
 
     level: int
@@ -45,6 +47,7 @@ class LevelResult:
     keyframes: NDArray[np.float64]
     homographies: NDArray[np.float64]
     timings_s: dict[str, float] = field(default_factory=dict)
+    rejected_keyframes: int = 0
 
     def statistics(self) -> dict[str, Any]:
         """Return JSON-ready per-level statistics.
@@ -65,6 +68,7 @@ class LevelResult:
             "median_matches": float(np.median(p.matches[consecutive])) if consecutive.any() else 0.0,
             "median_inliers": float(np.median(p.inliers[consecutive])) if consecutive.any() else 0.0,
             "min_inliers": int(p.inliers[consecutive].min()) if consecutive.any() else 0,
+            "rejected_keyframes": self.rejected_keyframes,
             "timings_s": self.timings_s,
         }
 
@@ -286,6 +290,33 @@ def locate_keyframes(locator: Locator, merged: MergedFrames, current: NDArray[np
     return solved, pair_index, pairs
 
 
+def _guard_keyframes(current: NDArray[np.float64], solved: NDArray[np.float64], width: int,
+                     height: int) -> tuple[NDArray[np.float64], int]:
+    """Replace implausible keyframe updates by interpolation from their neighbours.
+
+    The update of keyframe g is ``inv(current[g]) @ solved[g]`` (frame to frame); one
+    that folds or rescales the frame (see :func:`plausible`) can only come from a
+    degenerate solve, so its parameters are interpolated from the plausible ones.
+
+    Returns:
+        ``(keyframes, rejected)``: (G, 3, 3) float64 and the number replaced.
+
+    Raises:
+        StageError: if no keyframe update is plausible.
+    """
+    update = np.linalg.inv(current) @ solved
+    good = plausible(update, width, height)
+    if good.all():
+        return solved, 0
+    if not good.any():
+        raise StageError("locator", "pose graph", "every keyframe update is implausible")
+    params = geometry.params_from_homographies(update)
+    idx = np.arange(len(good))
+    for k in range(8):
+        params[~good, k] = np.interp(idx[~good], idx[good], params[good, k])
+    return geometry.normalize(current @ geometry.homographies_from_params(params)), int((~good).sum())
+
+
 def _corner_disagreement(a: NDArray[np.float64], b: NDArray[np.float64], width: int, height: int) -> NDArray[np.float64]:
     """Largest corner distance in pixels between (P, 3, 3) homographies ``a`` and ``b``."""
     c = geometry.corners(width, height)
@@ -359,13 +390,18 @@ def estimate_motion(
                                                             source.width, source.height)
         except StageError as err:
             raise StageError("locator", type(locator).__name__, f"level {level}: {err.reason}") from None
+        keyframes, rejected = _guard_keyframes(current, keyframes, source.width, source.height)
         t3 = time.perf_counter()
         correction = keyframes @ np.linalg.inv(current)
-        homographies = geometry.normalize(interpolator.interpolate(refs, correction, n, groups) @ homographies)
+        updated = geometry.normalize(interpolator.interpolate(refs, correction, n, groups) @ homographies)
+        if not plausible(np.linalg.inv(homographies) @ updated, source.width, source.height).all():
+            raise StageError("interpolator", type(interpolator).__name__,
+                             f"level {level}: the interpolated update folds or rescales some frames")
+        homographies = updated
         t4 = time.perf_counter()
         timings.update(resample=t1 - t0, merge=t2 - t1, locate=t3 - t2, interpolate=t4 - t3)
         result = LevelResult(level, groups, merged if keep_merged else None, pairs, pair_index, keyframes,
-                             homographies, timings)
+                             homographies, timings, rejected_keyframes=rejected)
         results.append(result)
         if on_level is not None:
             on_level(result)

@@ -1,0 +1,85 @@
+"""The pose graph, its outlier handling and the guards, on synthetic registrations."""
+
+import numpy as np
+import pytest
+
+from photonpano import geometry
+from photonpano.errors import StageError
+from photonpano.reconstruct import chain_keyframes, locate_keyframes, pairs_at_offsets, plausible
+from photonpano.stages import Locator, PairRegistrations
+
+W, H = 200, 100
+
+
+def _truth(g):
+    t = np.arange(g)
+    return np.array([geometry.translation(3.0 * k + 2 * np.sin(k / 3), np.cos(k / 5)) for k in t])
+
+
+class NoisyLocator(Locator):
+    """Returns the true pair homographies plus corner noise; chosen pairs are wrong."""
+
+    def __init__(self, truth, noise_px, wrong=(), seed=0):
+        self.truth, self.noise, self.wrong = truth, noise_px, set(wrong)
+        self.rng = np.random.default_rng(seed)
+
+    def register_pairs(self, merged, pairs, initial):
+        out = []
+        for a, b in pairs:
+            rel = np.linalg.inv(self.truth[a]) @ self.truth[b]
+            c = geometry.corners(W, H)
+            moved = geometry.apply(rel, c) + self.rng.normal(scale=self.noise, size=(4, 2))
+            if (a, b) in self.wrong:
+                moved += 15.0  # plausible but 15 px off
+            import cv2
+            out.append(cv2.getPerspectiveTransform(c.astype(np.float32), moved.astype(np.float32)))
+        p = len(pairs)
+        return PairRegistrations(np.array(out).reshape(p, 3, 3), np.full(p, 100), np.full(p, 100), np.ones(p, bool))
+
+
+def _error(estimate, truth):
+    from photonpano.metrics import trajectory_error
+    return trajectory_error(estimate, truth, W, H).rmse_px
+
+
+def test_longer_pairs_remove_chaining_drift():
+    truth = _truth(80)
+    start = np.repeat(np.eye(3)[None], 80, 0)
+    chain, _, _ = locate_keyframes(NoisyLocator(truth, 0.3), None, start, (1,), W, H)
+    graph, _, _ = locate_keyframes(NoisyLocator(truth, 0.3), None, start, (1, 2, 4, 8, 16, 32), W, H)
+    assert _error(graph, truth) < 0.5 * _error(chain, truth)
+
+
+def test_a_wrong_consecutive_link_is_outvoted():
+    truth = _truth(40)
+    start = np.repeat(np.eye(3)[None], 40, 0)
+    loc = NoisyLocator(truth, 0.05, wrong={(10, 11)})
+    solved, index, pairs = locate_keyframes(loc, None, start, (1, 2, 4, 8), W, H)
+    assert _error(solved, truth) < 0.2
+    wrong = np.flatnonzero((index[:, 0] == 10) & (index[:, 1] == 11))[0]
+    assert not pairs.ok[wrong]
+
+
+def test_chain_bridges_failed_pairs_and_fails_when_all_fail():
+    truth = _truth(6)
+    rel = np.linalg.inv(truth[:-1]) @ truth[1:]
+    ok = np.array([True, False, True, True, True])
+    pairs = PairRegistrations(np.where(ok[:, None, None], rel, np.eye(3)), np.zeros(5, np.int64),
+                              np.zeros(5, np.int64), ok)
+    keys = chain_keyframes(truth[:1].repeat(6, 0), pairs)
+    # the bridged step is interpolated from its neighbours: close to the true pan of ~3 px
+    assert _error(keys, truth) < 1.0
+    with pytest.raises(StageError, match="all 5 pairs"):
+        chain_keyframes(truth, PairRegistrations(rel, np.zeros(5, np.int64), np.zeros(5, np.int64), np.zeros(5, bool)))
+
+
+def test_plausible_flags_folds_and_rescaling():
+    fold = np.diag([-1.0, 1.0, 1.0])
+    shrink = np.diag([0.3, 0.3, 1.0])
+    tilt = np.array([[1, 0, 0], [0, 1, 0], [0.02, 0, 1.0]])  # the horizon crosses the frame
+    ok = plausible(np.stack([np.eye(3), geometry.translation(50, 5), fold, shrink, tilt]), W, H)
+    np.testing.assert_array_equal(ok, [True, True, False, False, False])
+
+
+def test_pairs_at_offsets():
+    np.testing.assert_array_equal(pairs_at_offsets(4, (2,)), [[0, 1], [1, 2], [2, 3], [0, 2], [1, 3]])
