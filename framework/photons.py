@@ -32,21 +32,22 @@ for _v in range(256):
 @njit(cache=True, nogil=True)
 def _sum_packed_ranges(cube, edges, lanes, out):  # pragma: no cover - compiled
     rows, nbytes = cube.shape[1], cube.shape[2]
-    acc = np.zeros((rows, nbytes), dtype=np.uint64)
+    acc = np.zeros(rows * nbytes, dtype=np.uint64)
+    # Little-endian: byte k of acc[i] is the count of pixel 8 * i + k, so the uint8 view
+    # of the accumulator is already the (rows, 8 * nbytes) count image.
+    counts = acc.view(np.uint8)
     for b in range(len(edges) - 1):
+        flat = out[b].reshape(rows * nbytes * 8)
         t = edges[b]
         while t < edges[b + 1]:
             stop = min(edges[b + 1], t + 255)  # a lane saturates after 255 frames
             acc[:] = 0
             for u in range(t, stop):
-                for y in range(rows):
-                    for j in range(nbytes):
-                        acc[y, j] += lanes[cube[u, y, j]]
-            for y in range(rows):
-                for j in range(nbytes):
-                    a = acc[y, j]
-                    for k in range(8):
-                        out[b, y, 8 * j + k] += (a >> np.uint64(8 * k)) & np.uint64(0xFF)
+                frame = cube[u].reshape(rows * nbytes)
+                for i in range(rows * nbytes):
+                    acc[i] += lanes[frame[i]]
+            for i in range(rows * nbytes * 8):
+                flat[i] += counts[i]
             t = stop
 
 
