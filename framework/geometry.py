@@ -107,14 +107,15 @@ def apply(homographies: NDArray[np.float64], points: NDArray[np.float64]) -> NDA
 
     Args:
         homographies: (N, 3, 3) or (3, 3) float array.
-        points: (K, 2) float array of ``(x, y)`` pixel coordinates.
+        points: (K, 2) float array of ``(x, y)`` pixel coordinates, shared by all
+            homographies, or (N, K, 2) with one set of points per homography.
 
     Returns:
         (N, K, 2) float64 (or (K, 2) for a single homography) mapped coordinates.
     """
     h = np.asarray(homographies, dtype=np.float64)
     pts = np.asarray(points, dtype=np.float64)
-    hom = np.concatenate([pts, np.ones((len(pts), 1))], axis=1)  # (K, 3)
+    hom = np.concatenate([pts, np.ones(pts.shape[:-1] + (1,))], axis=-1)  # (..., K, 3)
     out = hom @ np.swapaxes(h, -1, -2)  # (..., K, 3)
     return out[..., :2] / out[..., 2:3]
 

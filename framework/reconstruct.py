@@ -19,7 +19,8 @@ from .errors import StageError
 from .executor import Executor, SerialExecutor
 from .stages import Groups, Interpolator, Locator, MergedFrames, Merger, PairRegistrations, PhotonSource, Resampler
 
-__all__ = ["LevelResult", "chain_keyframes", "estimate_motion", "Panorama", "assemble_panorama"]
+__all__ = ["LevelResult", "chain_keyframes", "refine_keyframes", "pairs_at_offsets", "plausible",
+           "locate_keyframes", "estimate_motion", "Panorama", "canvas_homographies", "assemble_panorama"]
 
 
 @dataclass
@@ -150,8 +151,8 @@ def refine_keyframes(initial: NDArray[np.float64], pair_index: NDArray[np.int64]
     def residuals(free: NDArray[np.float64]) -> NDArray[np.float64]:
         params = np.concatenate([x0[:1], free.reshape(g - 1, 8)])
         k = geometry.homographies_from_params(params)
-        via_a = _apply_each(k[a], mapped)
-        via_b = _apply_each(k[b], np.broadcast_to(grid, mapped.shape))
+        via_a = geometry.apply(k[a], mapped)
+        via_b = geometry.apply(k[b], grid)
         return ((via_a - via_b) * weight).ravel()
 
     sparsity = lil_matrix((len(a) * 18, (g - 1) * 8), dtype=np.int8)
@@ -163,13 +164,6 @@ def refine_keyframes(initial: NDArray[np.float64], pair_index: NDArray[np.int64]
                         x_scale="jac", loss="soft_l1", f_scale=1.0, max_nfev=50)
     params = np.concatenate([x0[:1], fit.x.reshape(g - 1, 8)])
     return geometry.homographies_from_params(params)
-
-
-def _apply_each(homographies: NDArray[np.float64], points: NDArray[np.float64]) -> NDArray[np.float64]:
-    """Map (E, K, 2) points through (E, 3, 3) homographies, one homography per row."""
-    hom = np.concatenate([points, np.ones(points.shape[:-1] + (1,))], axis=-1)
-    out = np.einsum("eij,ekj->eki", homographies, hom)
-    return out[..., :2] / out[..., 2:3]
 
 
 def pairs_at_offsets(count: int, offsets: tuple[int, ...]) -> NDArray[np.int64]:
