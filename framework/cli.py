@@ -109,7 +109,9 @@ def run(spec: Annotated[Path, typer.Argument(help="Pipeline spec (YAML).")], out
 
 
 @app.command()
-def pano(input: Annotated[Path, typer.Argument(help="A capture: a .npy photon cube.")], output: OutOption,
+def pano(input: Annotated[Path, typer.Argument(help="A capture: a .npy photon cube, a folder of SwissSPAD .bin "
+                                                 "files, a video, an image folder or a Photron .mraw.")],
+         output: OutOption,
          set_: SetOption = None, force: ForceOption = False) -> None:
     """Reconstruct a panorama from INPUT with the paper's default settings."""
     from .spec import apply_overrides, validate_spec
@@ -120,11 +122,53 @@ def pano(input: Annotated[Path, typer.Argument(help="A capture: a .npy photon cu
             raise PhotonpanoError(f"input {input} does not exist")
         source = host.hook.photonpano_source_for_input(path=input)
         if source is None:
-            raise PhotonpanoError(f"no source plugin reads {input} (supported: .npy photon cubes; "
-                                  "see `photonpano plugins`)")
-        data = apply_overrides({"source": source}, set_ or [])
+            raise PhotonpanoError(f"no source plugin reads {input} (supported: .npy photon cubes, folders of "
+                                  ".bin readouts, videos, image folders, .mraw; see `photonpano plugins`)")
+        data = apply_overrides({"source": source, **_merger_for(source, host)}, set_ or [])
         parsed = validate_spec(data, host, origin="pano")
         _report(_execute(parsed, output, force, host), output)
+    except PhotonpanoError as exc:
+        _fail(str(exc))
+
+
+def _merger_for(source: dict[str, Any], host) -> dict[str, Any]:
+    """Sources of intensity frames (config class ``kind = "intensity"``) get the ``mean`` merger."""
+    cls = host.registry("source").get(source.get("plugin"))
+    if getattr(cls, "kind", "binary") == "intensity" and "mean" in host.registry("merger"):
+        return {"merger": "mean"}
+    return {}
+
+
+@app.command()
+def convert(inputs: Annotated[list[Path], typer.Argument(help="A folder of SwissSPAD2 .bin readout files, or "
+                                                         ".bin files in frame order.")],
+            output: Annotated[Path, typer.Option("--output", "-o", help="The .npy cube to write (must not exist).")],
+            layout: Annotated[str, typer.Option(help="Readout layout: half (512 frames of 256x512 per file) or "
+                                                "full (256 frames of 512x512).")] = "half",
+            check_layout: Annotated[bool, typer.Option(help="Refuse a layout the data does not fit.")] = True) -> None:
+    """Convert SwissSPAD2 raw readouts to a bit-packed .npy photon cube, streaming.
+
+    The cube holds the raw frames, (T, 256, 64) or (T, 512, 64) uint8 packed MSB first;
+    read it with `photonpano pano cube.npy --set source.fix=colorspad` (or grayspad).
+    """
+    try:
+        if layout not in ("half", "full"):
+            raise PhotonpanoError(f"convert: --layout must be half or full, got {layout!r}")
+        for path in inputs:
+            if not path.exists():
+                raise PhotonpanoError(f"input {path} does not exist")
+        from rich.progress import Progress
+
+        from photonpano.plugins.sources.swissspad import convert_bin_to_npy
+
+        with Progress(transient=True) as bar:
+            task = bar.add_task("convert", total=None)
+            frames, notes = convert_bin_to_npy(inputs, output, layout, check_layout=check_layout,
+                                               progress=lambda done, total: bar.update(task, completed=done,
+                                                                                       total=total))
+        for note in notes:
+            typer.secho(f"warning: {note}", fg=typer.colors.YELLOW, err=True)
+        typer.echo(f"wrote {output}: {frames} {layout}-array frames")
     except PhotonpanoError as exc:
         _fail(str(exc))
 
@@ -147,6 +191,53 @@ def demo(output: OutOption, set_: SetOption = None, force: ForceOption = False,
         _report(_execute(parsed, output, force, host), output)
     except PhotonpanoError as exc:
         _fail(str(exc))
+
+
+@app.command()
+def compare(input: Annotated[str, typer.Argument(help="A spec (.yaml), a capture (.npy, ...) or 'simulate' "
+                                                  "(the demo's simulated capture, with ground truth).")],
+            output: OutOption,
+            locators: Annotated[str, typer.Option("--locators", "-l", help="Comma-separated locator keys, each "
+                                                  "optionally key:field=value[:field=value].")],
+            set_: SetOption = None, force: ForceOption = False) -> None:
+    """Run the same pipeline with each locator; write a table and a plot of error and time.
+
+    Writes compare.md, compare.json, compare.png and <locator>/homographies.npy into OUTPUT.
+    """
+    from .compare import compare_locators, markdown_table, write_comparison
+    from .pipeline import prepare_output
+    from .spec import apply_overrides
+
+    try:
+        host = _host()
+        path = Path(input)
+        if input == "simulate":
+            data: dict[str, Any] = {"source": {"plugin": "simulate"}}
+        elif path.suffix in (".yaml", ".yml"):
+            import yaml
+
+            if not path.exists():
+                raise PhotonpanoError(f"spec {input} does not exist")
+            data = yaml.safe_load(path.read_text()) or {}
+        else:
+            if not path.exists():
+                raise PhotonpanoError(f"input {input} does not exist")
+            source = host.hook.photonpano_source_for_input(path=path)
+            if source is None:
+                raise PhotonpanoError(f"no source plugin reads {input} (see `photonpano plugins`)")
+            data = {"source": source}
+        data = apply_overrides(data, set_ or [])
+        keys = [k.strip() for k in locators.split(",") if k.strip()]
+        if not keys:
+            raise PhotonpanoError("--locators: give at least one locator key")
+        prepare_output(output, force)
+        rows = compare_locators(data, keys, host, output, origin=input, log=typer.echo,
+                                on_row=lambda done: write_comparison(done, output, data))
+    except PhotonpanoError as exc:
+        _fail(str(exc))
+    typer.echo(markdown_table(rows))
+    if not any(row["status"] == "ok" for row in rows):
+        _fail("no locator completed (see the table)")
 
 
 @app.command()
@@ -189,6 +280,11 @@ def schema() -> None:
 
 def main() -> None:
     """Entry point of the ``photonpano`` command."""
+    import warnings
+
+    # caveats of a capture (e.g. a truncated last file) print as one line
+    warnings.showwarning = lambda message, *args, **kwargs: typer.secho(f"warning: {message}", err=True,
+                                                                        fg=typer.colors.YELLOW)
     try:
         app()
     except KeyboardInterrupt:

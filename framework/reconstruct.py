@@ -461,7 +461,7 @@ def assemble_panorama(source: PhotonSource, homographies: NDArray[np.float64], *
 
     Frames are summed in sub-batches whose canvas warps differ by < ``subbatch_px``
     canvas pixels, warped inside their footprint only, and the flux is the MLE of
-    paper Eq. (3) per canvas pixel.
+    paper Eq. (3) per canvas pixel (for intensity sources, the mean linear intensity).
 
     Args:
         source: the capture.
@@ -478,7 +478,7 @@ def assemble_panorama(source: PhotonSource, homographies: NDArray[np.float64], *
     Returns:
         The panorama (see :class:`Panorama`).
     """
-    from .photons import flux_mle
+    from .intensity import estimate_radiance
     from .warping import WarpAccumulator, subbatch_edges
 
     if canvas_shape is None:
@@ -507,5 +507,5 @@ def assemble_panorama(source: PhotonSource, homographies: NDArray[np.float64], *
     acc = parts[0]
     for part in parts[1:]:
         acc.merge(part)
-    flux = flux_mle(acc.counts, acc.frames, source.exposure_s)
+    flux = estimate_radiance(source, acc.counts, acc.frames)
     return Panorama(flux=flux, frames=acc.frames, homographies=to_canvas)

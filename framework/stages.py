@@ -102,6 +102,11 @@ class PhotonSource(abc.ABC):
         scene_flux: (Hs, Ws) float32 true flux of the scene in photons/s (in the
             coordinates ``ground_truth`` maps to), or None.
         name: a short description for logs and ``run.json``.
+        kind: ``"binary"`` (the default): frames are binary and :meth:`sum_ranges`
+            returns (B, H, W) uint16 detection counts; ``"intensity"``: frames are
+            linear intensities (conventional high-speed video, see
+            :mod:`photonpano.intensity`) and :meth:`sum_ranges` returns (B, H, W)
+            float32 sums of linear intensity. Mergers that only handle one kind check it.
     """
 
     n_frames: int
@@ -112,6 +117,7 @@ class PhotonSource(abc.ABC):
     ground_truth: NDArray[np.float64] | None = None
     scene_flux: NDArray[np.float32] | None = None
     name: str = ""
+    kind: str = "binary"
 
     @abc.abstractmethod
     def sum_ranges(self, edges: NDArray[np.int64]) -> NDArray[np.uint16]:
@@ -121,7 +127,8 @@ class PhotonSource(abc.ABC):
             edges: (B + 1,) strictly increasing frame indices within ``[0, T]``.
 
         Returns:
-            (B, H, W) uint16 counts; range ``b`` covers frames ``edges[b]:edges[b+1]``.
+            (B, H, W) uint16 counts; range ``b`` covers frames ``edges[b]:edges[b+1]``
+            (float32 sums of linear intensity for ``kind == "intensity"`` sources).
         """
 
     def describe(self) -> dict[str, Any]:
@@ -219,7 +226,7 @@ class Merger(abc.ABC):
 
     @abc.abstractmethod
     def merge(self, source: PhotonSource, homographies: NDArray[np.float64], groups: Groups,
-              progress: Any = None) -> MergedFrames:
+              progress: Any = None, executor: Any = None) -> MergedFrames:
         """Merge every group.
 
         Args:
@@ -227,6 +234,8 @@ class Merger(abc.ABC):
             homographies: (T, 3, 3) float64 current frame-to-panorama homographies.
             groups: the groups to merge.
             progress: optional callable ``progress(n)`` advanced by groups done.
+            executor: optional :class:`~photonpano.executor.Executor` to run
+                independent groups on (None: serially).
 
         Returns:
             One merged frame per group, in its reference frame's pixel grid.

@@ -3,15 +3,11 @@
 from __future__ import annotations
 
 import os
-from pathlib import Path
 
-import numpy as np
 import pytest
 
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 os.environ.setdefault("NUMBA_NUM_THREADS", "1")
-
-DATA = Path(__file__).parent / "data"
 
 
 @pytest.fixture(autouse=True, scope="session")
@@ -45,8 +41,3 @@ def tiny_capture():
     from photonpano.plugins.sources.simulate import SimulateConfig
 
     return SimulateConfig(frames=2400, height=128, width=248, flux=0.5, vibration_px=2.0).build()
-
-
-def packed_cube(capture) -> np.ndarray:
-    """Return the bit-packed (T, H, W/8) cube of a simulated capture."""
-    return np.asarray(capture.cube)

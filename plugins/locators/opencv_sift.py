@@ -2,7 +2,8 @@
 
 This is the paper's locator (Sec. 5, "Implementation Details": OpenCV SIFT and RANSAC
 homography fitting between merged frames). Features are computed once per merged frame
-and reused by both pairs the frame belongs to.
+(cached by content across calls, see ``common.CachingLocator``) and reused by every pair
+the frame belongs to.
 """
 
 from __future__ import annotations
@@ -14,7 +15,11 @@ from numpy.typing import NDArray
 from pydantic import Field
 
 from photonpano import hookimpl
-from photonpano.stages import LocatorConfig, Locator, MergedFrames, PairRegistrations
+from photonpano.stages import LocatorConfig
+
+from .common import FeatureLocator, Features, PairResult, ecc_image, ecc_polish, keypoint_mask
+
+__all__ = ["OpenCVSiftConfig", "OpenCVSiftLocator", "ecc_image"]
 
 ROBUST_METHODS = ("ransac", "usac-magsac", "usac-accurate", "lmeds")
 
@@ -53,13 +58,18 @@ class OpenCVSiftConfig(LocatorConfig):
         return OpenCVSiftLocator(self)
 
 
-class OpenCVSiftLocator(Locator):
-    """Registers pairs of merged frames with SIFT (see :class:`OpenCVSiftConfig`)."""
+class OpenCVSiftLocator(FeatureLocator):
+    """Registers pairs of merged frames with SIFT (see :class:`OpenCVSiftConfig`).
+
+    Features are cached by frame content (see ``common.CachingLocator``): a frame used by
+    both calls of a level (consecutive and longer-offset pairs) is described once;
+    :meth:`cache_stats` counts hits and misses.
+    """
 
     def __init__(self, config: OpenCVSiftConfig) -> None:
         import cv2
 
-        self.config = config
+        super().__init__(config)
         self._sift = cv2.SIFT_create(nfeatures=config.max_features,
                                      contrastThreshold=config.contrast_threshold)
         self._matcher = cv2.BFMatcher(cv2.NORM_L2)
@@ -77,36 +87,42 @@ class OpenCVSiftLocator(Locator):
             ``(points, descriptors)``: (K, 2) float32 ``(x, y)`` pixel coordinates and
             (K, 128) float32 descriptors (K may be 0).
         """
-        import cv2
-
-        keep = cv2.erode(mask.astype(np.uint8), np.ones((9, 9), np.uint8))
-        keypoints, descriptors = self._sift.detectAndCompute(image, keep)
+        keypoints, descriptors = self._sift.detectAndCompute(image, keypoint_mask(mask, 4))
         if descriptors is None or not keypoints:
             return np.zeros((0, 2), np.float32), np.zeros((0, 128), np.float32)
         return np.float32([k.pt for k in keypoints]), descriptors
 
-    def match(self, feat_a, feat_b) -> tuple[NDArray[np.float64], int, int, bool]:
+    def describe(self, image: NDArray[np.uint8], mask: NDArray[np.bool_], flux: NDArray[np.float32]) -> Features:
+        """Return :meth:`features` as :class:`Features` (``flux`` is unused)."""
+        points, descriptors = self.features(image, mask)
+        return Features(points.astype(np.float64), descriptors, native=(points, descriptors))
+
+    def match(self, feat_a, feat_b) -> PairResult:
         """Estimate the homography mapping frame b's pixels to frame a's.
 
+        Args:
+            feat_a: frame a's :class:`Features` (or the ``(points, descriptors)`` tuple of
+                :meth:`features`).
+            feat_b: frame b's.
+
         Returns:
-            ``(homography, matches, inliers, ok)``; homography is (3, 3) float64.
+            The pair's result; ``homography`` is (3, 3) float64.
         """
         import cv2
 
-        (pts_a, desc_a), (pts_b, desc_b) = feat_a, feat_b
-        failed = (np.eye(3), 0, 0, False)
+        (pts_a, desc_a), (pts_b, desc_b) = _native(feat_a), _native(feat_b)
         if len(pts_a) < 4 or len(pts_b) < 4:
-            return failed
+            return PairResult()
         pairs = self._matcher.knnMatch(desc_b, desc_a, k=2)
         good = [p[0] for p in pairs if len(p) == 2 and p[0].distance < self.config.ratio * p[1].distance]
         if len(good) < max(4, self.config.min_inliers):
-            return (np.eye(3), len(good), 0, False)
+            return PairResult(matches=len(good))
         src = pts_b[[m.queryIdx for m in good]]
         dst = pts_a[[m.trainIdx for m in good]]
         h, inlier_mask = cv2.findHomography(src, dst, self._method, self.config.reprojection_px,
                                             maxIters=5000, confidence=0.999)
         if h is None or inlier_mask is None:
-            return (np.eye(3), len(good), 0, False)
+            return PairResult(matches=len(good))
         inl = inlier_mask.ravel().astype(bool)
         n_in = int(inl.sum())
         if self.config.refine != "none" and n_in >= 8:
@@ -114,7 +130,7 @@ class OpenCVSiftLocator(Locator):
             if refined is not None:
                 h = refined
         ok = n_in >= self.config.min_inliers and abs(np.linalg.det(h[:2, :2])) > 1e-3
-        return h / h[2, 2], len(good), n_in, bool(ok)
+        return PairResult(h / h[2, 2], len(good), n_in, bool(ok))
 
     def refine_ecc(self, image_a: NDArray[np.float32], image_b: NDArray[np.float32],
                    mask_b: NDArray[np.bool_], homography: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -130,68 +146,12 @@ class OpenCVSiftLocator(Locator):
             (3, 3) float64 refined homography, or ``homography`` if ECC fails or moves
             a corner by more than ``ecc_max_change_px``.
         """
-        import cv2
-
-        from photonpano import geometry
-
-        criteria = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, self.config.ecc_iterations, 1e-5)
-        try:
-            _, warp = cv2.findTransformECC(image_b, image_a, homography.astype(np.float32),
-                                           cv2.MOTION_HOMOGRAPHY, criteria, mask_b.astype(np.uint8),
-                                           self.config.ecc_blur | 1)
-        except cv2.error:  # did not converge
-            return homography
-        warp = warp.astype(np.float64) / warp[2, 2]
-        h, w = image_b.shape
-        corners = geometry.corners(w, h)
-        change = np.abs(geometry.apply(warp, corners) - geometry.apply(homography, corners)).max()
-        return warp if np.isfinite(change) and change < self.config.ecc_max_change_px else homography
-
-    def register_pairs(self, merged: MergedFrames, pairs: NDArray[np.int64],
-                       initial: NDArray[np.float64]) -> PairRegistrations:
-        """Register each pair (see :meth:`Locator.register_pairs`); ``initial`` is unused."""
-        cache: dict[int, tuple] = {}
-
-        def feats(i: int):
-            if i not in cache:
-                cache[i] = self.features(merged.images[i], merged.masks[i])
-            return cache[i]
-
-        results = [self.match(feats(int(a)), feats(int(b))) for a, b in pairs]
-        if self.config.refine == "ecc":
-            images: dict[int, NDArray[np.float32]] = {}
-            for p, (a, b) in enumerate(pairs):
-                if results[p][3]:
-                    for i in (int(a), int(b)):
-                        if i not in images:
-                            images[i] = ecc_image(merged.flux[i], merged.masks[i])
-                    refined = self.refine_ecc(images[int(a)], images[int(b)], merged.masks[int(b)], results[p][0])
-                    results[p] = (refined, *results[p][1:])
-        return PairRegistrations(
-            homographies=np.array([r[0] for r in results]).reshape(-1, 3, 3),
-            matches=np.array([r[1] for r in results], dtype=np.int64),
-            inliers=np.array([r[2] for r in results], dtype=np.int64),
-            ok=np.array([r[3] for r in results], dtype=bool),
-        )
+        return ecc_polish(image_a, image_b, mask_b, homography, iterations=self.config.ecc_iterations,
+                          blur=self.config.ecc_blur, max_change_px=self.config.ecc_max_change_px)
 
 
-def ecc_image(flux: NDArray[np.float32], mask: NDArray[np.bool_]) -> NDArray[np.float32]:
-    """Return a merged flux image scaled to about [0, 1] for ECC.
-
-    Every observed pixel keeps its (possibly noisier) flux: zeroing the untrusted border
-    would put false edges into the moving image and bias the alignment. Unobserved
-    (NaN) pixels are 0.
-
-    Args:
-        flux: (H, W) float32 flux, NaN where unobserved.
-        mask: (H, W) bool trusted pixels, used to pick the white level.
-
-    Returns:
-        (H, W) float32 image.
-    """
-    trusted = mask & np.isfinite(flux)
-    white = float(np.percentile(flux[trusted], 99)) if trusted.any() else 1.0
-    return (np.nan_to_num(flux, nan=0.0) / (white if white > 0 else 1.0)).astype(np.float32)
+def _native(features):
+    return features.native if isinstance(features, Features) else features
 
 
 @hookimpl

@@ -2,8 +2,11 @@
 
 The SwissSPAD layout is ``(T, H, W/8)`` uint8, bit-packed along the width with the most
 significant bit first (exactly ``np.packbits(frames, axis=-1)``); unpacked ``(T, H, W)``
-bool or uint8 0/1 cubes are accepted too. The file is memory-mapped read-only and only
-the frames being merged are touched, so captures larger than memory work.
+bool or uint8 0/1 cubes are accepted too. Only the frames being merged are read, with
+plain file reads into a bounded buffer (``chunk_mb``), so captures larger than memory
+work and the resident memory does not grow with the capture. The SwissSPAD sensor
+corrections of :mod:`photonpano.sensor` (``fix``, ``inpaint_mask``, ``cfa``,
+``transforms``) apply to raw cubes, e.g. those written by ``photonpano convert``.
 """
 
 from __future__ import annotations
@@ -17,10 +20,11 @@ from pydantic import Field
 
 from photonpano import hookimpl
 from photonpano.errors import SourceError
+from photonpano.sensor import SwissSpadCorrections
 from photonpano.stages import PhotonSource, SourceConfig
 
 
-class NpyCubeConfig(SourceConfig):
+class NpyCubeConfig(SwissSpadCorrections):
     """A SwissSPAD ``.npy`` photon cube, bit-packed or unpacked, memory-mapped."""
 
     plugin: Literal["npy-cube"] = "npy-cube"
@@ -38,6 +42,8 @@ class NpyCubeConfig(SourceConfig):
     """Binary frames per second of the capture (SwissSPAD2: up to ~100 kHz)."""
     exposure_s: Annotated[float, Field(gt=0)] | None = None
     """Exposure time of one binary frame in seconds (default: 1 / frame_rate_hz)."""
+    chunk_mb: Annotated[float, Field(gt=0)] = 32.0
+    """Largest read buffer in MiB (bounds the memory used while streaming)."""
 
     def build(self) -> NpyCube:
         """Open the cube (memory-mapped, read-only)."""
@@ -48,8 +54,11 @@ class NpyCube(PhotonSource):
     """A memory-mapped ``.npy`` photon cube (see :class:`NpyCubeConfig`).
 
     Attributes:
-        cube: (T_file, H, W/8) or (T_file, H, W) read-only memory map.
+        cube: (T_file, H, W/8) or (T_file, H, W) read-only memory map (only its first
+            frames are touched, to detect the layout; frames are read by ``frames``).
         packed: True for the bit-packed layout.
+        frames: the streaming reader of the selected frames.
+        corrector: the sensor corrections applied to counts.
     """
 
     def __init__(self, config: NpyCubeConfig) -> None:
@@ -80,30 +89,48 @@ class NpyCube(PhotonSource):
         if not config.start < stop <= total:
             raise SourceError(f"source (npy-cube): frames {config.start}:{stop} are outside {path}, "
                               f"which holds {total} frames")
+        if np.isfortran(cube):
+            raise SourceError(f"source (npy-cube): {path} is stored in Fortran order; expected a C-ordered cube")
+        from photonpano.sensor import SensorCorrector
+        from photonpano.streaming import FrameFiles, FrameSegment
+
         self.offset = config.start
         self.n_frames = stop - config.start
-        self.height = cube.shape[1]
-        self.width = cube.shape[2] * (8 if self.packed else 1)
+        frame_bytes = int(np.prod(cube.shape[1:])) * cube.dtype.itemsize
+        self.frames = FrameFiles([FrameSegment(path, int(cube.offset) + config.start * frame_bytes, self.n_frames)],
+                                 cube.shape[1:], cube.dtype, chunk_bytes=int(config.chunk_mb * 2**20))
+        raw_shape = (cube.shape[1], cube.shape[2] * (8 if self.packed else 1))
+        self.corrector = SensorCorrector(config, raw_shape, None, f"npy-cube({path.name})")
+        self.height, self.width = self.corrector.shape
         self.frame_rate_hz = config.frame_rate_hz
         self.exposure_s = config.exposure_s or 1.0 / config.frame_rate_hz
         self.name = f"npy-cube({path.name}, {'packed' if self.packed else 'unpacked'})"
 
     def sum_ranges(self, edges: NDArray[np.int64]) -> NDArray[np.uint16]:
-        """Count detections over frame ranges (see :meth:`PhotonSource.sum_ranges`)."""
-        from photonpano.photons import sum_packed_ranges, sum_unpacked_ranges
-
+        """Count detections over frame ranges, corrected (see :meth:`PhotonSource.sum_ranges`)."""
         edges = np.asarray(edges, dtype=np.int64)
         if len(edges) and (edges[0] < 0 or edges[-1] > self.n_frames):
             raise ValueError(f"frame ranges {edges[0]}:{edges[-1]} leave the capture of {self.n_frames} frames")
-        view = self.cube[self.offset:self.offset + self.n_frames]
-        if self.packed:
-            return sum_packed_ranges(view, edges)
-        return sum_unpacked_ranges(view, edges)
+        return self.corrector.apply(self.raw_sums(edges), edges)
+
+    def raw_sums(self, edges: NDArray[np.int64]) -> NDArray[np.uint16]:
+        """Count detections over frame ranges without the sensor corrections.
+
+        Args:
+            edges: (B + 1,) strictly increasing frame indices within ``[0, n_frames]``.
+
+        Returns:
+            (B, H_file, W_file) uint16 counts in the cube's own pixel order.
+        """
+        from photonpano.photons import sum_packed_ranges, sum_unpacked_ranges
+
+        h, w = self.corrector.raw_shape
+        return self.frames.sum_ranges(edges, sum_packed_ranges if self.packed else sum_unpacked_ranges, (h, w))
 
     def describe(self) -> dict[str, Any]:
         """Return the capture summary with the file, layout and frame range."""
         return {**super().describe(), "path": str(self.config.path), "packed": self.packed,
-                "start": self.offset}
+                "start": self.offset, "fix": self.config.fix, "transforms": list(self.config.transforms)}
 
 
 def _is_packed(cube: np.ndarray, layout: str, path: Path) -> bool:

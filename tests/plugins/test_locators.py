@@ -3,7 +3,7 @@
 import cv2
 import numpy as np
 
-from conftest import DATA
+from testdata import DATA
 from photonpano import geometry
 from photonpano.plugins.locators.opencv_sift import OpenCVSiftConfig
 from photonpano.stages import MergedFrames

@@ -3,7 +3,7 @@ import hashlib
 import numpy as np
 import pytest
 
-from conftest import packed_cube
+from testdata import packed_cube
 from photonpano.errors import SourceError
 from photonpano.plugins.sources.npy_cube import NpyCubeConfig
 from photonpano.plugins.sources.simulate import SimulateConfig, camera_path

@@ -1,0 +1,205 @@
+"""Compare locators: the same pipeline and capture, one run per registration backend.
+
+``photonpano compare INPUT --locators opencv-sift,opencv-ecc -o OUT`` runs the motion
+estimation of one spec once per locator on the *same* opened capture, and writes:
+
+- ``compare.json``: per locator, per level: trajectory RMSE against ground truth (when
+  the source knows it), registration failures (consecutive pairs bridged), pairs tried
+  and used, locate and level wall times, feature-cache hits and misses; or the error
+  that stopped the run;
+- ``compare.md``: the same as a Markdown table (what ``docs/locators.md`` shows);
+- ``compare.png``: trajectory RMSE and locate time per level, one line per locator;
+- ``<locator>/homographies.npy``: each run's (T, 3, 3) frame-to-panorama homographies.
+
+The panorama is not assembled (it does not depend on the locator beyond the
+homographies); run ``photonpano run`` with the chosen locator for it.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from pydantic import BaseModel
+
+from .errors import PhotonpanoError
+from .host import PluginHost
+
+__all__ = ["compare_locators", "markdown_table", "plot_comparison", "write_comparison"]
+
+
+def compare_locators(base: dict[str, Any], locators: list[str], host: PluginHost, out_dir: Path | None = None,
+                     *, origin: str = "compare", source: Any = None, log: Any = None,
+                     on_row: Any = None) -> list[dict[str, Any]]:
+    """Run the pipeline's motion estimation once per locator on one capture.
+
+    Args:
+        base: a spec mapping (its ``locator`` section is replaced by each key in turn;
+            the rest, source included, is shared).
+        locators: locator plugin keys, each optionally with overrides as
+            ``key:field=value:field=value`` (values parsed as YAML).
+        host: the plugin host.
+        out_dir: folder for ``<locator>/homographies.npy`` (None: write nothing).
+        origin: name used in spec error messages.
+        source: an already opened capture to reuse (None: built from the spec once).
+        log: optional callable receiving one progress line per finished level and run.
+        on_row: optional callable receiving the rows so far after each locator (to
+            write partial results of a long comparison).
+
+    Returns:
+        One row per locator: ``{"locator", "spec", "status", "levels": [...],
+        "trajectory_rmse_px", "failed_pairs", "locate_s", "total_s"}``, where
+        ``status`` is ``"ok"`` or the error message; ``levels`` holds per-level
+        statistics (see :meth:`photonpano.reconstruct.LevelResult.statistics`) plus
+        ``trajectory_rmse_px`` and ``cache``.
+
+    A locator whose spec is invalid, whose extra is missing or whose run fails is
+    reported in its row (``status``), not raised.
+    """
+    rows: list[dict[str, Any]] = []
+    for item in locators:
+        source = _compare_one(item, base, host, out_dir, origin, source, log, rows)
+        if on_row is not None:
+            on_row(rows)
+    return rows
+
+
+def _compare_one(item: str, base: dict[str, Any], host: PluginHost, out_dir: Path | None, origin: str,
+                 source: Any, log: Any, rows: list[dict[str, Any]]) -> Any:
+    """Run one locator (see :func:`compare_locators`); append its row; return the source."""
+    from .metrics import trajectory_error
+    from .reconstruct import estimate_motion
+    from .spec import apply_overrides, validate_spec
+
+    key, *options = item.split(":")
+    label = item
+    data = apply_overrides({k: v for k, v in base.items() if k != "locator"},
+                           [f"locator={key}", *(f"locator.{o}" for o in options)])
+    row: dict[str, Any] = {"locator": label, "status": "ok", "levels": []}
+    rows.append(row)
+    try:
+        spec = validate_spec(data, host, origin=f"{origin} ({label})")
+        type(spec.locator).check_available()
+    except PhotonpanoError as exc:
+        row["status"] = str(exc)
+        return source
+    row["spec"] = spec.locator.model_dump(mode="json")
+    if source is None:
+        source = spec.source.build()
+    locator = spec.locator.build()
+    before: dict[str, int] = {}
+
+    def on_level(result, row=row, locator=locator, before=before):
+        stats = result.statistics()
+        if source.ground_truth is not None:
+            stats["trajectory_rmse_px"] = trajectory_error(result.homographies, source.ground_truth,
+                                                           source.width, source.height).rmse_px
+        if hasattr(locator, "cache_stats"):
+            now = locator.cache_stats()
+            stats["cache"] = {k: v - before.get(k, 0) if k != "entries" else v for k, v in now.items()}
+            before.update(now)
+        row["levels"].append(stats)
+        if log:
+            rmse = stats.get("trajectory_rmse_px")
+            log(f"{label}: level {stats['level']}: locate {stats['timings_s'].get('locate', 0):.1f} s, "
+                f"{stats['failed_pairs']} failed pairs" + (f", RMSE {rmse:.3f} px" if rmse is not None else ""))
+
+    t0 = time.perf_counter()
+    try:
+        homographies, _ = estimate_motion(
+            source, spec.resampler.build(), spec.merger.build(), locator, spec.interpolator.build(),
+            levels=spec.levels, group_size=spec.group_size, pair_offsets=tuple(spec.pair_offsets),
+            on_level=on_level)
+    except PhotonpanoError as exc:
+        row["status"] = str(exc)
+        return source
+    finally:
+        row["total_s"] = time.perf_counter() - t0
+    if source.ground_truth is not None:
+        row["trajectory_rmse_px"] = trajectory_error(homographies, source.ground_truth,
+                                                     source.width, source.height).rmse_px
+    row["failed_pairs"] = sum(level["failed_pairs"] for level in row["levels"])
+    row["locate_s"] = sum(level["timings_s"].get("locate", 0.0) for level in row["levels"])
+    if out_dir is not None:
+        folder = out_dir / _safe(label)
+        folder.mkdir(parents=True, exist_ok=True)
+        np.save(folder / "homographies.npy", homographies)
+    if log:
+        rmse = row.get("trajectory_rmse_px")
+        log(f"{label}: done in {row['total_s']:.1f} s" + (f", RMSE {rmse:.3f} px" if rmse is not None else ""))
+    return source
+
+
+def _safe(label: str) -> str:
+    return "".join(c if c.isalnum() or c in "-_.=" else "_" for c in label)
+
+
+def markdown_table(rows: list[dict[str, Any]]) -> str:
+    """Return the comparison as a Markdown table, one row per locator.
+
+    Columns: final trajectory RMSE (px), RMSE per level, failed (bridged) consecutive
+    pairs per level, locate time per level (s), total motion-estimation time (s),
+    feature-cache hits/misses summed over levels.
+    """
+    lines = ["| locator | RMSE (px) | RMSE per level (px) | failed pairs per level | locate time per level (s) "
+             "| total (s) | cache hits/misses |",
+             "| --- | ---: | --- | --- | --- | ---: | --- |"]
+    for row in rows:
+        if row["status"] != "ok":
+            lines.append(f"| `{row['locator']}` | – | {row['status'].splitlines()[0]} | | | | |")
+            continue
+        levels = row["levels"]
+        rmse = row.get("trajectory_rmse_px")
+        per_level = " / ".join(f"{lv['trajectory_rmse_px']:.3f}" for lv in levels if "trajectory_rmse_px" in lv)
+        failed = " / ".join(str(lv["failed_pairs"]) for lv in levels)
+        locate = " / ".join(f"{lv['timings_s'].get('locate', 0):.1f}" for lv in levels)
+        hits = sum(lv.get("cache", {}).get("hits", 0) for lv in levels)
+        misses = sum(lv.get("cache", {}).get("misses", 0) for lv in levels)
+        cache = f"{hits}/{misses}" if hits or misses else "–"
+        lines.append(f"| `{row['locator']}` | {'–' if rmse is None else f'{rmse:.3f}'} | {per_level or '–'} | "
+                     f"{failed} | {locate} | {row['total_s']:.1f} | {cache} |")
+    return "\n".join(lines) + "\n"
+
+
+def plot_comparison(rows: list[dict[str, Any]], path: Path) -> None:
+    """Plot trajectory RMSE (if known) and locate time per level, one line per locator."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(10, 4))
+    for row in rows:
+        if row["status"] != "ok" or not row["levels"]:
+            continue
+        levels = [lv["level"] for lv in row["levels"]]
+        if all("trajectory_rmse_px" in lv for lv in row["levels"]):
+            axes[0].semilogy(levels, [lv["trajectory_rmse_px"] for lv in row["levels"]], "o-", label=row["locator"])
+        axes[1].plot(levels, [lv["timings_s"].get("locate", 0) for lv in row["levels"]], "o-", label=row["locator"])
+    axes[0].set(xlabel="level", ylabel="trajectory RMSE (px)", title="error against ground truth")
+    axes[1].set(xlabel="level", ylabel="locate time (s)", title="registration time")
+    for axis in axes:
+        axis.grid(alpha=0.3)
+    axes[1].legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+def write_comparison(rows: list[dict[str, Any]], out_dir: Path, spec_data: dict[str, Any] | BaseModel) -> None:
+    """Write ``compare.json``, ``compare.md`` and ``compare.png`` into ``out_dir``."""
+    data = spec_data.model_dump(mode="json") if isinstance(spec_data, BaseModel) else spec_data
+    (out_dir / "compare.json").write_text(json.dumps({"spec": data, "runs": rows}, indent=2, default=_json_value))
+    (out_dir / "compare.md").write_text(markdown_table(rows))
+    plot_comparison(rows, out_dir / "compare.png")
+
+
+def _json_value(value: Any) -> Any:
+    if isinstance(value, (np.integer, np.floating)):
+        return value.item()
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    return str(value)

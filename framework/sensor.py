@@ -1,0 +1,611 @@
+"""SwissSPAD2 raw readouts and sensor corrections shared by the SwissSPAD sources.
+
+**Raw readout files** (``.bin``, no header, 8 MiB each, least significant bit first
+within a byte, formats verified against the sensor authors' ``photoncube`` reader):
+
+- ``half`` array: 512 frames of 256x512 pixels per file; each frame is 256 rows of
+  64 bytes, pixel ``8 j + k`` of a row in bit ``k`` of byte ``j``.
+- ``full`` array: 256 frames of 512x512 pixels per file; each frame is 256 readout
+  records of 1024 pixels. Record ``r`` holds, in order, quarter-row ``q = 0..3``
+  (columns ``128 q .. 128 q + 127``) of top-half row ``r`` and then of bottom-half
+  row ``511 - r`` (the bottom half is read out flipped up-down).
+
+Counts of raw frames are obtained by counting the stored bytes as if they were packed
+most significant bit first (:func:`photonpano.photons.sum_packed_ranges`) and then
+permuting the counts (:func:`record_counts_to_frame`): every layout step is a fixed
+permutation of pixels, so it commutes with summing frames.
+
+**Corrections** (:class:`SwissSpadCorrections`, applied in this order, as
+``photoncube`` does):
+
+1. ``fix``: ``colorspad`` crops rows ``2:`` and columns ``:496`` and swaps columns
+   ``252:256`` with ``260:264`` (254x496, half array only); ``grayspad`` crops rows
+   ``2:`` and columns ``:496`` of a half array (254x496), or of a full array with a
+   blank row inserted between the halves, rows ``2:-2`` (509x496; the blank row is
+   inpainted).
+2. Missing pixels: colour-filtered pixels (``cfa``) and hot/dead pixels
+   (``inpaint_mask``), both in the coordinates after the fix, are replaced by the mean
+   of their valid 4-neighbours (the nearest valid pixels if none is valid). On counts
+   the mean is rounded stochastically (seeded by the frame range), so its expectation
+   is exact and the result stays an integer count.
+3. ``transforms``: rotations and flips in order (``rot90`` turns the image 90 degrees
+   clockwise as displayed, like ``photoncube``'s ``Rot90``).
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+from importlib import resources
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+from numpy.typing import NDArray
+
+from pydantic import model_validator
+
+from .errors import SourceError
+from .stages import SourceConfig
+
+__all__ = [
+    "BIN_FILE_BYTES",
+    "RawLayout",
+    "LAYOUTS",
+    "Transform",
+    "reverse_bits",
+    "decode_frames",
+    "encode_frames",
+    "record_counts_to_frame",
+    "write_bin_files",
+    "list_bin_files",
+    "layout_scores",
+    "SwissSpadCorrections",
+    "SensorCorrector",
+    "bundled_sensor_file",
+    "load_cfa",
+    "load_mask",
+    "transform_shape",
+    "transform_matrix",
+]
+
+BIN_FILE_BYTES = 8 * 2**20
+"""Size of one complete SwissSPAD2 raw readout file in bytes (8 MiB)."""
+
+
+@dataclass(frozen=True)
+class RawLayout:
+    """How frames are laid out in SwissSPAD2 raw readout files.
+
+    Attributes:
+        name: ``"half"`` or ``"full"``.
+        height: frame height in pixels.
+        width: frame width in pixels.
+        frames_per_file: frames in one complete 8 MiB file.
+        record_shape: ``(rows, bytes)`` of one stored frame as counted, e.g.
+            ``(256, 128)`` for the full array's 256 records of 1024 pixels.
+    """
+
+    name: str
+    height: int
+    width: int
+    frames_per_file: int
+    record_shape: tuple[int, int]
+
+    @property
+    def frame_bytes(self) -> int:
+        """Bytes per stored frame (16 KiB half, 32 KiB full)."""
+        return self.height * self.width // 8
+
+
+LAYOUTS: dict[str, RawLayout] = {
+    "half": RawLayout("half", 256, 512, 512, (256, 64)),
+    "full": RawLayout("full", 512, 512, 256, (256, 128)),
+}
+"""The SwissSPAD2 readout layouts by name."""
+
+Transform = Literal["rot90", "rot180", "rot270", "flip-ud", "flip-lr"]
+"""A rotation or flip of corrected frames (``rot90``: 90 degrees clockwise as displayed)."""
+
+_REVERSE = np.array([int(f"{v:08b}"[::-1], 2) for v in range(256)], dtype=np.uint8)
+
+_BUNDLED = {"inpaint_mask": "colorspad_inpaint_mask.npy", "cfa": "rgbw_oh_bn_color_ss2_corrected.png"}
+
+
+def bundled_sensor_file(kind: Literal["inpaint_mask", "cfa"]) -> Path:
+    """Return the bundled real SwissSPAD2 colour half-array mask or colour filter layout.
+
+    Args:
+        kind: ``"inpaint_mask"`` ((254, 496) bool ``.npy``, True = hot/dead pixel) or
+            ``"cfa"`` (256x512 RGB PNG; white = no filter, pure red/green/blue = filter).
+
+    Returns:
+        The path inside the installed package (see ``plugins/data/SOURCES.md``).
+    """
+    return Path(str(resources.files("photonpano.plugins") / "data" / _BUNDLED[kind]))
+
+
+def reverse_bits(data: NDArray[np.uint8]) -> NDArray[np.uint8]:
+    """Return ``data`` with the bit order of every byte reversed (LSB-first <-> MSB-first)."""
+    return _REVERSE[data]
+
+
+def decode_frames(raw: NDArray[np.uint8], layout: RawLayout) -> NDArray[np.uint8]:
+    """Turn raw readout frames into bit-packed frames in the photonpano layout.
+
+    Args:
+        raw: (K, frame_bytes) or (K, *record_shape) uint8 bytes as stored in ``.bin``
+            files (LSB first).
+        layout: the readout layout.
+
+    Returns:
+        (K, H, W/8) uint8 frames bit-packed along the width, MSB first (exactly
+        ``np.packbits(frames, axis=-1)``), in sensor row order.
+    """
+    k = len(raw)
+    data = reverse_bits(np.asarray(raw, dtype=np.uint8).reshape(k, -1))
+    if layout.name == "half":
+        return data.reshape(k, layout.height, layout.width // 8)
+    rec = data.reshape(k, 256, 4, 2, 16)  # record, quarter, top/bottom, 16 bytes = 128 px
+    out = np.empty((k, 512, 64), dtype=np.uint8)
+    out[:, :256] = rec[:, :, :, 0, :].reshape(k, 256, 64)
+    out[:, 256:] = rec[:, ::-1, :, 1, :].reshape(k, 256, 64)
+    return out
+
+
+def encode_frames(packed: NDArray[np.uint8], layout: RawLayout) -> NDArray[np.uint8]:
+    """Inverse of :func:`decode_frames`: bit-packed frames to raw readout bytes.
+
+    Args:
+        packed: (K, H, W/8) uint8 frames bit-packed MSB first; (H, W) must be the
+            layout's (256x512 half, 512x512 full).
+        layout: the readout layout.
+
+    Returns:
+        (K, frame_bytes) uint8 bytes exactly as the sensor stores them.
+
+    Raises:
+        ValueError: if the frame shape does not match the layout.
+    """
+    packed = np.asarray(packed, dtype=np.uint8)
+    if packed.shape[1:] != (layout.height, layout.width // 8):
+        raise ValueError(f"{layout.name} array frames are {layout.height}x{layout.width} "
+                         f"(packed {layout.height}x{layout.width // 8}), got packed {packed.shape[1:]}")
+    k = len(packed)
+    if layout.name == "half":
+        data = packed.reshape(k, -1)
+    else:
+        rec = np.empty((k, 256, 4, 2, 16), dtype=np.uint8)
+        rec[:, :, :, 0, :] = packed[:, :256].reshape(k, 256, 4, 16)
+        rec[:, :, :, 1, :] = packed[:, 256:][:, ::-1].reshape(k, 256, 4, 16)
+        data = rec.reshape(k, -1)
+    return reverse_bits(data)
+
+
+def record_counts_to_frame(counts: NDArray, layout: RawLayout) -> NDArray:
+    """Rearrange counts of raw records (counted MSB first) into sensor pixel order.
+
+    Args:
+        counts: (B, rows, 8 * bytes) counts of the stored bytes of ``layout.record_shape``,
+            pixel ``8 j + k`` counting bit ``7 - k`` of byte ``j``.
+        layout: the readout layout.
+
+    Returns:
+        (B, H, W) counts in sensor pixel order (a new array of the same dtype).
+    """
+    b = len(counts)
+    # the files store bits LSB first: bit k of byte j is pixel 8 j + k
+    lsb = np.asarray(counts).reshape(b, counts.shape[1], -1, 8)[..., ::-1].reshape(counts.shape)
+    if layout.name == "half":
+        return np.ascontiguousarray(lsb)
+    rec = lsb.reshape(b, 256, 4, 2, 128)
+    out = np.empty((b, 512, 512), dtype=counts.dtype)
+    out[:, :256] = rec[:, :, :, 0, :].reshape(b, 256, 512)
+    out[:, 256:] = rec[:, ::-1, :, 1, :].reshape(b, 256, 512)
+    return out
+
+
+def write_bin_files(packed: NDArray[np.uint8], folder: Path, layout: RawLayout | str = "half",
+                    prefix: str = "RAW") -> list[Path]:
+    """Write bit-packed frames as SwissSPAD2 raw readout files (for tests and simulations).
+
+    Files are named ``{prefix}00000.bin``, ``{prefix}00001.bin``, ... and hold
+    ``layout.frames_per_file`` frames each (the last one fewer if the frames run out).
+
+    Args:
+        packed: (T, H, W/8) uint8 frames bit-packed MSB first (a memory map is fine;
+            it is written a file at a time).
+        folder: output folder (created); existing files of the same name are refused.
+        layout: ``"half"``/``"full"`` or a :class:`RawLayout`.
+        prefix: file name prefix.
+
+    Returns:
+        The written paths in order.
+
+    Raises:
+        FileExistsError: if a file to write already exists.
+        ValueError: if the frame shape does not match the layout.
+    """
+    layout = LAYOUTS[layout] if isinstance(layout, str) else layout
+    folder.mkdir(parents=True, exist_ok=True)
+    paths = []
+    per = layout.frames_per_file
+    for i, start in enumerate(range(0, len(packed), per)):
+        path = folder / f"{prefix}{i:05d}.bin"
+        with open(path, "xb") as f:
+            f.write(encode_frames(packed[start:start + per], layout).tobytes())
+        paths.append(path)
+    return paths
+
+
+def _natural_key(path: Path) -> list:
+    return [int(t) if t.isdigit() else t.lower() for t in re.split(r"(\d+)", str(path))]
+
+
+def list_bin_files(folder: Path) -> list[Path]:
+    """Return the ``.bin`` files under ``folder`` (recursively) in natural order.
+
+    Natural order sorts ``RAW2.bin`` before ``RAW10.bin`` and equals the plain sorted
+    order for zero-padded names (what the sensor software writes).
+    """
+    return sorted((p for p in folder.rglob("*") if p.suffix.lower() == ".bin" and p.is_file()),
+                  key=lambda p: _natural_key(p.relative_to(folder)))
+
+
+def layout_scores(raw: NDArray[np.uint8]) -> dict[str, float]:
+    """Measure how well raw readout frames fit each layout.
+
+    The wrong layout puts quarter-rows of distant sensor regions side by side, so the
+    mean image jumps at columns 128 and 384. The score of a layout is the mean
+    absolute column step of the mean image (rows averaged in bands of 8) at those
+    columns, divided by the median column step elsewhere: about 1 for the right layout, well above 1 for the wrong
+    one when the scene has structure.
+
+    Args:
+        raw: (K, 16384 or 32768 * n) uint8 raw frames of one file, as stored; K * 16 KiB
+            must be a whole number of full-array frames too (e.g. K even for half).
+
+    Returns:
+        ``{"half": score, "full": score}``.
+    """
+    flat = np.asarray(raw, dtype=np.uint8).reshape(-1)
+    scores = {}
+    for name, layout in LAYOUTS.items():
+        k = len(flat) // layout.frame_bytes
+        if k == 0:
+            scores[name] = 1.0
+            continue
+        frames = decode_frames(flat[:k * layout.frame_bytes].reshape(k, -1), layout)
+        mean = np.unpackbits(frames, axis=-1).mean(axis=0, dtype=np.float64)
+        rows = len(mean) // 8 * 8
+        mean = mean[:rows].reshape(-1, 8, mean.shape[1]).mean(axis=1)  # average 8 rows: less photon noise
+        step = np.abs(np.diff(mean, axis=1)).mean(axis=0)  # (W - 1,) step between column c and c + 1
+        boundary = step[[127, 383]].mean()
+        others = np.delete(step, [127, 383])
+        scores[name] = float(boundary / max(np.median(others), 1e-9))
+    return scores
+
+
+# --- corrections --------------------------------------------------------------------
+
+
+class SwissSpadCorrections(SourceConfig):
+    """Sensor corrections shared by the SwissSPAD sources (``npy-cube``, ``swissspad-bin``).
+
+    Not a plugin by itself: the sources' config classes inherit these fields.
+    """
+
+    fix: Literal["none", "colorspad", "grayspad"] = "none"
+    """Sensor-specific fix of raw frames: ``colorspad`` (half array 256x512 -> 254x496:
+    crop rows 2: and columns :496, swap columns 252:256 with 260:264), ``grayspad``
+    (crop to 254x496, or 509x496 for a full array), or ``none``."""
+    inpaint_mask: Path | None = None
+    """Hot/dead pixels to inpaint: a bool ``.npy`` (True = inpaint) or an image (non-zero =
+    inpaint) in the coordinates after ``fix``; a larger mask is cropped to its top-left
+    corner. ``colorspad`` selects the bundled real mask of a SwissSPAD2 colour half array."""
+    cfa: Path | None = None
+    """Colour filter array: an RGB image (white = no filter, pure red/green/blue = that
+    filter) or an ``.npy`` of codes (-1 none, 0 R, 1 G, 2 B), in the coordinates after
+    ``fix`` (a larger one is cropped to its top-left corner, as ``photoncube`` does).
+    Filtered pixels are treated as missing for registration and the panorama.
+    ``colorspad`` selects the bundled real layout."""
+    transforms: list[Transform] = []
+    """Rotations and flips applied in order after the other corrections, e.g.
+    ``[rot90, flip-ud]`` for the paper's panorama captures."""
+    colour_panorama: bool = False
+    """Also write ``panorama_rgb.npy`` / ``panorama_rgb.png``: each colour channel merged
+    from the pixels behind that filter only (needs ``cfa``)."""
+
+    @model_validator(mode="after")
+    def _colour_needs_cfa(self):
+        if self.colour_panorama and self.cfa is None:
+            raise ValueError("colour_panorama needs cfa (the colour filter array layout)")
+        return self
+
+
+def _resolve(path: Path | None, kind: Literal["inpaint_mask", "cfa"]) -> Path | None:
+    if path is not None and str(path) == "colorspad" and not path.exists():
+        return bundled_sensor_file(kind)
+    return path
+
+
+def load_mask(path: Path, shape: tuple[int, int]) -> NDArray[np.bool_]:
+    """Load a hot/dead pixel mask and crop it to ``shape``.
+
+    Args:
+        path: bool/0-1 ``.npy`` (True = inpaint) or an image (non-zero = inpaint).
+        shape: ``(H, W)`` of the corrected frames.
+
+    Returns:
+        (H, W) bool mask.
+
+    Raises:
+        SourceError: unreadable file, or a mask smaller than ``shape``.
+    """
+    data = _load_2d(path, "inpaint_mask")
+    mask = data.any(axis=-1) if data.ndim == 3 else data.astype(bool)
+    return _crop(mask, shape, path, "inpaint_mask")
+
+
+def load_cfa(path: Path, shape: tuple[int, int]) -> NDArray[np.int8]:
+    """Load a colour filter array layout and crop it to ``shape``.
+
+    Args:
+        path: an RGB image (white = unfiltered, pure red/green/blue = filter; any other
+            colour is refused) or an ``.npy`` of int codes (-1 none, 0 R, 1 G, 2 B) or
+            bools (True = filtered, colour unknown: code 3).
+        shape: ``(H, W)`` of the corrected frames.
+
+    Returns:
+        (H, W) int8 codes: -1 unfiltered, 0/1/2 red/green/blue, 3 filtered (unknown).
+
+    Raises:
+        SourceError: unreadable file, unknown colours or codes, or a layout smaller
+            than ``shape``.
+    """
+    data = _load_2d(path, "cfa")
+    if path.suffix.lower() == ".npy":
+        if data.dtype == np.bool_:
+            codes = np.where(data, 3, -1).astype(np.int8)
+        else:
+            codes = data.astype(np.int8)
+            if data.ndim != 2 or not np.isin(codes, [-1, 0, 1, 2, 3]).all() or not np.array_equal(codes, data):
+                raise SourceError(f"source: cfa {path} must hold codes -1 (none), 0 (R), 1 (G), 2 (B)")
+    else:
+        rgb = data if data.ndim == 3 else np.repeat(data[..., None], 3, axis=-1)
+        rgb = rgb[..., :3]
+        top = 255 if rgb.dtype == np.uint8 else int(rgb.max()) or 1
+        codes = np.full(rgb.shape[:2], -2, dtype=np.int8)
+        codes[(rgb == top).all(-1)] = -1
+        for c, colour in enumerate(([top, 0, 0], [0, top, 0], [0, 0, top])):
+            codes[(rgb == colour).all(-1)] = c
+        if (codes == -2).any():
+            y, x = np.argwhere(codes == -2)[0]
+            raise SourceError(f"source: cfa {path} has pixel ({x}, {y}) of colour {rgb[y, x].tolist()}; "
+                              "expected white (no filter) or pure red, green or blue")
+    return _crop(codes, shape, path, "cfa")
+
+
+def _load_2d(path: Path, what: str) -> NDArray:
+    if not path.is_file():
+        raise SourceError(f"source: {what} {path} does not exist")
+    if path.suffix.lower() == ".npy":
+        try:
+            return np.load(path, allow_pickle=False)
+        except (ValueError, OSError, EOFError) as exc:
+            raise SourceError(f"source: {what} {path} is not a readable .npy file ({exc})") from None
+    import cv2
+
+    image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if image is None:
+        raise SourceError(f"source: {what} {path} is neither an .npy file nor an image OpenCV can decode")
+    return image[..., 2::-1] if image.ndim == 3 else image  # BGR(A) -> RGB
+
+
+def _crop(arr: NDArray, shape: tuple[int, int], path: Path, what: str) -> NDArray:
+    if arr.ndim != 2 or arr.shape[0] < shape[0] or arr.shape[1] < shape[1]:
+        raise SourceError(f"source: {what} {path} has shape {arr.shape}; expected at least {shape} "
+                          "(the frame size after the sensor fix)")
+    return np.ascontiguousarray(arr[:shape[0], :shape[1]])
+
+
+def transform_shape(shape: tuple[int, int], transforms: list[str]) -> tuple[int, int]:
+    """Return ``(H, W)`` after applying ``transforms`` to frames of ``shape``."""
+    h, w = shape
+    for t in transforms:
+        if t in ("rot90", "rot270"):
+            h, w = w, h
+    return h, w
+
+
+def _apply_transforms(arr: NDArray, transforms: list[str]) -> NDArray:
+    """Rotate/flip the last two axes of ``arr`` (rows, columns)."""
+    for t in transforms:
+        if t == "rot90":
+            arr = np.rot90(arr, -1, axes=(-2, -1))
+        elif t == "rot180":
+            arr = np.rot90(arr, 2, axes=(-2, -1))
+        elif t == "rot270":
+            arr = np.rot90(arr, 1, axes=(-2, -1))
+        elif t == "flip-ud":
+            arr = arr[..., ::-1, :]
+        elif t == "flip-lr":
+            arr = arr[..., ::-1]
+    return np.ascontiguousarray(arr)
+
+
+def transform_matrix(shape: tuple[int, int], transforms: list[str]) -> NDArray[np.float64]:
+    """Return the (3, 3) float64 map from corrected pixel coordinates to transformed ones.
+
+    Args:
+        shape: ``(H, W)`` of the frames before the transforms.
+        transforms: the transforms, in order.
+
+    Returns:
+        ``M`` with ``(x', y', 1) = M @ (x, y, 1)``, pixel centres at integers; a
+        frame-to-scene homography ``G`` of the untransformed frames becomes
+        ``G @ inv(M)`` for the transformed ones.
+    """
+    h, w = shape
+    m = np.eye(3)
+    for t in transforms:
+        if t == "rot90":  # clockwise: (x, y) -> (h - 1 - y, x)
+            step = np.array([[0, -1, h - 1], [1, 0, 0], [0, 0, 1]], float)
+            h, w = w, h
+        elif t == "rot270":  # (x, y) -> (y, w - 1 - x)
+            step = np.array([[0, 1, 0], [-1, 0, w - 1], [0, 0, 1]], float)
+            h, w = w, h
+        elif t == "rot180":
+            step = np.array([[-1, 0, w - 1], [0, -1, h - 1], [0, 0, 1]], float)
+        elif t == "flip-ud":
+            step = np.array([[1, 0, 0], [0, -1, h - 1], [0, 0, 1]], float)
+        else:  # flip-lr
+            step = np.array([[-1, 0, w - 1], [0, 1, 0], [0, 0, 1]], float)
+        m = step @ m
+    return m
+
+
+class SensorCorrector:
+    """Applies :class:`SwissSpadCorrections` to counts of raw frames.
+
+    Args:
+        config: the source config holding the correction fields.
+        raw_shape: ``(H, W)`` of the raw frames in sensor pixel order.
+        layout_name: ``"half"`` or ``"full"`` when the raw frames are a SwissSPAD2
+            readout, else None (the fixes then only check the frame size).
+        where: the capture's name for error messages.
+
+    Attributes:
+        corrected_shape: ``(H, W)`` after the fix, before the transforms.
+        shape: ``(H, W)`` of the output (after the transforms).
+        missing: (H, W) bool pixels replaced by inpainting, output coordinates.
+        cfa: (H, W) int8 colour filter codes in output coordinates (-1 unfiltered,
+            0/1/2 R/G/B, 3 unknown colour), or None.
+        hot: (H, W) bool hot/dead pixels in output coordinates.
+        active: False when no correction is configured (counts pass through).
+
+    Raises:
+        SourceError: a fix that does not fit the frame size, or bad mask files.
+    """
+
+    def __init__(self, config: SwissSpadCorrections, raw_shape: tuple[int, int], layout_name: str | None,
+                 where: str) -> None:
+        self.fix = config.fix
+        self.transforms = list(config.transforms)
+        self.raw_shape = tuple(raw_shape)
+        h, w = self.raw_shape
+        gap = None
+        if self.fix == "colorspad":
+            if (h, w) != (256, 512):
+                raise SourceError(f"source: {where}: fix colorspad expects raw SwissSPAD2 half-array frames of "
+                                  f"256x512, got {h}x{w} (full-array colour fixes are not supported; an "
+                                  "already corrected cube needs fix: none)")
+            corrected = (254, 496)
+        elif self.fix == "grayspad":
+            if (h, w) == (256, 512):
+                corrected = (254, 496)
+            elif (h, w) == (512, 512):
+                corrected, gap = (509, 496), 254  # row 254 is the blank row between the halves
+            else:
+                raise SourceError(f"source: {where}: fix grayspad expects raw SwissSPAD2 frames of 256x512 "
+                                  f"(half) or 512x512 (full), got {h}x{w}")
+        else:
+            corrected = (h, w)
+        self.corrected_shape = corrected
+        self.shape = transform_shape(corrected, self.transforms)
+        hot = np.zeros(corrected, bool)
+        if gap is not None:
+            hot[gap] = True
+        inpaint = _resolve(config.inpaint_mask, "inpaint_mask")
+        if inpaint is not None:
+            hot |= load_mask(inpaint, corrected)
+        cfa_path = _resolve(config.cfa, "cfa")
+        cfa = load_cfa(cfa_path, corrected) if cfa_path is not None else None
+        missing = hot | (cfa >= 0 if cfa is not None else False)
+        if missing.all():
+            raise SourceError(f"source: {where}: the masks leave no valid pixel")
+        self.hot = _apply_transforms(hot, self.transforms)
+        self.cfa = _apply_transforms(cfa, self.transforms) if cfa is not None else None
+        self.missing = _apply_transforms(missing, self.transforms)
+        self._index, self._sources, self._weights = _inpaint_operator(self.missing)
+        self.active = self.fix != "none" or bool(self.transforms) or bool(self.missing.any())
+
+    def geometry(self, counts: NDArray) -> NDArray:
+        """Apply the fix and the transforms (no inpainting) to (B, Hraw, Wraw) counts."""
+        c = counts
+        if self.fix in ("colorspad", "grayspad"):
+            if c.shape[1] == 512:  # full-array grayspad: blank row between the halves
+                blank = np.zeros((len(c), 1, c.shape[2]), c.dtype)
+                c = np.concatenate([c[:, :256], blank, c[:, 256:]], axis=1)[:, 2:-2, :496]
+            else:
+                c = c[:, 2:, :496]
+            if self.fix == "colorspad":
+                c = c.copy()
+                c[:, :, 252:256], c[:, :, 260:264] = c[:, :, 260:264].copy(), c[:, :, 252:256].copy()
+        return _apply_transforms(c, self.transforms)
+
+    def apply(self, counts: NDArray[np.uint16], edges: NDArray[np.int64]) -> NDArray[np.uint16]:
+        """Correct counts of raw frames.
+
+        Args:
+            counts: (B, Hraw, Wraw) uint16 counts in sensor pixel order.
+            edges: (B + 1,) int64 frame ranges the counts cover (they seed the
+                stochastic rounding of inpainted pixels, so the same range always gives
+                the same counts).
+
+        Returns:
+            (B, H, W) uint16 corrected counts (``H, W = self.shape``).
+        """
+        if not self.active:
+            return counts
+        out = self.geometry(counts)
+        if len(self._index) and len(out):
+            flat = out.reshape(len(out), -1)
+            values = (self._weights @ flat[:, self._sources].T.astype(np.float32)).T  # (B, n_missing)
+            lengths = np.diff(np.asarray(edges, dtype=np.int64))
+            noise = np.stack([np.random.default_rng([int(a), int(n), 0x5EED]).random(len(self._index),
+                                                                                       dtype=np.float32)
+                              for a, n in zip(edges[:-1], lengths)])
+            rounded = np.floor(values + noise)
+            flat[:, self._index] = np.clip(rounded, 0, lengths[:, None]).astype(np.uint16)
+        return out
+
+
+def _inpaint_operator(missing: NDArray[np.bool_]):
+    """Return the inpainting operator of a mask of missing pixels.
+
+    Each missing pixel averages its valid 4-neighbours; one without any averages the
+    valid pixels of the smallest square ring around it that holds one.
+
+    Returns:
+        ``(index, sources, W)``: (n,) int64 flat indices of the missing pixels, (m,)
+        int64 flat indices of the valid pixels they read, and a sparse (n, m) float32
+        averaging matrix.
+    """
+    from scipy.sparse import csr_matrix
+
+    h, w = missing.shape
+    ys, xs = np.nonzero(missing)
+    valid = ~missing
+    ny = ys[:, None] + np.array([-1, 1, 0, 0])
+    nx = xs[:, None] + np.array([0, 0, -1, 1])
+    inside = (ny >= 0) & (ny < h) & (nx >= 0) & (nx < w)
+    ok = inside & valid[np.clip(ny, 0, h - 1), np.clip(nx, 0, w - 1)]
+    rows = [np.nonzero(ok)[0]]
+    cols = [(ny * w + nx)[ok]]
+    for i in np.nonzero(~ok.any(axis=1))[0]:  # rare: no valid 4-neighbour
+        y, x, r = ys[i], xs[i], 1
+        while True:
+            y0, y1, x0, x1 = max(y - r, 0), min(y + r + 1, h), max(x - r, 0), min(x + r + 1, w)
+            found = np.argwhere(valid[y0:y1, x0:x1]) + (y0, x0)
+            if len(found):
+                break
+            r += 1
+        rows.append(np.full(len(found), i))
+        cols.append(found[:, 0] * w + found[:, 1])
+    rows_a = np.concatenate(rows).astype(np.int64)
+    cols_a = np.concatenate(cols).astype(np.int64)
+    sources, local = np.unique(cols_a, return_inverse=True)
+    n = np.bincount(rows_a, minlength=len(ys))
+    matrix = csr_matrix(((1.0 / n[rows_a]).astype(np.float32), (rows_a, local)), shape=(len(ys), len(sources)))
+    return (ys * w + xs).astype(np.int64), sources.astype(np.int64), matrix

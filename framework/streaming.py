@@ -1,0 +1,151 @@
+"""Streaming reads of frame stacks stored in files, a bounded chunk at a time.
+
+Captures can be far larger than memory (a 200 000-frame SwissSPAD cube is 1.6 GB, a
+raw readout folder holds hundreds of 8 MiB files). Sources built on :class:`FrameFiles`
+read the frames they need with ordinary file reads into a buffer of at most
+``chunk_bytes`` and never memory-map a whole capture, so the resident memory of a run
+does not grow with the capture length (a memory map would keep every page it touched
+resident, and counted in the process's RSS, for as long as the page cache holds it).
+
+Frames are addressed by a global index across all files, in file order.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+from numpy.typing import NDArray
+
+__all__ = ["FrameSegment", "FrameFiles", "DEFAULT_CHUNK_BYTES"]
+
+DEFAULT_CHUNK_BYTES = 32 * 2**20
+"""Default read buffer size of :class:`FrameFiles` in bytes (32 MiB)."""
+
+
+@dataclass(frozen=True)
+class FrameSegment:
+    """A run of equally shaped frames stored contiguously in one file.
+
+    Attributes:
+        path: the file.
+        offset: byte offset of the first frame in the file.
+        n_frames: number of whole frames stored.
+    """
+
+    path: Path
+    offset: int
+    n_frames: int
+
+
+class FrameFiles:
+    """Frames of one shape and dtype spread over consecutive file segments.
+
+    Args:
+        segments: the file segments, in frame order.
+        frame_shape: shape of one stored frame, e.g. ``(256, 64)`` for a bit-packed
+            256x512 binary frame.
+        dtype: stored element dtype (uint8 for bit-packed frames).
+        chunk_bytes: largest read buffer in bytes (at least one frame is read).
+
+    Attributes:
+        n_frames: total number of frames T.
+        frame_bytes: bytes per stored frame.
+        starts: (S + 1,) int64 global index of the first frame of each segment, then T.
+    """
+
+    def __init__(self, segments: list[FrameSegment], frame_shape: tuple[int, ...], dtype=np.uint8,
+                 chunk_bytes: int = DEFAULT_CHUNK_BYTES) -> None:
+        self.segments = list(segments)
+        self.frame_shape = tuple(int(s) for s in frame_shape)
+        self.dtype = np.dtype(dtype)
+        self.frame_bytes = int(np.prod(self.frame_shape)) * self.dtype.itemsize
+        self.chunk_frames = max(1, int(chunk_bytes) // max(self.frame_bytes, 1))
+        self.starts = np.concatenate([[0], np.cumsum([s.n_frames for s in self.segments])]).astype(np.int64)
+        self.n_frames = int(self.starts[-1])
+
+    def read(self, start: int, stop: int) -> NDArray:
+        """Read frames ``start:stop`` (global indices) into a new array.
+
+        Args:
+            start: first frame.
+            stop: one past the last frame (``start <= stop <= n_frames``).
+
+        Returns:
+            (stop - start, *frame_shape) array of the stored dtype.
+
+        Raises:
+            ValueError: if the range leaves the frames.
+            OSError: if a file cannot be read or is shorter than its segment says.
+        """
+        if not 0 <= start <= stop <= self.n_frames:
+            raise ValueError(f"frames {start}:{stop} leave the {self.n_frames} stored frames")
+        out = np.empty((stop - start,) + self.frame_shape, dtype=self.dtype)
+        flat = out.reshape(-1).view(np.uint8)
+        pos, written = start, 0
+        while pos < stop:
+            s = int(np.searchsorted(self.starts, pos, side="right")) - 1
+            seg = self.segments[s]
+            end = min(stop, int(self.starts[s + 1]))
+            nbytes = (end - pos) * self.frame_bytes
+            with open(seg.path, "rb") as f:
+                f.seek(seg.offset + (pos - int(self.starts[s])) * self.frame_bytes)
+                got = f.readinto(memoryview(flat[written:written + nbytes]))
+            if got != nbytes:
+                raise OSError(f"{seg.path}: short read ({got} of {nbytes} bytes); the file changed or is truncated")
+            written += nbytes
+            pos = end
+        return out
+
+    def blocks(self, start: int, stop: int):
+        """Yield ``(block_start, frames)`` for consecutive chunks covering ``start:stop``.
+
+        Chunks hold at most ``chunk_frames`` frames and never straddle a segment (file).
+
+        Args:
+            start: first frame.
+            stop: one past the last frame.
+        """
+        pos = start
+        while pos < stop:
+            s = int(np.searchsorted(self.starts, pos, side="right")) - 1
+            end = min(stop, pos + self.chunk_frames, int(self.starts[s + 1]))
+            yield pos, self.read(pos, end)
+            pos = end
+
+    def sum_ranges(self, edges: NDArray[np.int64], count: Callable[[NDArray, NDArray[np.int64]], NDArray],
+                   out_shape: tuple[int, ...], out_dtype=np.uint16) -> NDArray:
+        """Sum frames over consecutive ranges, reading one bounded chunk at a time.
+
+        Args:
+            edges: (B + 1,) strictly increasing frame indices within ``[0, n_frames]``.
+            count: ``count(block, local_edges) -> (b, *out_shape)`` sums an in-memory
+                block of frames over the ranges ``local_edges`` (e.g.
+                :func:`photonpano.photons.sum_packed_ranges`).
+            out_shape: shape of one range's sum, e.g. ``(H, W)``.
+            out_dtype: dtype of the sums.
+
+        Returns:
+            (B, *out_shape) sums; range ``b`` covers frames ``edges[b]:edges[b+1]``.
+
+        Raises:
+            ValueError: if the edges are not increasing or leave the frames.
+        """
+        edges = np.asarray(edges, dtype=np.int64)
+        if edges.ndim != 1 or np.any(np.diff(edges) <= 0):
+            raise ValueError(f"frame range edges must be strictly increasing, got {edges}")
+        if len(edges) and (edges[0] < 0 or edges[-1] > self.n_frames):
+            raise ValueError(f"frame ranges {edges[0]}:{edges[-1]} leave the capture of {self.n_frames} frames")
+        out = np.zeros((max(len(edges) - 1, 0),) + tuple(out_shape), dtype=out_dtype)
+        if len(edges) < 2:
+            return out
+        for pos, block in self.blocks(int(edges[0]), int(edges[-1])):
+            end = pos + len(block)
+            inner = edges[(edges > pos) & (edges < end)]
+            local = np.concatenate([[pos], inner, [end]]).astype(np.int64)
+            pieces = count(block, local - pos)
+            # each piece is the part of one range that lies in this block
+            out[np.searchsorted(edges, local[:-1], side="right") - 1] += pieces
+        return out

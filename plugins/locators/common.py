@@ -1,0 +1,389 @@
+"""Shared machinery of the built-in locators: per-frame caches, feature pipelines, ECC polish.
+
+Not a plugin (it registers nothing). Locators built on it:
+
+- :class:`CachingLocator` keeps per-merged-frame data (features, prepared images) in a
+  cache keyed by the *content* of the frame, so a frame registered by several calls of
+  :meth:`~photonpano.stages.Locator.register_pairs` (the framework calls it once for the
+  consecutive pairs and once for the longer-offset pairs of each level) or a frame that did
+  not change between levels is described once. :meth:`CachingLocator.cache_stats` reports
+  hits and misses.
+- :class:`FeatureLocator` adds the feature-based recipe: describe each frame once, match
+  each pair, estimate a robust homography, optionally polish it by ECC.
+
+Only numpy at module level; OpenCV is imported inside functions.
+"""
+
+from __future__ import annotations
+
+import abc
+import hashlib
+from dataclasses import dataclass, field
+from typing import Annotated, Any, Literal
+
+import numpy as np
+from numpy.typing import NDArray
+from pydantic import Field
+
+from photonpano.stages import Locator, LocatorConfig, MergedFrames, PairRegistrations
+
+__all__ = ["Features", "PairResult", "FrameCache", "CachingLocator", "FeatureLocator", "PolishConfig",
+           "frame_key", "to_registrations", "keypoint_mask", "ecc_image", "ecc_polish", "corner_change", "check_pairs"]
+
+
+@dataclass(frozen=True)
+class Features:
+    """Keypoints and descriptors of one merged frame.
+
+    Attributes:
+        points: (K, 2) float64 ``(x, y)`` keypoint positions in pixels, photonpano's
+            convention (x right, y down, pixel centres at integers); K may be 0.
+        descriptors: (K, D) descriptors in the backend's own type (numpy array, torch
+            tensor, ...), row k describing ``points[k]``.
+        native: anything else the backend needs to match (e.g. its own keypoint objects).
+    """
+
+    points: NDArray[np.float64]
+    descriptors: Any
+    native: Any = None
+
+    def __len__(self) -> int:
+        return len(self.points)
+
+
+@dataclass(frozen=True)
+class PairResult:
+    """The registration of one pair ``(a, b)``.
+
+    Attributes:
+        homography: (3, 3) float64 mapping frame b's pixels to frame a's, ``H[2, 2] == 1``
+            (the identity when failed).
+        matches: tentative correspondences (0 for direct methods).
+        inliers: correspondences consistent with the homography (for direct methods: the
+            number of trusted pixels of b that land inside a, a weight for the pose graph).
+        ok: False if the pair failed to register.
+    """
+
+    homography: NDArray[np.float64] = field(default_factory=lambda: np.eye(3))
+    matches: int = 0
+    inliers: int = 0
+    ok: bool = False
+
+
+def frame_key(merged: MergedFrames, index: int, *, flux: bool = False) -> bytes:
+    """Return a digest of merged frame ``index``'s content, a cache key.
+
+    Args:
+        merged: the merged frames.
+        index: frame index into ``merged``.
+        flux: also hash the float32 flux (for data derived from it), not only the uint8
+            image and the mask.
+
+    Returns:
+        16 bytes (BLAKE2b); equal keys mean identical frames.
+    """
+    digest = hashlib.blake2b(digest_size=16)
+    digest.update(np.ascontiguousarray(merged.images[index]).data)
+    digest.update(np.ascontiguousarray(merged.masks[index]).data)
+    if flux:
+        digest.update(np.ascontiguousarray(merged.flux[index]).data)
+    return digest.digest()
+
+
+class FrameCache:
+    """Content-keyed cache of per-frame data with hit and miss counters.
+
+    Entries live until :meth:`retain` drops those whose frames are no longer current, so
+    the cache holds at most one level's frames.
+    """
+
+    def __init__(self) -> None:
+        self._data: dict[tuple[bytes, ...], Any] = {}
+        self.hits = 0
+        self.misses = 0
+
+    def get(self, key: tuple[bytes, ...], compute: Any) -> Any:
+        """Return the entry of ``key``, computing it with ``compute()`` on a miss.
+
+        Args:
+            key: ``(frame_key, ...)``: the frame's :func:`frame_key` first, then anything
+                else the data depends on.
+            compute: zero-argument callable.
+        """
+        if key in self._data:
+            self.hits += 1
+            return self._data[key]
+        self.misses += 1
+        value = self._data[key] = compute()
+        return value
+
+    def retain(self, frames: set[bytes]) -> None:
+        """Drop every entry whose frame key (first element) is not in ``frames``."""
+        for key in [k for k in self._data if k[0] not in frames]:
+            del self._data[key]
+
+    def __len__(self) -> int:
+        return len(self._data)
+
+
+class CachingLocator(Locator):
+    """A locator with a content-keyed per-frame cache and its statistics.
+
+    At the start of each ``register_pairs`` call a subclass calls :meth:`begin` with the
+    frames it will use (this evicts data of frames that are gone), then :meth:`frame_data`
+    to get per-frame data, computed once per distinct frame content.
+    :meth:`cache_stats` is what the pipeline reports per level.
+    """
+
+    def __init__(self) -> None:
+        self._caches: dict[str, FrameCache] = {}
+        self._merged: MergedFrames | None = None
+        self._keys: dict[tuple[int, bool], tuple[bytes, ...]] = {}
+
+    def begin(self, merged: MergedFrames, indices: NDArray[np.int64]) -> None:
+        """Start a batch on ``merged``: key its frames ``indices`` and evict other frames' data."""
+        self._merged = merged
+        self._keys = {}
+        keys = set()
+        for i in np.unique(np.asarray(indices, dtype=np.int64)):
+            keys.add(self._key(int(i), False)[0])
+        for cache in self._caches.values():
+            cache.retain(keys)
+
+    def _key(self, index: int, flux: bool) -> tuple[bytes, ...]:
+        if (index, flux) not in self._keys:
+            base = frame_key(self._merged, index)
+            self._keys[(index, flux)] = (base, frame_key(self._merged, index, flux=True)) if flux else (base,)
+        return self._keys[(index, flux)]
+
+    def frame_data(self, kind: str, index: int, compute: Any, *, flux: bool = False) -> Any:
+        """Return ``compute()`` for frame ``index`` of the current batch, cached by content.
+
+        Args:
+            kind: cache name (``"features"``, ``"ecc"``, ...); each kind has its own cache.
+            index: frame index into the ``merged`` given to :meth:`begin`.
+            compute: zero-argument callable computing the data on a miss.
+            flux: whether the data depends on the flux (then the flux is part of the key).
+        """
+        if self._merged is None:
+            raise RuntimeError("CachingLocator.frame_data called before begin()")
+        cache = self._caches.setdefault(kind, FrameCache())
+        return cache.get(self._key(index, flux), compute)
+
+    def finish(self) -> None:
+        """End the batch started by :meth:`begin` (drops the reference to the merged frames)."""
+        self._merged = None
+        self._keys = {}
+
+    def cache_stats(self) -> dict[str, int]:
+        """Return cache counters since the locator was built (or last reset).
+
+        Returns:
+            ``{"hits": n, "misses": n, "entries": n}`` summed over the cache kinds: a miss
+            is one frame described (or prepared), a hit one description reused; entries
+            are held now. Per-kind counters are added as ``"<kind>_hits"`` and
+            ``"<kind>_misses"``.
+        """
+        stats = {"hits": 0, "misses": 0, "entries": 0}
+        for kind, cache in sorted(self._caches.items()):
+            stats["hits"] += cache.hits
+            stats["misses"] += cache.misses
+            stats["entries"] += len(cache)
+            stats[f"{kind}_hits"], stats[f"{kind}_misses"] = cache.hits, cache.misses
+        return stats
+
+    def reset_cache_stats(self) -> None:
+        """Zero the counters of :meth:`cache_stats` (the cached data is kept)."""
+        for cache in self._caches.values():
+            cache.hits = cache.misses = 0
+
+
+class PolishConfig(LocatorConfig):
+    """Config base of feature locators with the optional least-squares or ECC polish."""
+
+    refine: Literal["none", "lm", "ecc"] = "ecc"
+    """Polish of the robust estimate: ``lm`` refits it to all inliers by least squares;
+    ``ecc`` then maximises the enhanced correlation coefficient between the two merged flux
+    images (a dense sub-pixel refinement that keeps the feature result if it fails)."""
+    ecc_iterations: Annotated[int, Field(gt=0)] = 30
+    """ecc: maximum Gauss-Newton iterations per pair."""
+    ecc_blur: Annotated[int, Field(ge=1, le=15)] = 5
+    """ecc: size of the Gaussian pre-filter in pixels (odd, 1 = none); merged frames are noisy."""
+    ecc_max_change_px: Annotated[float, Field(gt=0)] = 2.0
+    """ecc: a refinement that moves a frame corner further than this (pixels) from the
+    feature estimate is discarded as a divergence."""
+
+
+class FeatureLocator(CachingLocator):
+    """Feature-based locator: per-frame features (cached), per-pair match and estimate.
+
+    Subclasses implement :meth:`describe` and :meth:`match`. If the config has a ``refine``
+    field equal to ``"ecc"``, successful pairs are polished by :func:`ecc_polish` with the
+    config's ``ecc_iterations``, ``ecc_blur`` and ``ecc_max_change_px``.
+
+    Args:
+        config: the plugin's config.
+    """
+
+    def __init__(self, config: LocatorConfig) -> None:
+        super().__init__()
+        self.config = config
+
+    @abc.abstractmethod
+    def describe(self, image: NDArray[np.uint8], mask: NDArray[np.bool_],
+                 flux: NDArray[np.float32]) -> Features:
+        """Detect and describe keypoints of one merged frame.
+
+        Args:
+            image: (H, W) uint8 tone-mapped merged frame.
+            mask: (H, W) bool trusted pixels; keypoints must lie inside.
+            flux: (H, W) float32 linear flux, NaN where unobserved (most backends use
+                ``image`` only).
+
+        Returns:
+            The frame's features, points in photonpano's pixel convention.
+        """
+
+    @abc.abstractmethod
+    def match(self, feat_a: Features, feat_b: Features) -> PairResult:
+        """Estimate the homography mapping frame b's pixels to frame a's from features.
+
+        Failures are returned as ``PairResult(ok=False)``, never raised.
+        """
+
+    def register_pairs(self, merged: MergedFrames, pairs: NDArray[np.int64],
+                       initial: NDArray[np.float64]) -> PairRegistrations:
+        """Register each pair (see :meth:`Locator.register_pairs`); ``initial`` is unused.
+
+        Each frame is described once per distinct content, whichever call needs it.
+        """
+        pairs = check_pairs(merged, pairs, initial)
+        self.begin(merged, pairs)
+        try:
+            return self._register(merged, pairs)
+        finally:
+            self.finish()
+
+    def _register(self, merged: MergedFrames, pairs: NDArray[np.int64]) -> PairRegistrations:
+        def feats(i: int) -> Features:
+            return self.frame_data("features", i,
+                                   lambda: self.describe(merged.images[i], merged.masks[i], merged.flux[i]))
+
+        results = [self.match(feats(int(a)), feats(int(b))) for a, b in pairs]
+        if getattr(self.config, "refine", "none") == "ecc":
+            for p, (a, b) in enumerate(pairs):
+                if results[p].ok:
+                    a, b = int(a), int(b)
+                    image_a = self.frame_data("ecc", a, lambda: ecc_image(merged.flux[a], merged.masks[a]),
+                                              flux=True)
+                    image_b = self.frame_data("ecc", b, lambda: ecc_image(merged.flux[b], merged.masks[b]),
+                                              flux=True)
+                    polished = ecc_polish(image_a, image_b, merged.masks[b], results[p].homography,
+                                          iterations=self.config.ecc_iterations, blur=self.config.ecc_blur,
+                                          max_change_px=self.config.ecc_max_change_px)
+                    results[p] = PairResult(polished, results[p].matches, results[p].inliers, True)
+        return to_registrations(results)
+
+
+def to_registrations(results: list[PairResult]) -> PairRegistrations:
+    """Stack per-pair results into a :class:`~photonpano.stages.PairRegistrations`."""
+    return PairRegistrations(
+        homographies=np.array([r.homography for r in results], dtype=np.float64).reshape(-1, 3, 3),
+        matches=np.array([r.matches for r in results], dtype=np.int64),
+        inliers=np.array([r.inliers for r in results], dtype=np.int64),
+        ok=np.array([r.ok for r in results], dtype=bool),
+    )
+
+
+def check_pairs(merged: MergedFrames, pairs: NDArray[np.int64], initial: NDArray[np.float64]) -> NDArray[np.int64]:
+    """Validate the arguments of ``register_pairs``; return ``pairs`` as (P, 2) int64.
+
+    Raises:
+        ValueError: wrong shapes, or indices outside ``merged`` (programming errors).
+    """
+    from photonpano.types import check_shape
+
+    pairs = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
+    check_shape(np.asarray(initial), "P 3 3", name="initial", P=len(pairs))
+    if len(pairs) and (pairs.min() < 0 or pairs.max() >= len(merged)):
+        raise ValueError(f"pairs index merged frames 0..{len(merged) - 1}, got {pairs.min()}..{pairs.max()}")
+    return pairs
+
+
+def keypoint_mask(mask: NDArray[np.bool_], margin_px: int = 4) -> NDArray[np.uint8]:
+    """Return the trusted mask eroded by ``margin_px`` pixels, as OpenCV's uint8 mask.
+
+    Keypoints near the edge of the trusted region describe patches that reach into
+    unobserved pixels; the erosion keeps them out.
+
+    Args:
+        mask: (H, W) bool trusted pixels.
+        margin_px: erosion radius in pixels (a (2r+1) square).
+
+    Returns:
+        (H, W) uint8, 1 where keypoints may lie.
+    """
+    import cv2
+
+    size = 2 * margin_px + 1
+    return cv2.erode(mask.astype(np.uint8), np.ones((size, size), np.uint8))
+
+
+def ecc_image(flux: NDArray[np.float32], mask: NDArray[np.bool_]) -> NDArray[np.float32]:
+    """Return a merged flux image scaled to about [0, 1] for ECC.
+
+    Every observed pixel keeps its (possibly noisier) flux: zeroing the untrusted border
+    would put false edges into the moving image and bias the alignment. Unobserved
+    (NaN) pixels are 0.
+
+    Args:
+        flux: (H, W) float32 flux, NaN where unobserved.
+        mask: (H, W) bool trusted pixels, used to pick the white level.
+
+    Returns:
+        (H, W) float32 image.
+    """
+    trusted = mask & np.isfinite(flux)
+    white = float(np.percentile(flux[trusted], 99)) if trusted.any() else 1.0
+    return (np.nan_to_num(flux, nan=0.0) / (white if white > 0 else 1.0)).astype(np.float32)
+
+
+def corner_change(h1: NDArray[np.float64], h2: NDArray[np.float64], width: int, height: int) -> float:
+    """Return the largest distance (pixels) between the corners mapped by two homographies."""
+    from photonpano import geometry
+
+    c = geometry.corners(width, height)
+    change = np.abs(geometry.apply(h1, c) - geometry.apply(h2, c)).max()
+    return float(change) if np.isfinite(change) else float("inf")
+
+
+def ecc_polish(image_a: NDArray[np.float32], image_b: NDArray[np.float32], mask_b: NDArray[np.bool_],
+               homography: NDArray[np.float64], *, iterations: int = 30, blur: int = 5,
+               max_change_px: float = 2.0) -> NDArray[np.float64]:
+    """Polish a homography (b to a) by ECC maximisation; return the input on failure.
+
+    Args:
+        image_a: (H, W) float32 normalised flux of frame a (the moving image).
+        image_b: (H, W) float32 normalised flux of frame b (the template).
+        mask_b: (H, W) bool pixels of frame b to use.
+        homography: (3, 3) float64 starting estimate mapping b's pixels to a's.
+        iterations: maximum Gauss-Newton iterations.
+        blur: Gaussian pre-filter size in pixels (made odd).
+        max_change_px: a result moving a corner further than this from ``homography``
+            (pixels) is discarded.
+
+    Returns:
+        (3, 3) float64 refined homography, or ``homography`` if ECC fails or moves a
+        corner by more than ``max_change_px``.
+    """
+    import cv2
+
+    criteria = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, iterations, 1e-5)
+    try:
+        _, warp = cv2.findTransformECC(image_b, image_a, homography.astype(np.float32),
+                                       cv2.MOTION_HOMOGRAPHY, criteria, mask_b.astype(np.uint8), blur | 1)
+    except cv2.error:  # did not converge
+        return homography
+    warp = warp.astype(np.float64) / warp[2, 2]
+    h, w = image_b.shape
+    return warp if corner_change(warp, homography, w, h) < max_change_px else homography

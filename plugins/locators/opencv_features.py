@@ -1,0 +1,153 @@
+"""Locator ``opencv-orb``: binary features, faster than SIFT.
+
+Same recipe as ``opencv-sift`` (describe each merged frame once, ratio-test matching,
+a robust homography, optional least-squares and ECC polish), with ORB (Rublee et al.,
+2011: oriented FAST corners and rotated BRIEF descriptors) matched by Hamming distance.
+:class:`OpenCVBinaryLocator` takes any OpenCV binary ``Feature2D``; AKAZE is not offered
+because OpenCV 5 moved it out of the main package (``opencv-contrib-python``).
+
+OpenCV is imported when the locator is built, not when the plugin is registered.
+"""
+
+from __future__ import annotations
+
+from typing import Annotated, Literal
+
+import numpy as np
+from numpy.typing import NDArray
+from pydantic import Field
+
+from photonpano import hookimpl
+from photonpano.stages import LocatorConfig
+
+from .common import FeatureLocator, Features, PairResult, PolishConfig, keypoint_mask
+
+__all__ = ["OpenCVOrbConfig", "OpenCVBinaryLocator", "robust_homography"]
+
+
+class _BinaryFeatureConfig(PolishConfig):
+    """Fields shared by the binary-feature locators."""
+
+    ratio: Annotated[float, Field(gt=0, lt=1)] = 0.8
+    """Lowe ratio-test threshold on Hamming distances (dimensionless)."""
+    method: Literal["ransac", "usac-magsac", "usac-accurate", "lmeds"] = "usac-magsac"
+    """Robust estimator of the homography."""
+    reprojection_px: Annotated[float, Field(gt=0)] = 1.5
+    """Inlier threshold of the robust estimator, in pixels."""
+    min_inliers: Annotated[int, Field(ge=4)] = 12
+    """A pair with fewer inliers is flagged as failed (and bridged)."""
+    border_px: Annotated[int, Field(ge=0)] = 8
+    """Keypoints closer than this (pixels) to untrusted pixels are dropped."""
+
+
+class OpenCVOrbConfig(_BinaryFeatureConfig):
+    """OpenCV ORB (oriented FAST + rotated BRIEF) + ratio test + robust homography."""
+
+    plugin: Literal["opencv-orb"] = "opencv-orb"
+    max_features: Annotated[int, Field(gt=0)] = 1000
+    """Keypoints kept per merged frame, strongest first. Brute-force Hamming matching
+    costs grow with its square: 5000 keypoints make matching ~10x slower than 1000 for
+    no gain in accuracy on merged frames."""
+    fast_threshold: Annotated[int, Field(ge=1, le=255)] = 5
+    """FAST corner threshold in grey levels (OpenCV's default is 20; merged frames are
+    low-contrast)."""
+    levels: Annotated[int, Field(ge=1, le=16)] = 4
+    """Pyramid levels of the detector (the motion between merged frames is nearly
+    scale-free, so few are needed)."""
+    scale_factor: Annotated[float, Field(gt=1, le=2)] = 1.2
+    """Scale ratio between pyramid levels."""
+
+    def build(self) -> OpenCVBinaryLocator:
+        """Return the locator."""
+        import cv2
+
+        # edgeThreshold = patchSize = 31 (OpenCV's defaults): the descriptor patch
+        return OpenCVBinaryLocator(self, cv2.ORB_create(
+            nfeatures=self.max_features, scaleFactor=self.scale_factor, nlevels=self.levels,
+            fastThreshold=self.fast_threshold))
+
+
+
+class OpenCVBinaryLocator(FeatureLocator):
+    """Registers pairs with an OpenCV binary detector-descriptor (ORB).
+
+    Args:
+        config: the plugin's config (an :class:`OpenCVOrbConfig`).
+        detector: the OpenCV ``Feature2D`` object.
+        max_features: keep the strongest keypoints only (0 = all).
+    """
+
+    def __init__(self, config: _BinaryFeatureConfig, detector, max_features: int = 0) -> None:
+        import cv2
+
+        super().__init__(config)
+        self._detector = detector
+        self._max_features = max_features
+        self._matcher = cv2.BFMatcher(cv2.NORM_HAMMING)
+        self._method = {"ransac": cv2.RANSAC, "usac-magsac": cv2.USAC_MAGSAC,
+                        "usac-accurate": cv2.USAC_ACCURATE, "lmeds": cv2.LMEDS}[config.method]
+
+    def describe(self, image: NDArray[np.uint8], mask: NDArray[np.bool_], flux: NDArray[np.float32]) -> Features:
+        """Detect and describe keypoints (see :meth:`FeatureLocator.describe`).
+
+        Returns:
+            Features with (K, 2) float64 points and (K, 32) uint8 descriptors.
+        """
+        keypoints, descriptors = self._detector.detectAndCompute(image, keypoint_mask(mask, self.config.border_px))
+        if descriptors is None or not keypoints:
+            return Features(np.zeros((0, 2)), np.zeros((0, 32), np.uint8))
+        if self._max_features and len(keypoints) > self._max_features:
+            order = np.argsort([-k.response for k in keypoints])[:self._max_features]
+            keypoints, descriptors = [keypoints[i] for i in order], descriptors[order]
+        return Features(np.array([k.pt for k in keypoints], np.float64), descriptors)
+
+    def match(self, feat_a: Features, feat_b: Features) -> PairResult:
+        """Ratio-test matching by Hamming distance and a robust homography (b to a)."""
+        import cv2
+
+        if len(feat_a) < 4 or len(feat_b) < 4:
+            return PairResult()
+        knn = self._matcher.knnMatch(feat_b.descriptors, feat_a.descriptors, k=2)
+        good = [p[0] for p in knn if len(p) == 2 and p[0].distance < self.config.ratio * p[1].distance]
+        if len(good) < max(4, self.config.min_inliers):
+            return PairResult(matches=len(good))
+        src = feat_b.points[[m.queryIdx for m in good]].astype(np.float32)
+        dst = feat_a.points[[m.trainIdx for m in good]].astype(np.float32)
+        return robust_homography(src, dst, self._method, self.config.reprojection_px, self.config.min_inliers,
+                                 refine=self.config.refine != "none")
+
+
+def robust_homography(src: NDArray[np.float32], dst: NDArray[np.float32], method: int, threshold_px: float,
+                      min_inliers: int, *, refine: bool) -> PairResult:
+    """Fit a homography to correspondences with an OpenCV robust estimator.
+
+    Args:
+        src: (N, 2) float32 points of frame b (pixels, photonpano's convention).
+        dst: (N, 2) float32 matching points of frame a.
+        method: ``cv2.RANSAC``, ``cv2.USAC_MAGSAC``, ...
+        threshold_px: inlier threshold in pixels.
+        min_inliers: fewer inliers than this flags the pair as failed.
+        refine: refit to all inliers by least squares (Levenberg-Marquardt).
+
+    Returns:
+        The pair's result, homography mapping ``src`` to ``dst``.
+    """
+    import cv2
+
+    h, inlier_mask = cv2.findHomography(src, dst, method, threshold_px, maxIters=5000, confidence=0.999)
+    if h is None or inlier_mask is None:
+        return PairResult(matches=len(src))
+    inl = inlier_mask.ravel().astype(bool)
+    n_in = int(inl.sum())
+    if refine and n_in >= 8:
+        refined, _ = cv2.findHomography(src[inl], dst[inl], 0)
+        if refined is not None:
+            h = refined
+    ok = n_in >= min_inliers and abs(np.linalg.det(h[:2, :2])) > 1e-3
+    return PairResult(h / h[2, 2], len(src), n_in, bool(ok))
+
+
+@hookimpl
+def photonpano_register_locators() -> list[type[LocatorConfig]]:
+    """Register ``opencv-orb``."""
+    return [OpenCVOrbConfig]

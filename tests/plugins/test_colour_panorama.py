@@ -1,0 +1,61 @@
+"""Colour filter array handling: filtered pixels missing for registration, a colour panorama."""
+
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from capture_helpers import embed_colorspad
+from photonpano.plugins.observers.colour_panorama import colour_panorama, photonpano_run_finished
+from photonpano.plugins.sources.npy_cube import NpyCubeConfig
+from photonpano.sensor import bundled_sensor_file, load_cfa
+
+P_WHITE, P_RGB = 0.4, (0.1, 0.2, 0.05)  # detection probability per frame behind each filter
+
+
+@pytest.fixture(scope="module")
+def colour_cube(tmp_path_factory):
+    """400 raw frames of a uniform scene seen through the real colour filter layout."""
+    cfa = load_cfa(bundled_sensor_file("cfa"), (254, 496))
+    p = np.full(cfa.shape, P_WHITE)
+    for c, pc in enumerate(P_RGB):
+        p[cfa == c] = pc
+    frames = (np.random.default_rng(0).random((400, 254, 496)) < p).astype(np.uint8)
+    path = tmp_path_factory.mktemp("colour") / "raw.npy"
+    np.save(path, embed_colorspad(np.packbits(frames, axis=-1)))
+    return path, cfa
+
+
+def test_filtered_pixels_are_inpainted_from_unfiltered_neighbours(colour_cube):
+    path, cfa = colour_cube
+    plain = NpyCubeConfig(path=path, fix="colorspad").build().sum_ranges(np.array([0, 400]))[0] / 400
+    fixed = NpyCubeConfig(path=path, fix="colorspad", cfa="colorspad").build().sum_ranges(np.array([0, 400]))[0] / 400
+    for c, pc in enumerate(P_RGB):
+        assert abs(plain[cfa == c].mean() - pc) < 0.01
+        assert abs(fixed[cfa == c].mean() - P_WHITE) < 0.01  # looks like its unfiltered neighbours now
+    np.testing.assert_array_equal(fixed[cfa < 0], plain[cfa < 0])
+
+
+def test_colour_panorama_recovers_each_channel(colour_cube, tmp_path):
+    path, cfa = colour_cube
+    cfg = NpyCubeConfig(path=path, fix="colorspad", cfa="colorspad", colour_panorama=True)
+    source = cfg.build()
+    homographies = np.repeat(np.eye(3)[None], 400, axis=0)
+    rgb = colour_panorama(source, homographies, (254, 496))
+    assert rgb.shape == (254, 496, 3) and rgb.dtype == np.float32
+    for c, pc in enumerate(P_RGB):
+        seen = rgb[..., c][np.isfinite(rgb[..., c])]
+        assert seen.size > 0.9 * (cfa == c).sum()  # a static camera sees each channel at its own pixels only
+        want = -np.log1p(-pc) * 100_000  # photons/s at 100 kHz
+        assert abs(np.median(seen) / want - 1) < 0.05
+    # the observer writes both outputs when the spec asks for them
+    np.save(tmp_path / "homographies.npy", homographies)
+    spec = SimpleNamespace(source=cfg, panorama_subbatch_px=0.25)
+    photonpano_run_finished(spec=spec, summary={"panorama": {"height": 254, "width": 496}}, out_dir=tmp_path)
+    np.testing.assert_array_equal(np.load(tmp_path / "panorama_rgb.npy"), rgb)
+    import cv2
+
+    png = cv2.imread(str(tmp_path / "panorama_rgb.png"), cv2.IMREAD_UNCHANGED)
+    assert png.shape == (254, 496, 3) and png.dtype == np.uint16
+    with pytest.raises(ValueError, match="no colour filter layout"):
+        colour_panorama(NpyCubeConfig(path=path, fix="colorspad").build(), homographies, (254, 496))

@@ -1,0 +1,53 @@
+"""`photonpano compare`: one capture, several locators, a table, a plot and JSON."""
+
+import json
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from photonpano.cli import app
+from photonpano.compare import markdown_table
+
+TINY = ["--set", "source.frames=2400", "--set", "source.height=128", "--set", "source.width=248",
+        "--set", "source.vibration_px=2", "--set", "group_size=300", "--set", "levels=2"]
+
+
+@pytest.mark.slow
+def test_compare_writes_table_plot_and_json(tmp_path):
+    out = tmp_path / "cmp"
+    result = CliRunner().invoke(app, ["compare", "simulate", "-o", str(out), "-l",
+                                      "opencv-sift,opencv-ecc:pyramid_levels=2,opencv-sfit", *TINY])
+    assert result.exit_code == 0, result.output
+    runs = json.loads((out / "compare.json").read_text())["runs"]
+    assert [r["locator"] for r in runs] == ["opencv-sift", "opencv-ecc:pyramid_levels=2", "opencv-sfit"]
+    for run in runs[:2]:
+        assert run["status"] == "ok" and len(run["levels"]) == 2
+        assert run["trajectory_rmse_px"] < 1.0 and run["failed_pairs"] == 0
+        assert run["levels"][1]["trajectory_rmse_px"] < run["levels"][0]["trajectory_rmse_px"]
+        assert run["locate_s"] > 0 and run["levels"][0]["cache"]["misses"] > 0
+        assert np.load(out / run["locator"].replace(":", "_") / "homographies.npy").shape == (2400, 3, 3)
+    assert runs[1]["spec"]["pyramid_levels"] == 2
+    assert "unknown plugin 'opencv-sfit'" in runs[2]["status"] and "did you mean 'opencv-sift'" in runs[2]["status"]
+    table = (out / "compare.md").read_text()
+    assert table.count("\n") == 2 + 3 and "| `opencv-ecc:pyramid_levels=2` |" in table
+    assert (out / "compare.png").stat().st_size > 10_000
+    assert "| `opencv-sift` |" in result.output
+
+
+def test_compare_refuses_unknown_input_and_empty_list(tmp_path):
+    runner = CliRunner()
+    result = runner.invoke(app, ["compare", str(tmp_path / "none.npy"), "-o", str(tmp_path / "o"), "-l", "opencv-sift"])
+    assert result.exit_code == 1 and "does not exist" in result.output
+    result = runner.invoke(app, ["compare", "simulate", "-o", str(tmp_path / "o"), "-l", " , "])
+    assert result.exit_code == 1 and "at least one locator" in result.output
+
+
+def test_markdown_table_reports_failures_and_numbers():
+    rows = [{"locator": "a", "status": "ok", "total_s": 12.0, "trajectory_rmse_px": 0.1234,
+             "levels": [{"level": 1, "trajectory_rmse_px": 0.5, "failed_pairs": 2, "timings_s": {"locate": 1.5},
+                         "cache": {"hits": 3, "misses": 4}}]},
+            {"locator": "b", "status": "locator (b): needs kornia: pip install x\nmore", "levels": []}]
+    table = markdown_table(rows)
+    assert "| `a` | 0.123 | 0.500 | 2 | 1.5 | 12.0 | 3/4 |" in table
+    assert "| `b` | – | locator (b): needs kornia: pip install x |" in table
