@@ -7,7 +7,7 @@ from the true warp with the corners moved 1.6-2.6 px, their use in the pipeline.
 import numpy as np
 import pytest
 
-from conftest import ALL_LOCATORS, DIRECT_LOCATORS, H_TARGET_TO_SOURCE, need_backend, perturbed_truth
+from locator_cases import ALL_LOCATORS, DIRECT_LOCATORS, H_TARGET_TO_SOURCE, need_backend, perturbed_truth
 from photonpano.testing import corner_error_px
 
 
@@ -59,7 +59,7 @@ def test_pycolmap_keypoints_follow_our_pixel_centres(host):
     need_backend("pycolmap-sift")
     import cv2
 
-    from conftest import DATA
+    from locator_cases import DATA
 
     image = cv2.imread(str(DATA / "source.png"), cv2.IMREAD_GRAYSCALE)
     big = cv2.resize(image, None, fx=2, fy=2, interpolation=cv2.INTER_CUBIC)
