@@ -3,15 +3,10 @@
 import cv2
 import numpy as np
 
-from testdata import DATA
+from locator_cases import DATA, H_TARGET_TO_SOURCE
 from photonpano import geometry
 from photonpano.plugins.locators.opencv_sift import OpenCVSiftConfig
 from photonpano.stages import MergedFrames
-
-# target.png = source.png warped by H, which maps target pixels to source pixels (tests/data/SOURCES.md)
-H_TARGET_TO_SOURCE = np.array([[1.9068071, 0.09958228, -171.64162],
-                               [0.3666181, 1.5628628, -92.86306],
-                               [0.0013926513, 0.00030605582, 1.0]])
 
 
 def _frames(*images):
