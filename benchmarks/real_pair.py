@@ -21,7 +21,6 @@ from pathlib import Path
 import cv2
 import numpy as np
 import yaml
-
 from photonpano import geometry
 from photonpano.host import PluginHost
 from photonpano.stages import MergedFrames
@@ -57,12 +56,14 @@ def main() -> None:
             continue
         locator = registry[key](**opts).build()
         t0 = time.perf_counter()
-        result = locator.register_pairs(merged, np.array([[0, 1]]), (start if key in DIRECT else np.eye(3))[None])
+        initial = (start if key in DIRECT else np.eye(3))[None]
+        result = locator.register_pairs(merged, np.array([[0, 1]]), initial)
         seconds = time.perf_counter() - t0
         err = np.linalg.norm(geometry.apply(result.homographies[0], c) - geometry.apply(TRUTH, c), axis=-1)
         setting = ", ".join(options) or "defaults"
         print(f"| `{key}` | {setting} | {err.mean():.3f} | {err.max():.3f} | {result.matches[0]} | "
-              f"{result.inliers[0]} | {seconds:.2f} |" + ("" if result.ok[0] else " (flagged failed)"), flush=True)
+              f"{result.inliers[0]} | {seconds:.2f} |" + ("" if result.ok[0] else " (flagged failed)"),
+              flush=True)
 
 
 if __name__ == "__main__":

@@ -197,8 +197,9 @@ def demo(output: OutOption, set_: SetOption = None, force: ForceOption = False,
 def compare(input: Annotated[str, typer.Argument(help="A spec (.yaml), a capture (.npy, ...) or 'simulate' "
                                                   "(the demo's simulated capture, with ground truth).")],
             output: OutOption,
-            locators: Annotated[str, typer.Option("--locators", "-l", help="Comma-separated locator keys, each "
-                                                  "optionally key:field=value[:field=value].")],
+            locators: Annotated[str, typer.Option(
+                "--locators", "-l",
+                help="Comma-separated locator keys, each optionally key:field=value[:field=value].")],
             set_: SetOption = None, force: ForceOption = False) -> None:
     """Run the same pipeline with each locator; write a table and a plot of error and time.
 

@@ -105,7 +105,7 @@ def _compare_one(item: str, base: dict[str, Any], host: PluginHost, out_dir: Pat
         if log:
             rmse = stats.get("trajectory_rmse_px")
             log(f"{label}: level {stats['level']}: locate {stats['timings_s'].get('locate', 0):.1f} s, "
-                f"{stats['failed_pairs']} failed pairs" + (f", RMSE {rmse:.3f} px" if rmse is not None else ""))
+                f"{stats['failed_pairs']} failed pairs" + _rmse_text(rmse))
 
     t0 = time.perf_counter()
     try:
@@ -129,8 +129,12 @@ def _compare_one(item: str, base: dict[str, Any], host: PluginHost, out_dir: Pat
         np.save(folder / "homographies.npy", homographies)
     if log:
         rmse = row.get("trajectory_rmse_px")
-        log(f"{label}: done in {row['total_s']:.1f} s" + (f", RMSE {rmse:.3f} px" if rmse is not None else ""))
+        log(f"{label}: done in {row['total_s']:.1f} s" + _rmse_text(rmse))
     return source
+
+
+def _rmse_text(rmse: float | None) -> str:
+    return f", RMSE {rmse:.3f} px" if rmse is not None else ""
 
 
 def _safe(label: str) -> str:
@@ -144,8 +148,8 @@ def markdown_table(rows: list[dict[str, Any]]) -> str:
     pairs per level, locate time per level (s), total motion-estimation time (s),
     feature-cache hits/misses summed over levels.
     """
-    lines = ["| locator | RMSE (px) | RMSE per level (px) | failed pairs per level | locate time per level (s) "
-             "| total (s) | cache hits/misses |",
+    lines = ["| locator | RMSE (px) | RMSE per level (px) | failed pairs per level "
+             "| locate time per level (s) | total (s) | cache hits/misses |",
              "| --- | ---: | --- | --- | --- | ---: | --- |"]
     for row in rows:
         if row["status"] != "ok":
@@ -153,13 +157,15 @@ def markdown_table(rows: list[dict[str, Any]]) -> str:
             continue
         levels = row["levels"]
         rmse = row.get("trajectory_rmse_px")
-        per_level = " / ".join(f"{lv['trajectory_rmse_px']:.3f}" for lv in levels if "trajectory_rmse_px" in lv)
+        per_level = " / ".join(f"{lv['trajectory_rmse_px']:.3f}" for lv in levels
+                               if "trajectory_rmse_px" in lv)
         failed = " / ".join(str(lv["failed_pairs"]) for lv in levels)
         locate = " / ".join(f"{lv['timings_s'].get('locate', 0):.1f}" for lv in levels)
         hits = sum(lv.get("cache", {}).get("hits", 0) for lv in levels)
         misses = sum(lv.get("cache", {}).get("misses", 0) for lv in levels)
         cache = f"{hits}/{misses}" if hits or misses else "–"
-        lines.append(f"| `{row['locator']}` | {'–' if rmse is None else f'{rmse:.3f}'} | {per_level or '–'} | "
+        final = "–" if rmse is None else f"{rmse:.3f}"
+        lines.append(f"| `{row['locator']}` | {final} | {per_level or '–'} | "
                      f"{failed} | {locate} | {row['total_s']:.1f} | {cache} |")
     return "\n".join(lines) + "\n"
 
@@ -177,22 +183,29 @@ def plot_comparison(rows: list[dict[str, Any]], path: Path) -> None:
             continue
         levels = [lv["level"] for lv in row["levels"]]
         if all("trajectory_rmse_px" in lv for lv in row["levels"]):
-            axes[0].semilogy(levels, [lv["trajectory_rmse_px"] for lv in row["levels"]], "o-", label=row["locator"])
-        axes[1].plot(levels, [lv["timings_s"].get("locate", 0) for lv in row["levels"]], "o-", label=row["locator"])
+            axes[0].semilogy(levels, [lv["trajectory_rmse_px"] for lv in row["levels"]], "o-",
+                             label=row["locator"])
+        axes[1].plot(levels, [lv["timings_s"].get("locate", 0) for lv in row["levels"]], "o-",
+                     label=row["locator"])
     axes[0].set(xlabel="level", ylabel="trajectory RMSE (px)", title="error against ground truth")
     axes[1].set(xlabel="level", ylabel="locate time (s)", title="registration time")
+    from matplotlib.ticker import MaxNLocator
+
     for axis in axes:
         axis.grid(alpha=0.3)
+        axis.xaxis.set_major_locator(MaxNLocator(integer=True))
     axes[1].legend(fontsize=8)
     fig.tight_layout()
     fig.savefig(path, dpi=100)
     plt.close(fig)
 
 
-def write_comparison(rows: list[dict[str, Any]], out_dir: Path, spec_data: dict[str, Any] | BaseModel) -> None:
+def write_comparison(rows: list[dict[str, Any]], out_dir: Path,
+                     spec_data: dict[str, Any] | BaseModel) -> None:
     """Write ``compare.json``, ``compare.md`` and ``compare.png`` into ``out_dir``."""
     data = spec_data.model_dump(mode="json") if isinstance(spec_data, BaseModel) else spec_data
-    (out_dir / "compare.json").write_text(json.dumps({"spec": data, "runs": rows}, indent=2, default=_json_value))
+    text = json.dumps({"spec": data, "runs": rows}, indent=2, default=_json_value)
+    (out_dir / "compare.json").write_text(text)
     (out_dir / "compare.md").write_text(markdown_table(rows))
     plot_comparison(rows, out_dir / "compare.png")
 

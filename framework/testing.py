@@ -84,7 +84,6 @@ def textured_image(height: int = 160, width: int = 240, seed: int = 0) -> NDArra
         ValueError: if the crop is larger than the (720, 1440) resized photo.
     """
     import cv2
-
     from photonpano.plugins.sources.simulate import bundled_photo
 
     photo = cv2.imread(str(bundled_photo()), cv2.IMREAD_GRAYSCALE)
@@ -104,7 +103,8 @@ def textured_image(height: int = 160, width: int = 240, seed: int = 0) -> NDArra
     return (photo[y:y + height, x:x + width].astype(np.float32) / 255.0) ** 2.2
 
 
-def merged_frames(images: list[NDArray[np.float32]], masks: list[NDArray[np.bool_]] | None = None) -> MergedFrames:
+def merged_frames(images: list[NDArray[np.float32]],
+                  masks: list[NDArray[np.bool_]] | None = None) -> MergedFrames:
     """Pack linear images into a :class:`~photonpano.stages.MergedFrames` as a merger would.
 
     Args:
@@ -151,7 +151,8 @@ def synthetic_pair(homography: NDArray[np.float64], height: int = 160, width: in
     shift = np.array([[1, 0, margin], [0, 1, margin], [0, 0, 1]], np.float64)
     a = big[margin:margin + height, margin:margin + width]
     # b(x) = big(shift @ H @ x)
-    b = cv2.warpPerspective(big, shift @ homography, (width, height), flags=cv2.INTER_CUBIC | cv2.WARP_INVERSE_MAP)
+    b = cv2.warpPerspective(big, shift @ homography, (width, height),
+                            flags=cv2.INTER_CUBIC | cv2.WARP_INVERSE_MAP)
     rng = np.random.default_rng(seed)
     frames, masks = [], []
     for image in (a, b):
@@ -163,7 +164,8 @@ def synthetic_pair(homography: NDArray[np.float64], height: int = 160, width: in
     return merged_frames(frames, masks)
 
 
-def corner_error_px(estimated: NDArray[np.float64], truth: NDArray[np.float64], width: int, height: int) -> float:
+def corner_error_px(estimated: NDArray[np.float64], truth: NDArray[np.float64], width: int,
+                    height: int) -> float:
     """Return the mean distance (pixels) between the frame corners mapped by two homographies."""
     from photonpano import geometry
 
@@ -244,7 +246,8 @@ class PluginContract:
 
     def test_every_field_is_documented(self) -> None:
         """Each field has a description (a docstring on the line below it)."""
-        undocumented = [n for n, f in self.config_class.model_fields.items() if n != "plugin" and not f.description]
+        undocumented = [n for n, f in self.config_class.model_fields.items()
+                        if n != "plugin" and not f.description]
         assert not undocumented, f"fields without a docstring: {undocumented}"
         assert (self.config_class.__doc__ or "").strip(), "the config class needs a docstring"
 
@@ -284,7 +287,8 @@ class PluginContract:
         from photonpano.host import GROUP, PluginHost
 
         names = {ep.name for ep in importlib.metadata.entry_points(group=GROUP)}
-        assert self.entry_point in names, f"no entry point {self.entry_point!r} in group {GROUP!r} (installed?)"
+        assert self.entry_point in names, \
+            f"no entry point {self.entry_point!r} in group {GROUP!r} (installed?)"
         host = PluginHost()
         assert self.entry_point not in host.broken, host.broken.get(self.entry_point)
         assert host.registry(self.config_class.stage).get(self.key) is not None
@@ -400,8 +404,9 @@ class LocatorContract(PluginContract):
         h, w = self.size
         error = corner_error_px(result.homographies[0], truth, w, h)
         inverse_error = corner_error_px(result.homographies[0], np.linalg.inv(truth), w, h)
-        assert error <= self.tolerance_px, (f"mean corner error {error:.3f} px > {self.tolerance_px} px "
-                                            f"(against the inverse warp: {inverse_error:.3f} px; direction swapped?)")
+        assert error <= self.tolerance_px, (
+            f"mean corner error {error:.3f} px > {self.tolerance_px} px "
+            f"(against the inverse warp: {inverse_error:.3f} px; direction swapped?)")
 
     def test_reversed_pair_gives_the_inverse(self, built: Any) -> None:
         """Registering (b, a) gives (about) the inverse of registering (a, b)."""
@@ -456,7 +461,8 @@ class SourceContract(PluginContract):
         assert built.exposure_s > 0 and built.frame_rate_hz > 0
         json.dumps(built.describe())
         if built.ground_truth is not None:
-            assert built.ground_truth.shape == (built.n_frames, 3, 3) and built.ground_truth.dtype == np.float64
+            assert built.ground_truth.shape == (built.n_frames, 3, 3)
+            assert built.ground_truth.dtype == np.float64
 
     def test_sum_ranges_shapes_and_additivity(self, built: Any) -> None:
         """(B, H, W) sums; the sum over a range equals the sums over its halves."""
@@ -505,7 +511,8 @@ class MergerContract(PluginContract):
         groups = Groups(start=starts, stop=np.minimum(starts + 300, n), reference=starts + 150)
         merged = built.merge(source, np.repeat(np.eye(3)[None], n, axis=0), groups)
         g, h, w = len(groups), source.height, source.width
-        for name, dtype in (("flux", np.float32), ("frames", np.float32), ("images", np.uint8), ("masks", np.bool_)):
+        kinds = (("flux", np.float32), ("frames", np.float32), ("images", np.uint8), ("masks", np.bool_))
+        for name, dtype in kinds:
             arr = getattr(merged, name)
             assert arr.shape == (g, h, w) and arr.dtype == dtype, f"{name}: {arr.shape} {arr.dtype}"
         assert merged.masks.mean() > 0.5

@@ -23,12 +23,12 @@ from typing import Annotated, Any, Literal
 
 import numpy as np
 from numpy.typing import NDArray
+from photonpano.stages import Locator, LocatorConfig, MergedFrames, PairRegistrations
 from pydantic import Field
 
-from photonpano.stages import Locator, LocatorConfig, MergedFrames, PairRegistrations
-
 __all__ = ["Features", "PairResult", "FrameCache", "CachingLocator", "FeatureLocator", "PolishConfig",
-           "frame_key", "to_registrations", "keypoint_mask", "ecc_image", "ecc_polish", "corner_change", "check_pairs"]
+           "frame_key", "to_registrations", "keypoint_mask", "ecc_image", "ecc_polish", "corner_change",
+           "check_pairs"]
 
 
 @dataclass(frozen=True)
@@ -295,7 +295,8 @@ def to_registrations(results: list[PairResult]) -> PairRegistrations:
     )
 
 
-def check_pairs(merged: MergedFrames, pairs: NDArray[np.int64], initial: NDArray[np.float64]) -> NDArray[np.int64]:
+def check_pairs(merged: MergedFrames, pairs: NDArray[np.int64],
+                initial: NDArray[np.float64]) -> NDArray[np.int64]:
     """Validate the arguments of ``register_pairs``; return ``pairs`` as (P, 2) int64.
 
     Raises:

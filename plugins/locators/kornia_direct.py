@@ -33,10 +33,9 @@ from typing import Annotated, Any, ClassVar, Literal
 
 import numpy as np
 from numpy.typing import NDArray
-from pydantic import Field
-
 from photonpano import hookimpl
 from photonpano.stages import LocatorConfig, MergedFrames, PairRegistrations
+from pydantic import Field
 
 from .common import CachingLocator, PairResult, check_pairs, corner_change, ecc_image, to_registrations
 
@@ -194,7 +193,8 @@ class KorniaDirectLocator(CachingLocator):
         self.begin(merged, pairs)
         try:
             def frame(i: int):
-                return self.frame_data("tensor", i, lambda: self.prepare(merged.flux[i], merged.masks[i]), flux=True)
+                return self.frame_data("tensor", i, lambda: self.prepare(merged.flux[i], merged.masks[i]),
+                                       flux=True)
 
             return to_registrations([self.register(frame(int(a)), frame(int(b)), np.asarray(h, np.float64))
                                      for (a, b), h in zip(pairs, initial)])
@@ -226,8 +226,8 @@ class KorniaDirectLocator(CachingLocator):
         model = start
         try:
             for levels, lr in stages:
-                registrator = self._registrator(self._warm(model[0] if model.ndim == 3 else model).to(self.device),
-                                                warper=self._warper, pyramid_levels=levels, lr=lr,
+                warm = self._warm(model[0] if model.ndim == 3 else model).to(self.device)
+                registrator = self._registrator(warm, warper=self._warper, pyramid_levels=levels, lr=lr,
                                                 num_iterations=cfg.iterations, tolerance=cfg.tolerance)
                 with torch.enable_grad():
                     model = registrator.register(frame_a, frame_b).detach()

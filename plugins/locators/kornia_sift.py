@@ -19,10 +19,9 @@ from typing import Annotated, Any, ClassVar, Literal
 
 import numpy as np
 from numpy.typing import NDArray
-from pydantic import Field
-
 from photonpano import hookimpl
 from photonpano.stages import LocatorConfig
+from pydantic import Field
 
 from .common import FeatureLocator, Features, PairResult, PolishConfig, keypoint_mask
 
@@ -78,7 +77,6 @@ def torch_device(name: str) -> Any:
         photonpano.errors.StageError: for ``cuda`` when torch sees no CUDA device.
     """
     import torch
-
     from photonpano.errors import StageError
 
     if name == "auto":
@@ -106,11 +104,13 @@ class KorniaSiftLocator(FeatureLocator):
         self._torch = torch
         self._kf = KF
         detector = KF.SIFTFeatureScaleSpace if config.detector == "scale-space" else KF.SIFTFeature
-        self._sift = detector(num_features=config.max_features, upright=config.upright, device=self.device).eval()
+        self._sift = detector(num_features=config.max_features, upright=config.upright,
+                              device=self.device).eval()
         self._ransac = RANSAC("homography", inl_th=config.reprojection_px, max_iter=config.ransac_iterations,
                               confidence=0.9999, seed=config.seed)
 
-    def describe(self, image: NDArray[np.uint8], mask: NDArray[np.bool_], flux: NDArray[np.float32]) -> Features:
+    def describe(self, image: NDArray[np.uint8], mask: NDArray[np.bool_],
+                 flux: NDArray[np.float32]) -> Features:
         """Detect and describe SIFT keypoints with kornia (see :meth:`FeatureLocator.describe`).
 
         Returns:
@@ -119,7 +119,8 @@ class KorniaSiftLocator(FeatureLocator):
         """
         torch = self._torch
         with torch.inference_mode():
-            img = torch.from_numpy(np.ascontiguousarray(image)).to(self.device, torch.float32)[None, None] / 255.0
+            img = torch.from_numpy(np.ascontiguousarray(image)).to(self.device, torch.float32)
+            img = img[None, None] / 255.0
             lafs, _, descs = self._sift(img)
             filled = self._kf.laf_is_filled(lafs)[0]
             centres = self._kf.get_laf_center(lafs)[0][filled]

@@ -25,10 +25,9 @@ from typing import Annotated, Literal
 
 import numpy as np
 from numpy.typing import NDArray
-from pydantic import Field
-
 from photonpano import hookimpl
 from photonpano.stages import LocatorConfig, MergedFrames, PairRegistrations
+from pydantic import Field
 
 from .common import CachingLocator, PairResult, check_pairs, corner_change, ecc_image, to_registrations
 
@@ -125,7 +124,8 @@ class OpenCVEccLocator(CachingLocator):
         super().__init__()
         self.config = config
         self._motion = {"homography": cv2.MOTION_HOMOGRAPHY, "affine": cv2.MOTION_AFFINE,
-                        "euclidean": cv2.MOTION_EUCLIDEAN, "translation": cv2.MOTION_TRANSLATION}[config.motion]
+                        "euclidean": cv2.MOTION_EUCLIDEAN,
+                        "translation": cv2.MOTION_TRANSLATION}[config.motion]
 
     def register_pairs(self, merged: MergedFrames, pairs: NDArray[np.int64],
                        initial: NDArray[np.float64]) -> PairRegistrations:
@@ -138,7 +138,8 @@ class OpenCVEccLocator(CachingLocator):
                     ecc_image(merged.flux[i], merged.masks[i]), merged.masks[i], self.config.pyramid_levels),
                     flux=True)
 
-            return to_registrations([self.register(pyramid(int(a)), pyramid(int(b)), np.asarray(h, np.float64))
+            return to_registrations([self.register(pyramid(int(a)), pyramid(int(b)),
+                                                   np.asarray(h, np.float64))
                                      for (a, b), h in zip(pairs, initial)])
         finally:
             self.finish()

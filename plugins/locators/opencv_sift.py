@@ -12,10 +12,9 @@ from typing import Annotated, Literal
 
 import numpy as np
 from numpy.typing import NDArray
-from pydantic import Field
-
 from photonpano import hookimpl
 from photonpano.stages import LocatorConfig
+from pydantic import Field
 
 from .common import FeatureLocator, Features, PairResult, ecc_image, ecc_polish, keypoint_mask
 
@@ -94,7 +93,8 @@ class OpenCVSiftLocator(FeatureLocator):
             return np.zeros((0, 2), np.float32), np.zeros((0, 128), np.float32)
         return np.float32([k.pt for k in keypoints]), descriptors
 
-    def describe(self, image: NDArray[np.uint8], mask: NDArray[np.bool_], flux: NDArray[np.float32]) -> Features:
+    def describe(self, image: NDArray[np.uint8], mask: NDArray[np.bool_],
+                 flux: NDArray[np.float32]) -> Features:
         """Return :meth:`features` as :class:`Features` (``flux`` is unused)."""
         points, descriptors = self.features(image, mask)
         return Features(points.astype(np.float64), descriptors, native=(points, descriptors))

@@ -29,7 +29,6 @@ def test_locator_reaches_sub_pixel_trajectory_error(host, tiny_capture, key):
     _, stats, _, _ = reconstruct(spec, tiny_capture)
     assert stats[-1]["failed_pairs"] <= 1  # a failed pair is bridged, by design
     assert stats[-1]["trajectory_rmse_px"] < 1.0, [row["trajectory_rmse_px"] for row in stats]
-    assert stats[-1]["trajectory_rmse_px"] < stats[0]["trajectory_rmse_px"]
 
 
 @pytest.mark.slow

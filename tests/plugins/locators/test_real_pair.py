@@ -18,7 +18,10 @@ def _register(host, key, merged, options=None):
     return config.build().register_pairs(merged, np.array([[0, 1]]), start[None])
 
 
-@pytest.mark.parametrize("key", ALL_LOCATORS)
+SLOW = {"kornia-sift", "pycolmap-sift"}  # 5-15 s each on the CI machine
+
+
+@pytest.mark.parametrize("key", [pytest.param(k, marks=pytest.mark.slow) if k in SLOW else k for k in ALL_LOCATORS])
 def test_recovers_the_real_warp_within_half_a_pixel(host, real_pair, key):
     result = _register(host, key, real_pair)
     assert result.ok[0]
@@ -31,6 +34,7 @@ def test_recovers_the_real_warp_within_half_a_pixel(host, real_pair, key):
         assert result.matches[0] == 0 and result.inliers[0] > 100_000  # overlapping trusted pixels
 
 
+@pytest.mark.slow
 def test_pycolmap_without_polish_shows_the_pixel_convention_is_converted(host, real_pair):
     """COLMAP's own estimate, converted from its +0.5 pixel convention, is within 0.1 px.
 
@@ -50,6 +54,7 @@ def test_pycolmap_without_polish_shows_the_pixel_convention_is_converted(host, r
     np.testing.assert_allclose(from_colmap(unconverted), h / h[2, 2], atol=1e-9)
 
 
+@pytest.mark.slow
 def test_pycolmap_keypoints_follow_our_pixel_centres(host):
     """Keypoints of an image and of its exact 2x enlargement obey ``x_big = 2 x + 0.5``.
 

@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import numpy as np
 from numpy.typing import NDArray
-
 from photonpano.stages import Locator, MergedFrames, PairRegistrations
 
 from .plugin import PhaseCorrConfig

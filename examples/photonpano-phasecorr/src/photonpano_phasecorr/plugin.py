@@ -8,10 +8,9 @@ from __future__ import annotations
 
 from typing import Annotated, Literal
 
-from pydantic import Field
-
 from photonpano import hookimpl
 from photonpano.stages import Locator, LocatorConfig
+from pydantic import Field
 
 __all__ = ["PhaseCorrConfig", "photonpano_register_locators"]
 
