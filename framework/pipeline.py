@@ -134,10 +134,15 @@ def reconstruct(spec: BaseModel, source, *, on_level=None, progress=None):
 
     stats: list[dict[str, Any]] = []
 
+    locator = spec.locator.build()
+
     def level_done(result):
         if on_level is not None:
             on_level(result)
         row = result.statistics()
+        if hasattr(locator, "cache_stats"):  # feature reuse of the built-in locators
+            row["locator_cache"] = locator.cache_stats()
+            locator.reset_cache_stats()
         if source.ground_truth is not None:
             row["trajectory_rmse_px"] = _rmse(result.homographies, source)
         stats.append(row)
@@ -147,7 +152,7 @@ def reconstruct(spec: BaseModel, source, *, on_level=None, progress=None):
     with make_executor(spec.executor, spec.workers) as executor:
         t0 = time.perf_counter()
         homographies, _ = estimate_motion(
-            source, spec.resampler.build(), spec.merger.build(), spec.locator.build(), spec.interpolator.build(),
+            source, spec.resampler.build(), spec.merger.build(), locator, spec.interpolator.build(),
             levels=spec.levels, group_size=spec.group_size, pair_offsets=tuple(spec.pair_offsets),
             executor=executor, keep_merged=spec.outputs.merged_frames, on_level=level_done, progress=progress)
         timings["levels"] = time.perf_counter() - t0

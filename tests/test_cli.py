@@ -42,6 +42,7 @@ def test_demo_writes_the_output_contract(tmp_path):
     run = json.loads((out / "run.json").read_text())
     assert run["spec"]["levels"] == 2 and len(run["levels"]) == 2
     assert {"merge", "locate", "interpolate"} <= set(run["levels"][0]["timings_s"])
+    assert run["levels"][1]["locator_cache"]["misses"] > 0  # feature reuse is reported per level
     assert run["ground_truth"]["trajectory_rmse_px"] < 1.0
     assert "photonpano" in run["plugins"]
     assert (out / "spec.yaml").exists() and (out / "trajectory.png").exists()
