@@ -19,10 +19,9 @@ from photonpano.executor import Executor
 from photonpano.stages import Groups, MergedFrames, Merger, MergerConfig, PhotonSource
 
 
-class FluxMLEConfig(MergerConfig):
-    """Warp-and-sum binary frames per group, then the flux MLE (paper Eq. 3)."""
+class WarpMergeConfig(MergerConfig):
+    """Settings shared by the mergers that warp a group's frames with :func:`merge_group`."""
 
-    plugin: Literal["flux-mle"] = "flux-mle"
     subbatch_px: Annotated[float, Field(gt=0, le=2)] = 0.25
     """Consecutive frames whose relative warps differ by less than this many pixels
     (corner travel) are summed before one shared warp."""
@@ -30,7 +29,14 @@ class FluxMLEConfig(MergerConfig):
     """A merged pixel is trusted (given to the locator) when at least this fraction of
     the group's frames observed it."""
     white_percentile: Annotated[float, Field(gt=50, le=100)] = 99.5
-    """Tone mapping: this percentile of the merged flux is mapped to white."""
+    """Tone mapping: this percentile of the merged image (flux or linear intensity) is
+    mapped to white."""
+
+
+class FluxMLEConfig(WarpMergeConfig):
+    """Warp-and-sum binary frames per group, then the flux MLE (paper Eq. 3)."""
+
+    plugin: Literal["flux-mle"] = "flux-mle"
 
     def build(self) -> FluxMLEMerger:
         """Return the merger."""

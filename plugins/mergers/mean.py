@@ -19,21 +19,14 @@ import numpy as np
 from pydantic import Field
 
 from photonpano import hookimpl
+from photonpano.plugins.mergers.flux_mle import WarpMergeConfig
 from photonpano.stages import Groups, MergedFrames, Merger, MergerConfig, PhotonSource
 
 
-class MeanConfig(MergerConfig):
+class MeanConfig(WarpMergeConfig):
     """Warp-and-average intensity frames per group (conventional high-speed video)."""
 
     plugin: Literal["mean"] = "mean"
-    subbatch_px: Annotated[float, Field(gt=0, le=2)] = 0.25
-    """Consecutive frames whose relative warps differ by less than this many pixels
-    (corner travel) are summed before one shared warp."""
-    min_coverage: Annotated[float, Field(gt=0, le=1)] = 0.8
-    """A merged pixel is trusted (given to the locator) when at least this fraction of
-    the group's frames observed it."""
-    white_percentile: Annotated[float, Field(gt=50, le=100)] = 99.5
-    """Tone mapping: this percentile of the merged linear intensity is mapped to white."""
     saturation: Annotated[float, Field(gt=0, le=1)] | None = 0.98
     """Merged pixels whose mean linear intensity reaches this fraction of full scale are
     clipped (no detail, and they hide the true intensity) and not trusted by the
