@@ -140,7 +140,9 @@ def reconstruct(spec: BaseModel, source, *, on_level=None, progress=None):
         if on_level is not None:
             on_level(result)
         row = result.statistics()
-        if hasattr(locator, "cache_stats"):  # feature reuse of the built-in locators
+        if result.locator_cache is not None:  # levels against the panorama: their own locators
+            row["locator_cache"] = result.locator_cache
+        elif hasattr(locator, "cache_stats"):  # feature reuse of the built-in locators
             row["locator_cache"] = locator.cache_stats()
             locator.reset_cache_stats()
         if source.ground_truth is not None:
@@ -154,7 +156,7 @@ def reconstruct(spec: BaseModel, source, *, on_level=None, progress=None):
         homographies, _ = estimate_motion(
             source, spec.resampler.build(), spec.merger.build(), locator, spec.interpolator.build(),
             levels=spec.levels, group_size=spec.group_size, pair_offsets=tuple(spec.pair_offsets),
-            executor=executor, keep_merged=spec.outputs.merged_frames, on_level=level_done, progress=progress)
+            executor=executor, refine_locator=spec.refine_locator.build if spec.refine_locator else None, keep_merged=spec.outputs.merged_frames, on_level=level_done, progress=progress)
         timings["levels"] = time.perf_counter() - t0
         t0 = time.perf_counter()
         advance = progress("panorama", source.n_frames) if progress else None

@@ -32,7 +32,8 @@ class LevelResult:
         groups: the level's virtual exposures.
         merged: the merged frames (dropped after the level unless kept for dumps).
         pairs: the level's pair registrations.
-        pair_index: (P, 2) int64 merged-frame indices ``(a, b)`` of each pair.
+        pair_index: (P, 2) int64 merged-frame indices ``(a, b)`` of each pair; ``a`` is
+            -1 where frame b was registered against the panorama of the current estimate.
         keyframes: (G, 3, 3) float64 chained homographies at the reference frames.
         homographies: (T, 3, 3) float64 per-frame homographies after the level.
         timings_s: wall time of each stage in seconds.
@@ -49,22 +50,25 @@ class LevelResult:
     homographies: NDArray[np.float64]
     timings_s: dict[str, float] = field(default_factory=dict)
     rejected_keyframes: int = 0
+    locator_cache: dict[str, int] | None = None
 
     def statistics(self) -> dict[str, Any]:
         """Return JSON-ready per-level statistics.
 
-        ``failed_pairs`` counts consecutive pairs that failed and were bridged;
-        ``extra_pairs_used`` counts longer-offset pairs that passed the checks; matches
-        and inliers are over consecutive pairs.
+        ``failed_pairs`` counts primary registrations (consecutive pairs, or merged
+        frames against the panorama) that failed and were bridged; ``extra_pairs_used``
+        counts longer-offset pairs that passed the checks; matches and inliers are over
+        the primary registrations.
         """
         p = self.pairs
-        consecutive = self.pair_index[:, 1] - self.pair_index[:, 0] == 1
+        consecutive = (self.pair_index[:, 1] - self.pair_index[:, 0] == 1) | (self.pair_index[:, 0] < 0)
         return {
             "level": self.level,
             "groups": len(self.groups),
             "pairs": len(p.ok),
             "failed_pairs": int((~p.ok[consecutive]).sum()),
-            "failed_pair_indices": self.pair_index[consecutive][~p.ok[consecutive], 0].tolist(),
+            "failed_pair_indices": np.where(self.pair_index[:, 0] < 0, self.pair_index[:, 1],
+                                            self.pair_index[:, 0])[consecutive & ~p.ok].tolist(),
             "extra_pairs_used": int(p.ok[~consecutive].sum()),
             "median_matches": float(np.median(p.matches[consecutive])) if consecutive.any() else 0.0,
             "median_inliers": float(np.median(p.inliers[consecutive])) if consecutive.any() else 0.0,
@@ -284,6 +288,137 @@ def locate_keyframes(locator: Locator, merged: MergedFrames, current: NDArray[np
     return solved, pair_index, pairs
 
 
+def panorama_views(panorama: Panorama, to_canvas: NDArray[np.float64], height: int, width: int,
+                   min_frames: float) -> MergedFrames:
+    """Resample a panorama into the pixel grids of some frames, as merged frames.
+
+    Args:
+        panorama: a :class:`Panorama` (flux in photons/s, NaN where unseen).
+        to_canvas: (G, 3, 3) float64 frame-to-canvas homographies of the G frames.
+        height: frame height in pixels.
+        width: frame width in pixels.
+        min_frames: canvas pixels observed by fewer binary frames are not trusted.
+
+    Returns:
+        G :class:`~photonpano.stages.MergedFrames`: bilinear flux (0 where unseen),
+        nearest frame counts, tone-mapped images, and masks of pixels whose bilinear
+        neighbourhood is trusted on the canvas.
+    """
+    import cv2
+
+    from .photons import tone_map
+
+    trusted = (panorama.frames >= min_frames) & np.isfinite(panorama.flux)
+    trusted = cv2.erode(trusted.astype(np.uint8), np.ones((3, 3), np.uint8))
+    flux = np.where(trusted > 0, panorama.flux, 0).astype(np.float32)
+    g = len(to_canvas)
+    out = MergedFrames(flux=np.empty((g, height, width), np.float32), frames=np.empty((g, height, width), np.float32),
+                       images=np.empty((g, height, width), np.uint8), masks=np.empty((g, height, width), bool))
+    inverse = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
+    for i, h in enumerate(to_canvas):
+        out.flux[i] = cv2.warpPerspective(flux, h, (width, height), flags=inverse, borderValue=0)
+        out.frames[i] = cv2.warpPerspective(panorama.frames, h, (width, height),
+                                            flags=cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP, borderValue=0)
+        out.masks[i] = cv2.warpPerspective(trusted, h, (width, height),
+                                           flags=cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP, borderValue=0) > 0
+        out.flux[i][~out.masks[i]] = np.nan
+        out.images[i] = tone_map(out.flux[i])
+    return out
+
+
+def _stack(a: MergedFrames, b: MergedFrames) -> MergedFrames:
+    return MergedFrames(*(np.concatenate([getattr(a, f), getattr(b, f)]) for f in ("flux", "frames", "images", "masks")))
+
+
+def _bridge(current: NDArray[np.float64], measured: NDArray[np.float64], ok: NDArray[np.bool_]) -> NDArray[np.float64]:
+    """Keyframes from measured ones where ``ok``, else by interpolating the frame-to-frame updates."""
+    if ok.all():
+        return measured
+    update = geometry.params_from_homographies(np.linalg.inv(current) @ measured)
+    idx = np.arange(len(ok))
+    for k in range(8):
+        update[~ok, k] = np.interp(idx[~ok], idx[ok], update[ok, k])
+    return geometry.normalize(current @ geometry.homographies_from_params(update))
+
+
+def locate_against_panorama(source: PhotonSource, merger: Merger, make_locator: Callable[[], Locator],
+                            homographies: NDArray[np.float64], groups: Groups, *, min_frames: float,
+                            subbatch_px: float = 0.5, window: int = 16, executor: Executor | None = None,
+                            progress: Callable[[int], None] | None = None
+                            ) -> tuple[NDArray[np.float64], PairRegistrations, dict[str, int]]:
+    """Register every merged frame of a level against the panorama of the current estimate.
+
+    Frame-to-mosaic alignment (Szeliski, "Image Alignment and Stitching", 2006, Sec. 6.2;
+    Sawhney and Kumar, 1999): once an estimate exists, every binary frame is warped onto
+    one canvas (:func:`assemble_panorama`), and each merged frame is registered against
+    that panorama resampled into its reference frame's grid. The panorama is a
+    low-noise template averaged over the whole capture, so the registrations do not
+    chain (no drift, no pose graph) and each group is registered once. Groups stream in
+    windows: each window is merged, registered and dropped, so memory does not grow
+    with the capture length. Each worker of ``executor`` builds its own locator.
+
+    Args:
+        source: the capture.
+        merger: the built merger.
+        make_locator: builds a locator (called once per worker thread).
+        homographies: (T, 3, 3) float64 current frame-to-panorama homographies.
+        groups: the level's G groups.
+        min_frames: canvas pixels seen by fewer binary frames are not trusted.
+        subbatch_px: sub-batch tolerance of the panorama, in pixels.
+        window: groups merged and registered per task.
+        executor: runs windows in parallel (None: serially).
+        progress: called with the number of groups done.
+
+    Returns:
+        ``(keyframes, registrations, cache_stats)``: (G, 3, 3) float64 homographies of
+        the reference frames (failed registrations bridged from their neighbours), the G
+        registrations (merged frame pixels to panorama-view pixels) and the locators'
+        summed :meth:`cache_stats` (empty if they keep none).
+
+    Raises:
+        StageError: if no merged frame could be registered.
+    """
+    import threading
+
+    executor = executor or SerialExecutor()
+    template = assemble_panorama(source, homographies, subbatch_px=subbatch_px, executor=executor)
+    to_canvas = template.homographies[groups.reference]
+    local = threading.local()
+    built: list[Locator] = []
+
+    def run(index: NDArray[np.int64]) -> PairRegistrations:
+        if not hasattr(local, "locator"):
+            local.locator = make_locator()
+            built.append(local.locator)
+        sub = Groups(groups.start[index], groups.stop[index], groups.reference[index])
+        merged = merger.merge(source, homographies, sub)
+        views = panorama_views(template, to_canvas[index], source.height, source.width, min_frames)
+        n = len(index)
+        pairs = np.stack([np.arange(n), np.arange(n, 2 * n)], axis=1)
+        result = local.locator.register_pairs(_stack(views, merged), pairs, np.repeat(np.eye(3)[None], n, axis=0))
+        if progress is not None:
+            progress(n)
+        return result
+
+    windows = [np.arange(s, min(s + window, len(groups))) for s in range(0, len(groups), window)]
+    parts = executor.map(run, windows)
+    regs = parts[0]
+    for part in parts[1:]:
+        regs = _concat(regs, part)
+    ok = regs.ok & plausible(regs.homographies, source.width, source.height)
+    if not ok.any():
+        raise StageError("locator", "panorama", f"none of the {len(ok)} merged frames registered against "
+                         "the panorama of the current estimate")
+    regs = PairRegistrations(regs.homographies, regs.matches, regs.inliers, ok)
+    current = homographies[groups.reference]
+    keyframes = _bridge(current, geometry.normalize(current @ regs.homographies), ok)
+    stats: dict[str, int] = {}
+    for locator in built:
+        for key, value in (locator.cache_stats() if hasattr(locator, "cache_stats") else {}).items():
+            stats[key] = stats.get(key, 0) + value
+    return keyframes, regs, stats
+
+
 def _guard_keyframes(current: NDArray[np.float64], solved: NDArray[np.float64], width: int,
                      height: int) -> tuple[NDArray[np.float64], int]:
     """Replace implausible keyframe updates by interpolation from their neighbours.
@@ -298,17 +433,10 @@ def _guard_keyframes(current: NDArray[np.float64], solved: NDArray[np.float64], 
     Raises:
         StageError: if no keyframe update is plausible.
     """
-    update = np.linalg.inv(current) @ solved
-    good = plausible(update, width, height)
-    if good.all():
-        return solved, 0
+    good = plausible(np.linalg.inv(current) @ solved, width, height)
     if not good.any():
         raise StageError("locator", "pose graph", "every keyframe update is implausible")
-    params = geometry.params_from_homographies(update)
-    idx = np.arange(len(good))
-    for k in range(8):
-        params[~good, k] = np.interp(idx[~good], idx[good], params[good, k])
-    return geometry.normalize(current @ geometry.homographies_from_params(params)), int((~good).sum())
+    return _bridge(current, solved, good), int((~good).sum())
 
 
 def _corner_disagreement(a: NDArray[np.float64], b: NDArray[np.float64], width: int, height: int) -> NDArray[np.float64]:
@@ -328,6 +456,8 @@ def estimate_motion(
     group_size: int,
     pair_offsets: tuple[int, ...] = (1,),
     executor: Executor | None = None,
+    refine_locator: Callable[[], Locator] | None = None,
+    refine_subbatch_px: float = 0.5,
     keep_merged: bool = False,
     on_level: Callable[[LevelResult], None] | None = None,
     progress: Callable[[str, int], Callable[[int], None]] | None = None,
@@ -341,6 +471,13 @@ def estimate_motion(
     levels is kept (at level 1, where ``H`` is the identity, this is the paper's plain
     interpolation of the keyframe homographies).
 
+    Level 1 registers pairs of merged frames (consecutive, and at ``pair_offsets``) with
+    ``locator`` and solves them jointly (:func:`locate_keyframes`). With
+    ``refine_locator``, every later level registers each merged frame against the
+    panorama of the current estimate instead (:func:`locate_against_panorama`): no
+    chaining, one registration per group, groups streamed in windows; without it, later
+    levels repeat level 1's pairwise scheme (the paper's).
+
     Args:
         source: the capture.
         resampler, merger, locator, interpolator: built stage objects.
@@ -349,7 +486,10 @@ def estimate_motion(
         pair_offsets: register merged frames g and g + k for each k; (1,) is the
             paper's chain of consecutive pairs, more offsets feed :func:`refine_keyframes`.
         executor: runs independent groups in parallel (None: serially).
-        keep_merged: keep each level's merged frames in its result.
+        refine_locator: builds the locator of levels >= 2 against the panorama (called
+            once per worker thread); None: pairwise at every level.
+        refine_subbatch_px: sub-batch tolerance (pixels) of those panoramas.
+        keep_merged: keep each level's merged frames in its result (pairwise levels only).
         on_level: called with each finished level.
         progress: ``progress(description, total)`` returns an ``advance(n)`` callable.
 
@@ -374,16 +514,28 @@ def estimate_motion(
         except ValueError as exc:
             raise StageError("resampler", type(resampler).__name__, str(exc)) from None
         t1 = time.perf_counter()
-        advance = progress(f"level {level}: merge", len(groups)) if progress else None
-        merged = merger.merge(source, homographies, groups, progress=advance, executor=executor)
-        t2 = time.perf_counter()
         refs = groups.reference
         current = homographies[refs]
-        try:
-            keyframes, pair_index, pairs = locate_keyframes(locator, merged, current, pair_offsets,
-                                                            source.width, source.height)
-        except StageError as err:
-            raise StageError("locator", type(locator).__name__, f"level {level}: {err.reason}") from None
+        merged, cache = None, None
+        if level >= 2 and refine_locator is not None:
+            advance = progress(f"level {level}: merge + locate", len(groups)) if progress else None
+            try:
+                keyframes, pairs, cache = locate_against_panorama(
+                    source, merger, refine_locator, homographies, groups, min_frames=group_size,
+                    subbatch_px=refine_subbatch_px, executor=executor, progress=advance)
+            except StageError as err:
+                raise StageError("locator", err.plugin, f"level {level}: {err.reason}") from None
+            pair_index = np.stack([np.full(len(groups), -1), np.arange(len(groups))], axis=1).astype(np.int64)
+            t2 = t1
+        else:
+            advance = progress(f"level {level}: merge", len(groups)) if progress else None
+            merged = merger.merge(source, homographies, groups, progress=advance, executor=executor)
+            t2 = time.perf_counter()
+            try:
+                keyframes, pair_index, pairs = locate_keyframes(locator, merged, current, pair_offsets,
+                                                                source.width, source.height)
+            except StageError as err:
+                raise StageError("locator", type(locator).__name__, f"level {level}: {err.reason}") from None
         keyframes, rejected = _guard_keyframes(current, keyframes, source.width, source.height)
         t3 = time.perf_counter()
         correction = keyframes @ np.linalg.inv(current)
@@ -395,7 +547,7 @@ def estimate_motion(
         t4 = time.perf_counter()
         timings.update(resample=t1 - t0, merge=t2 - t1, locate=t3 - t2, interpolate=t4 - t3)
         result = LevelResult(level, groups, merged if keep_merged else None, pairs, pair_index, keyframes,
-                             homographies, timings, rejected_keyframes=rejected)
+                             homographies, timings, rejected_keyframes=rejected, locator_cache=cache)
         results.append(result)
         if on_level is not None:
             on_level(result)

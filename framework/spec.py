@@ -39,6 +39,10 @@ DEFAULT_PLUGINS: dict[str, str] = {
 }
 """The paper's choice for each stage, used when a spec omits the stage."""
 
+REFINE_DEFAULTS: dict[str, Any] = {"pyramid_levels": 2, "iterations": 10, "blur": 5}
+"""Settings of the default ``refine_locator`` (``opencv-ecc``): the residual motion at
+levels >= 2 is about a pixel, so two pyramid levels and a few iterations suffice."""
+
 
 class OutputsConfig(BaseModel):
     """Which optional outputs to write besides homographies, panorama and run.json."""
@@ -56,7 +60,7 @@ class OutputsConfig(BaseModel):
 class _SpecBase(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True, use_attribute_docstrings=True)
 
-    @field_validator(*STAGES, mode="before", check_fields=False)
+    @field_validator(*STAGES, "refine_locator", mode="before", check_fields=False)
     @classmethod
     def _plugin_shorthand(cls, value: Any) -> Any:
         return {"plugin": value} if isinstance(value, str) else value
@@ -82,6 +86,17 @@ def spec_model(host: PluginHost) -> type[BaseModel]:
         else:
             default_cls = host.registry(stage).get(DEFAULT_PLUGINS[stage], classes[0])
             slots[stage] = (_tagged(classes), Field(default_factory=default_cls))
+    locators = host.registry("locator")
+    ecc = locators.get("opencv-ecc")
+    refine_default = (lambda: ecc(**REFINE_DEFAULTS)) if ecc is not None else (lambda: None)
+    slots["refine_locator"] = (Annotated[Union[_tagged(list(locators.values())), None],  # noqa: UP007
+                                          Field(description=(
+                                              "Locator of levels >= 2, which register each merged frame "
+                                              "against the panorama of the current estimate (frame-to-mosaic, "
+                                              "no drift, one registration per group); null: every level "
+                                              "registers pairs of merged frames with `locator` (the paper's "
+                                              "scheme, slower)."))],
+                               Field(default_factory=refine_default))
     model = create_model(
         "PipelineSpec",
         __base__=_SpecBase,

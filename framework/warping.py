@@ -14,11 +14,11 @@ from numpy.typing import NDArray
 
 from . import geometry
 
-__all__ = ["subbatch_edges", "WarpAccumulator"]
+__all__ = ["subbatch_edges", "WarpAccumulator", "merge_groups"]
 
 
 def subbatch_edges(homographies: NDArray[np.float64], width: int, height: int,
-                   tolerance_px: float) -> NDArray[np.int64]:
+                   tolerance_px: float, breaks: NDArray[np.int64] | None = None) -> NDArray[np.int64]:
     """Split consecutive frames into sub-batches whose warps differ by < ``tolerance_px``.
 
     The split follows the path length of the warped frame corners: a sub-batch ends
@@ -30,9 +30,12 @@ def subbatch_edges(homographies: NDArray[np.float64], width: int, height: int,
         width: frame width in pixels.
         height: frame height in pixels.
         tolerance_px: largest corner travel within one sub-batch, in target pixels (> 0).
+        breaks: frame indices in ``0..K`` where a sub-batch must end (e.g. group
+            boundaries, so that the sub-batches of several overlapping groups are shared).
 
     Returns:
-        (B + 1,) int64 edges into ``0..K`` (``edges[0] == 0``, ``edges[-1] == K``).
+        (B + 1,) int64 edges into ``0..K`` (``edges[0] == 0``, ``edges[-1] == K``),
+        including every break.
 
     Raises:
         ValueError: if ``tolerance_px`` is not positive.
@@ -44,15 +47,21 @@ def subbatch_edges(homographies: NDArray[np.float64], width: int, height: int,
         return np.zeros(1, dtype=np.int64)
     pts = geometry.apply(homographies, geometry.corners(width, height))  # (K, 4, 2)
     step = np.linalg.norm(np.diff(pts, axis=0), axis=-1).max(axis=-1)  # (K-1,)
+    forced = np.zeros(k + 1, dtype=bool)
+    if breaks is not None:
+        forced[np.clip(np.asarray(breaks, dtype=np.int64), 0, k)] = True
     edges = [0]
     travelled = 0.0
-    for i, s in enumerate(step, start=1):  # K iterations of scalar work: cheap
+    for i, s in enumerate(step.tolist(), start=1):  # K iterations of scalar work: cheap
         travelled += s
-        if travelled >= tolerance_px:
+        if travelled >= tolerance_px or forced[i]:
             edges.append(i)
             travelled = 0.0
     edges.append(k)
     return np.asarray(edges, dtype=np.int64)
+
+
+_IDENTITY = np.eye(3)
 
 
 class WarpAccumulator:
@@ -83,6 +92,11 @@ class WarpAccumulator:
         """
         h, w = counts.shape
         th, tw = self.counts.shape
+        if (h, w) == (th, tw) and np.array_equal(homography, _IDENTITY):
+            # e.g. every group at the first level, before any motion is known
+            self.counts += counts
+            self.frames += np.float32(n_frames)
+            return
         x0, y0, x1, y1 = geometry.footprint_bounds(homography[None], w, h)
         x0, y0 = max(int(np.floor(x0)), 0), max(int(np.floor(y0)), 0)
         x1, y1 = min(int(np.ceil(x1)) + 1, tw), min(int(np.ceil(y1)) + 1, th)
@@ -104,3 +118,50 @@ class WarpAccumulator:
         """Add another accumulator of the same grid (e.g. one filled by another thread)."""
         self.counts += other.counts
         self.frames += other.frames
+
+
+def merge_groups(source, homographies: NDArray[np.float64], starts: NDArray[np.int64],
+                 stops: NDArray[np.int64], references: NDArray[np.int64],
+                 subbatch_px: float) -> list[tuple[NDArray[np.float32], NDArray[np.float32]]]:
+    """Warp the frames of each group into its reference frame's pixel grid and sum them.
+
+    Paper Sec. 4, "Merge", with the photons of overlapping groups counted once: the
+    frames ``min(starts):max(stops)`` are split into sub-batches (:func:`subbatch_edges`,
+    with a break at every group boundary), each sub-batch is counted once
+    (``source.sum_ranges``) and warped into every group that holds it, by the warp of
+    its middle frame relative to the group's reference frame. Call it on a window of
+    consecutive groups: the counts of the window's sub-batches are held in memory.
+
+    Args:
+        source: a :class:`~photonpano.stages.PhotonSource`.
+        homographies: (T, 3, 3) float64 current frame-to-panorama homographies.
+        starts: (G,) int64 first frame of each group.
+        stops: (G,) int64 one past the last frame of each group.
+        references: (G,) int64 frame whose pixel grid receives each group.
+        subbatch_px: sub-batch tolerance in pixels (corner travel, > 0).
+
+    Returns:
+        One ``(counts, frames)`` per group: (H, W) float32 warped detections (or summed
+        linear intensity) and number of frames behind each pixel.
+    """
+    starts, stops = np.asarray(starts, np.int64), np.asarray(stops, np.int64)
+    if not len(starts):
+        return []
+    lo, hi = int(starts.min()), int(stops.max())
+    relative = np.linalg.inv(homographies[int(references[0])]) @ homographies[lo:hi]
+    edges = subbatch_edges(relative, source.width, source.height, subbatch_px,
+                           breaks=np.concatenate([starts, stops]) - lo)
+    counts = source.sum_ranges(lo + edges)
+    middles = lo + (edges[:-1] + edges[1:]) // 2
+    sizes = np.diff(edges)
+    out = []
+    for start, stop, reference in zip(starts, stops, references):
+        b0, b1 = np.searchsorted(edges, [start - lo, stop - lo])
+        warps = np.linalg.inv(homographies[int(reference)]) @ homographies[middles[b0:b1]]
+        if np.allclose(warps, _IDENTITY, rtol=0, atol=1e-12):
+            warps = np.broadcast_to(_IDENTITY, warps.shape)
+        acc = WarpAccumulator(source.height, source.width)
+        for b, warp in zip(range(b0, b1), warps):
+            acc.add(counts[b], int(sizes[b]), warp)
+        out.append((acc.counts, acc.frames))
+    return out

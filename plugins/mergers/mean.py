@@ -13,14 +13,14 @@ registration, but ``flux-mle`` is the estimator for photon frames.
 
 from __future__ import annotations
 
-from typing import Annotated, Any, Literal
+from typing import Annotated, Literal
 
 import numpy as np
 from pydantic import Field
 
 from photonpano import hookimpl
-from photonpano.plugins.mergers.flux_mle import WarpMergeConfig
-from photonpano.stages import Groups, MergedFrames, Merger, MergerConfig, PhotonSource
+from photonpano.plugins.mergers.common import WarpMergeConfig, WarpMerger
+from photonpano.stages import MergerConfig, PhotonSource
 
 
 class MeanConfig(WarpMergeConfig):
@@ -42,16 +42,13 @@ class MeanConfig(WarpMergeConfig):
         return MeanMerger(self)
 
 
-class MeanMerger(Merger):
+class MeanMerger(WarpMerger):
     """Merges every group of a level by averaging (see :class:`MeanConfig`).
 
     The returned :class:`~photonpano.stages.MergedFrames` carry the mean linear
     intensity (relative to full scale) in ``flux``; for binary sources, the mean
     detections per frame.
     """
-
-    def __init__(self, config: MeanConfig) -> None:
-        self.config = config
 
     def tone(self, linear: np.ndarray) -> np.ndarray:
         """Tone-map (H, W) linear values (NaN = unobserved) to a uint8 image."""
@@ -68,36 +65,16 @@ class MeanMerger(Merger):
             u = u ** (1.0 / c.gamma)
         return np.rint(u * 255).astype(np.uint8)
 
-    def merge(self, source: PhotonSource, homographies: np.ndarray, groups: Groups,
-              progress: Any = None, executor: Any = None) -> MergedFrames:
-        """Merge each group (see :meth:`Merger.merge`); groups run on ``executor``."""
+    def estimate(self, source: PhotonSource, sums: np.ndarray, frames: np.ndarray,
+                 n_frames: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Mean linear intensity per pixel, trusted mask (saturation excluded) and image (see :meth:`WarpMerger.estimate`)."""
         from photonpano.intensity import mean_intensity
-        from photonpano.plugins.mergers.flux_mle import merge_group
 
-        g, h, w = len(groups), source.height, source.width
-        flux = np.empty((g, h, w), np.float32)
-        frames = np.empty((g, h, w), np.float32)
-        images = np.empty((g, h, w), np.uint8)
-        masks = np.empty((g, h, w), bool)
-
-        def merge_one(i: int) -> None:
-            start, stop = int(groups.start[i]), int(groups.stop[i])
-            sums, frames[i] = merge_group(source, homographies, start, stop, int(groups.reference[i]),
-                                          self.config.subbatch_px)
-            masks[i] = frames[i] >= self.config.min_coverage * (stop - start)
-            flux[i] = mean_intensity(sums, frames[i])
-            if self.config.saturation is not None and getattr(source, "kind", "binary") == "intensity":
-                masks[i] &= ~(flux[i] >= self.config.saturation)
-            images[i] = self.tone(np.where(masks[i], flux[i], np.nan))
-            if progress is not None:
-                progress(1)
-
-        if executor is None:
-            for i in range(g):
-                merge_one(i)
-        else:
-            executor.map(merge_one, range(g))
-        return MergedFrames(flux=flux, frames=frames, images=images, masks=masks)
+        mask = frames >= self.config.min_coverage * n_frames
+        flux = mean_intensity(sums, frames)
+        if self.config.saturation is not None and getattr(source, "kind", "binary") == "intensity":
+            mask &= ~(flux >= self.config.saturation)
+        return flux, mask, self.tone(np.where(mask, flux, np.nan))
 
 
 @hookimpl
