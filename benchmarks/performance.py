@@ -16,6 +16,7 @@ Usage::
     python benchmarks/performance.py                  # 100 000 frames
     python benchmarks/performance.py --frames 25000
     python benchmarks/performance.py --scaling        # 12.5k, 25k, 50k, 100k, 200k frames
+    python benchmarks/performance.py --set locator.max_features=2000   # spec overrides
 """
 
 from __future__ import annotations
@@ -61,17 +62,18 @@ def floor_pass(path: Path, chunk: int = 2000) -> float:
     return time.perf_counter() - t0
 
 
-def run_once(frames: int) -> dict:
+def run_once(frames: int, overrides: list[str] = ()) -> dict:
     """Reconstruct the cached capture in this process and return the measurements."""
     from photonpano.host import PluginHost
     from photonpano.metrics import trajectory_error
     from photonpano.pipeline import reconstruct
     from photonpano.plugins.sources.simulate import SimulateConfig, camera_path, load_scene, bundled_photo
-    from photonpano.spec import validate_spec
+    from photonpano.spec import apply_overrides, validate_spec
 
     path = cube_path(frames)
     floor_s = floor_pass(path)
-    spec = validate_spec({"source": {"plugin": "npy-cube", "path": str(path)}}, PluginHost(), origin="benchmark")
+    data = apply_overrides({"source": {"plugin": "npy-cube", "path": str(path)}}, list(overrides))
+    spec = validate_spec(data, PluginHost(), origin="benchmark")
     wall0, cpu0 = time.perf_counter(), time.process_time()
     source = spec.source.build()
     homographies, stats, pano, timings = reconstruct(spec, source)
@@ -85,11 +87,12 @@ def run_once(frames: int) -> dict:
             "levels": [{"level": s["level"], "groups": s["groups"], **s["timings_s"]} for s in stats]}
 
 
-def measure(frames: int) -> dict:
+def measure(frames: int, overrides: list[str] = ()) -> dict:
     """Run :func:`run_once` in a fresh process (so peak memory is the pipeline's own)."""
     cube_path(frames)  # simulate outside the measured process
-    out = subprocess.run([sys.executable, __file__, "--worker", str(frames)], capture_output=True, text=True,
-                         check=True)
+    args = [a for o in overrides for a in ("--set", o)]
+    out = subprocess.run([sys.executable, __file__, "--worker", str(frames), *args], capture_output=True,
+                         text=True, check=True)
     return json.loads(out.stdout.strip().splitlines()[-1])
 
 
@@ -108,17 +111,19 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--frames", type=int, default=100_000)
     parser.add_argument("--scaling", action="store_true", help="print the 12.5k..200k scaling table")
+    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                        help="spec override, as in `photonpano run --set` (repeatable)")
     parser.add_argument("--worker", type=int, help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.worker:
-        print(json.dumps(run_once(args.worker)))
+        print(json.dumps(run_once(args.worker, args.set)))
         return
     if not args.scaling:
-        report(measure(args.frames))
+        report(measure(args.frames, args.set))
         return
     print(f"{'frames':>8} {'wall s':>7} {'CPU s':>7} {'floor s':>7} {'ratio':>6} {'RSS MB':>7} {'RMSE px':>8}")
     for frames in (12_500, 25_000, 50_000, 100_000, 200_000):
-        r = measure(frames)
+        r = measure(frames, args.set)
         print(f"{frames:>8} {r['wall_s']:>7.1f} {r['cpu_s']:>7.1f} {r['floor_s']:>7.2f} {r['ratio']:>6.1f} "
               f"{r['peak_rss_mb']:>7.0f} {r['rmse_px']:>8.3f}", flush=True)
 

@@ -139,7 +139,7 @@ def refine_keyframes(initial: NDArray[np.float64], pair_index: NDArray[np.int64]
         (G, 3, 3) float64 refined keyframe homographies.
     """
     from scipy.optimize import least_squares
-    from scipy.sparse import lil_matrix
+    from scipy.sparse import csr_matrix
 
     g = len(initial)
     use = pairs.ok & (pair_index[:, 0] != pair_index[:, 1])
@@ -151,23 +151,48 @@ def refine_keyframes(initial: NDArray[np.float64], pair_index: NDArray[np.int64]
     mapped = geometry.apply(pairs.homographies[use], grid)  # (E, 9, 2) points of frame a
     weight = np.sqrt(np.maximum(pairs.inliers[use], 1) / max(np.median(pairs.inliers[use]), 1))[:, None, None]
     x0 = geometry.params_from_homographies(initial)
+    e = len(a)
+    # Jacobian layout: residual rows (edge, point, coordinate) -> 18 rows per edge;
+    # columns 8 * (keyframe - 1) + parameter; keyframe 0 is the gauge (no columns).
+    rows = np.arange(e * 18).reshape(e, 9, 2)
+
+    def project(k: NDArray[np.float64], points: NDArray[np.float64]):
+        """Map (E, 9, 2) points by (E, 3, 3) homographies; return them and d(point)/d(p1..p8)."""
+        x, y = points[..., 0], points[..., 1]
+        nx = k[:, None, 0, 0] * x + k[:, None, 0, 1] * y + k[:, None, 0, 2]
+        ny = k[:, None, 1, 0] * x + k[:, None, 1, 1] * y + k[:, None, 1, 2]
+        d = k[:, None, 2, 0] * x + k[:, None, 2, 1] * y + k[:, None, 2, 2]
+        u, v = nx / d, ny / d
+        zero = np.zeros_like(u)
+        # p1..p8 of H = [[1+p1, p3, p5], [p2, 1+p4, p6], [p7, p8, 1]] (paper Eq. 4)
+        du = np.stack([x, zero, y, zero, np.ones_like(u), zero, -u * x, -u * y], axis=-1) / d[..., None]
+        dv = np.stack([zero, x, zero, y, zero, np.ones_like(u), -v * x, -v * y], axis=-1) / d[..., None]
+        return np.stack([u, v], axis=-1), np.stack([du, dv], axis=-2)  # (E, 9, 2), (E, 9, 2, 8)
+
+    def unpack(free: NDArray[np.float64]) -> NDArray[np.float64]:
+        return geometry.homographies_from_params(np.concatenate([x0[:1], free.reshape(g - 1, 8)]))
 
     def residuals(free: NDArray[np.float64]) -> NDArray[np.float64]:
-        params = np.concatenate([x0[:1], free.reshape(g - 1, 8)])
-        k = geometry.homographies_from_params(params)
-        via_a = geometry.apply(k[a], mapped)
-        via_b = geometry.apply(k[b], grid)
+        k = unpack(free)
+        via_a, _ = project(k[a], mapped)
+        via_b, _ = project(k[b], grid[None].repeat(e, 0))
         return ((via_a - via_b) * weight).ravel()
 
-    sparsity = lil_matrix((len(a) * 18, (g - 1) * 8), dtype=np.int8)
-    for e, (ia, ib) in enumerate(zip(a, b)):
-        for idx in (ia, ib):
-            if idx > 0:
-                sparsity[e * 18:(e + 1) * 18, (idx - 1) * 8:idx * 8] = 1
-    fit = least_squares(residuals, x0[1:].ravel(), jac_sparsity=sparsity, method="trf",
-                        x_scale="jac", loss="soft_l1", f_scale=1.0, max_nfev=50)
-    params = np.concatenate([x0[:1], fit.x.reshape(g - 1, 8)])
-    return geometry.homographies_from_params(params)
+    def jacobian(free: NDArray[np.float64]) -> csr_matrix:
+        k = unpack(free)
+        _, ja = project(k[a], mapped)
+        _, jb = project(k[b], grid[None].repeat(e, 0))
+        blocks = [(ja * weight[..., None], a), (-jb * weight[..., None], b)]
+        r = np.concatenate([np.repeat(rows[idx > 0].reshape(-1), 8) for _, idx in blocks])
+        c = np.concatenate([(8 * (idx[idx > 0] - 1))[:, None, None, None] + np.arange(8)
+                            + np.zeros((1, 9, 2, 1), np.int64) for _, idx in blocks]).reshape(-1)
+        v = np.concatenate([jac[idx > 0].reshape(-1) for jac, idx in blocks])
+        return csr_matrix((v, (r, c)), shape=(e * 18, (g - 1) * 8))
+
+    # analytic sparse Jacobian; tolerances far below the 0.01 px the keyframes need
+    fit = least_squares(residuals, x0[1:].ravel(), jac=jacobian, method="trf", x_scale="jac", loss="soft_l1",
+                        f_scale=1.0, max_nfev=50, tr_solver="lsmr", ftol=1e-6, xtol=1e-6)
+    return unpack(fit.x)
 
 
 def pairs_at_offsets(count: int, offsets: tuple[int, ...]) -> NDArray[np.int64]:
@@ -531,6 +556,7 @@ def estimate_motion(
             advance = progress(f"level {level}: merge", len(groups)) if progress else None
             merged = merger.merge(source, homographies, groups, progress=advance, executor=executor)
             t2 = time.perf_counter()
+            locator.executor = executor
             try:
                 keyframes, pair_index, pairs = locate_keyframes(locator, merged, current, pair_offsets,
                                                                 source.width, source.height)

@@ -41,7 +41,8 @@ DEFAULT_PLUGINS: dict[str, str] = {
 
 REFINE_DEFAULTS: dict[str, Any] = {"pyramid_levels": 2, "iterations": 10, "blur": 5}
 """Settings of the default ``refine_locator`` (``opencv-ecc``): the residual motion at
-levels >= 2 is about a pixel, so two pyramid levels and a few iterations suffice."""
+levels >= 2 is about a pixel, so two pyramid levels and a few iterations suffice. A
+``refine_locator`` mapping without ``plugin`` starts from these."""
 
 
 class OutputsConfig(BaseModel):
@@ -64,6 +65,14 @@ class _SpecBase(BaseModel):
     @classmethod
     def _plugin_shorthand(cls, value: Any) -> Any:
         return {"plugin": value} if isinstance(value, str) else value
+
+    @field_validator("refine_locator", mode="before", check_fields=False)
+    @classmethod
+    def _refine_defaults(cls, value: Any) -> Any:
+        # a mapping without a plugin adjusts the default refine locator
+        if isinstance(value, dict) and "plugin" not in value:
+            return {"plugin": "opencv-ecc", **REFINE_DEFAULTS, **value}
+        return value
 
 
 def _tagged(classes: list[type]) -> Any:

@@ -276,7 +276,15 @@ class PairRegistrations:
 
 
 class Locator(abc.ABC):
-    """Estimates homographies between pairs of merged frames."""
+    """Estimates homographies between pairs of merged frames.
+
+    Attributes:
+        executor: set by the framework before :meth:`register_pairs`: an
+            :class:`~photonpano.executor.Executor` on which independent per-frame or
+            per-pair work may run (None: run serially). A locator may ignore it.
+    """
+
+    executor: Any = None
 
     @abc.abstractmethod
     def register_pairs(self, merged: MergedFrames, pairs: NDArray[np.int64],

@@ -68,8 +68,14 @@ class WarpAccumulator:
     """Accumulates warped detection counts and frame coverage on a target grid.
 
     Each call to :meth:`add` warps a count image (the sum of a sub-batch of binary
-    frames) with bilinear interpolation and adds it, together with the number of frames
-    behind every target pixel, inside the warped footprint's bounding box only.
+    frames) and adds it, together with the number of frames behind every target pixel,
+    inside the warped footprint's bounding box only. A target pixel is covered by a
+    warped frame when its source position rounds to a source pixel (nearest-neighbour
+    coverage, the pixel-area convention); its count is the bilinear interpolation of
+    the source counts, edge pixels replicated, so a covered pixel always receives a
+    full-weight sample and ``counts / frames`` stays unbiased up to the frame edge.
+    Warps whose perspective terms move no footprint corner by more than 0.01 pixel run
+    as affine warps (about 1.5x faster).
 
     Attributes:
         counts: (Ht, Wt) float32 accumulated detections.
@@ -103,16 +109,23 @@ class WarpAccumulator:
         if x1 <= x0 or y1 <= y0:
             return
         shifted = geometry.translation(-x0, -y0) @ homography
+        shifted /= shifted[2, 2]
         size = (x1 - x0, y1 - y0)
-        # Two single-channel warps are about 2.5x faster than one two-channel warp.
-        flags, border = cv2.INTER_LINEAR, cv2.BORDER_CONSTANT
-        self.counts[y0:y1, x0:x1] += cv2.warpPerspective(np.asarray(counts, np.float32), shifted, size,
-                                                         flags=flags, borderMode=border, borderValue=0)
         ones = self._ones.get((h, w))
         if ones is None:
             ones = self._ones[(h, w)] = np.ones((h, w), np.float32)
-        coverage = cv2.warpPerspective(ones, shifted, size, flags=flags, borderMode=border, borderValue=0)
-        self.frames[y0:y1, x0:x1] += np.float32(n_frames) * coverage
+        corners = geometry.corners(w, h)
+        affine = np.abs(geometry.apply(shifted, corners) - corners @ shifted[:2, :2].T - shifted[:2, 2]).max() < 0.01
+        warp = cv2.warpAffine if affine else cv2.warpPerspective
+        matrix = shifted[:2] if affine else shifted
+        # Two single-channel warps are about 2.5x faster than one two-channel warp.
+        coverage = warp(ones, matrix, size, flags=cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+        warped = warp(np.asarray(counts, np.float32), matrix, size, flags=cv2.INTER_LINEAR,
+                      borderMode=cv2.BORDER_REPLICATE)
+        warped *= coverage
+        self.counts[y0:y1, x0:x1] += warped
+        coverage *= np.float32(n_frames)
+        self.frames[y0:y1, x0:x1] += coverage
 
     def merge(self, other: WarpAccumulator) -> None:
         """Add another accumulator of the same grid (e.g. one filled by another thread)."""

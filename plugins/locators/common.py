@@ -76,17 +76,18 @@ def frame_key(merged: MergedFrames, index: int, *, flux: bool = False) -> bytes:
     Args:
         merged: the merged frames.
         index: frame index into ``merged``.
-        flux: also hash the float32 flux (for data derived from it), not only the uint8
+        flux: digest the float32 flux (for data derived from it) instead of the uint8
             image and the mask.
 
     Returns:
         16 bytes (BLAKE2b); equal keys mean identical frames.
     """
     digest = hashlib.blake2b(digest_size=16)
-    digest.update(np.ascontiguousarray(merged.images[index]).data)
-    digest.update(np.ascontiguousarray(merged.masks[index]).data)
     if flux:
         digest.update(np.ascontiguousarray(merged.flux[index]).data)
+    else:
+        digest.update(np.ascontiguousarray(merged.images[index]).data)
+        digest.update(np.ascontiguousarray(merged.masks[index]).data)
     return digest.digest()
 
 
@@ -152,7 +153,7 @@ class CachingLocator(Locator):
 
     def _key(self, index: int, flux: bool) -> tuple[bytes, ...]:
         if (index, flux) not in self._keys:
-            base = frame_key(self._merged, index)
+            base = self._key(index, False)[0] if flux else frame_key(self._merged, index)
             self._keys[(index, flux)] = (base, frame_key(self._merged, index, flux=True)) if flux else (base,)
         return self._keys[(index, flux)]
 
@@ -217,13 +218,18 @@ class PolishConfig(LocatorConfig):
 class FeatureLocator(CachingLocator):
     """Feature-based locator: per-frame features (cached), per-pair match and estimate.
 
-    Subclasses implement :meth:`describe` and :meth:`match`. If the config has a ``refine``
+    Subclasses implement :meth:`describe` and :meth:`match`; frames are described and
+    pairs matched on the framework's executor (:attr:`Locator.executor`) unless the
+    subclass sets ``thread_safe = False``. If the config has a ``refine``
     field equal to ``"ecc"``, successful pairs are polished by :func:`ecc_polish` with the
     config's ``ecc_iterations``, ``ecc_blur`` and ``ecc_max_change_px``.
 
     Args:
         config: the plugin's config.
     """
+
+    thread_safe: bool = True
+    """Whether :meth:`describe` and :meth:`match` may run concurrently on one instance."""
 
     def __init__(self, config: LocatorConfig) -> None:
         super().__init__()
@@ -265,24 +271,33 @@ class FeatureLocator(CachingLocator):
             self.finish()
 
     def _register(self, merged: MergedFrames, pairs: NDArray[np.int64]) -> PairRegistrations:
-        def feats(i: int) -> Features:
+        from photonpano.executor import SerialExecutor
+
+        executor = (self.executor if self.thread_safe else None) or SerialExecutor()
+        frames = [int(i) for i in np.unique(pairs)]
+
+        def describe(i: int) -> Features:
             return self.frame_data("features", i,
                                    lambda: self.describe(merged.images[i], merged.masks[i], merged.flux[i]))
 
-        results = [self.match(feats(int(a)), feats(int(b))) for a, b in pairs]
-        if getattr(self.config, "refine", "none") == "ecc":
-            for p, (a, b) in enumerate(pairs):
-                if results[p].ok:
-                    a, b = int(a), int(b)
-                    image_a = self.frame_data("ecc", a, lambda: ecc_image(merged.flux[a], merged.masks[a]),
-                                              flux=True)
-                    image_b = self.frame_data("ecc", b, lambda: ecc_image(merged.flux[b], merged.masks[b]),
-                                              flux=True)
-                    polished = ecc_polish(image_a, image_b, merged.masks[b], results[p].homography,
-                                          iterations=self.config.ecc_iterations, blur=self.config.ecc_blur,
-                                          max_change_px=self.config.ecc_max_change_px)
-                    results[p] = PairResult(polished, results[p].matches, results[p].inliers, True)
-        return to_registrations(results)
+        # each distinct frame once, then the pairs, both on the executor
+        feats = dict(zip(frames, executor.map(describe, frames)))
+        results = executor.map(lambda ab: self.match(feats[int(ab[0])], feats[int(ab[1])]), pairs)
+        if getattr(self.config, "refine", "none") != "ecc":
+            return to_registrations(results)
+
+        def ecc(i: int) -> NDArray[np.float32]:
+            return self.frame_data("ecc", i, lambda: ecc_image(merged.flux[i], merged.masks[i]), flux=True)
+
+        def polish(result: PairResult, a: int, b: int) -> PairResult:
+            if not result.ok:
+                return result
+            polished = ecc_polish(ecc(int(a)), ecc(int(b)), merged.masks[b], result.homography,
+                                  iterations=self.config.ecc_iterations, blur=self.config.ecc_blur,
+                                  max_change_px=self.config.ecc_max_change_px)
+            return PairResult(polished, result.matches, result.inliers, True)
+
+        return to_registrations(executor.map(polish, results, pairs[:, 0], pairs[:, 1]))
 
 
 def to_registrations(results: list[PairResult]) -> PairRegistrations:
@@ -331,7 +346,7 @@ def keypoint_mask(mask: NDArray[np.bool_], margin_px: int = 4) -> NDArray[np.uin
 
 
 def ecc_image(flux: NDArray[np.float32], mask: NDArray[np.bool_]) -> NDArray[np.float32]:
-    """Return a merged flux image scaled to about [0, 1] for ECC.
+    """Return a merged flux image scaled to about [0, 1] (twice the mean trusted flux = 1) for ECC.
 
     Every observed pixel keeps its (possibly noisier) flux: zeroing the untrusted border
     would put false edges into the moving image and bias the alignment. Unobserved
@@ -344,9 +359,11 @@ def ecc_image(flux: NDArray[np.float32], mask: NDArray[np.bool_]) -> NDArray[np.
     Returns:
         (H, W) float32 image.
     """
+    image = np.nan_to_num(flux, nan=0.0).astype(np.float32, copy=False)
     trusted = mask & np.isfinite(flux)
-    white = float(np.percentile(flux[trusted], 99)) if trusted.any() else 1.0
-    return (np.nan_to_num(flux, nan=0.0) / (white if white > 0 else 1.0)).astype(np.float32)
+    # ECC is invariant to gain and offset: the scale only keeps the numbers near 1
+    mean = float(np.mean(image, where=trusted)) if trusted.any() else 0.0
+    return image / np.float32(2 * mean) if mean > 0 else image
 
 
 def corner_change(h1: NDArray[np.float64], h2: NDArray[np.float64], width: int, height: int) -> float:

@@ -94,6 +94,8 @@ class KorniaSiftLocator(FeatureLocator):
         device: the ``torch.device`` kornia runs on.
     """
 
+    thread_safe = False  # one extractor object per locator (torch / COLMAP state)
+
     def __init__(self, config: KorniaSiftConfig) -> None:
         import kornia.feature as KF
         import torch

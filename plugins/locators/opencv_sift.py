@@ -27,7 +27,7 @@ class OpenCVSiftConfig(LocatorConfig):
     """OpenCV SIFT + ratio test + RANSAC/USAC homography between merged frames."""
 
     plugin: Literal["opencv-sift"] = "opencv-sift"
-    max_features: Annotated[int, Field(ge=0)] = 4000
+    max_features: Annotated[int, Field(ge=0)] = 2000
     """Keypoints kept per merged frame, strongest first (0 = all)."""
     contrast_threshold: Annotated[float, Field(gt=0)] = 0.02
     """SIFT contrast threshold (OpenCV's default is 0.04; merged frames are low-contrast)."""
@@ -39,11 +39,13 @@ class OpenCVSiftConfig(LocatorConfig):
     """Inlier threshold of the robust estimator, in pixels."""
     min_inliers: Annotated[int, Field(ge=4)] = 12
     """A pair with fewer inliers is flagged as failed (and bridged)."""
-    refine: Literal["none", "lm", "ecc"] = "ecc"
+    refine: Literal["none", "lm", "ecc"] = "lm"
     """Polish of the robust estimate: ``lm`` refits it to all inliers by least squares
     (Levenberg-Marquardt, the paper's setting); ``ecc`` then maximises the enhanced
     correlation coefficient between the two merged flux images (Evangelidis and Psarakis,
-    2008), a dense sub-pixel refinement that keeps the feature result if it fails."""
+    2008), a dense sub-pixel refinement that keeps the feature result if it fails. With
+    the default ``refine_locator`` the later levels refine against the panorama anyway;
+    ``ecc`` pays off when every level registers pairs (``refine_locator: null``)."""
     ecc_iterations: Annotated[int, Field(gt=0)] = 30
     """ecc: maximum Gauss-Newton iterations per pair."""
     ecc_blur: Annotated[int, Field(ge=1, le=15)] = 9

@@ -100,6 +100,8 @@ def from_colmap(homography: NDArray[np.float64]) -> NDArray[np.float64]:
 class PycolmapSiftLocator(FeatureLocator):
     """Registers pairs with pycolmap (see :class:`PycolmapSiftConfig`)."""
 
+    thread_safe = False  # one extractor object per locator (torch / COLMAP state)
+
     def __init__(self, config: PycolmapSiftConfig) -> None:
         import pycolmap
 
