@@ -674,9 +674,7 @@ def assemble_panorama(source: PhotonSource, homographies: NDArray[np.float64], *
         for c in run:
             chunk = edges[starts[c]:starts[c] + chunk_batches + 1]
             counts = source.sum_ranges(chunk)
-            for b in range(len(chunk) - 1):
-                middle = (chunk[b] + chunk[b + 1]) // 2
-                acc.add(counts[b], int(chunk[b + 1] - chunk[b]), to_canvas[middle])
+            acc.add_many(counts, np.diff(chunk), to_canvas[(chunk[:-1] + chunk[1:]) // 2])
             if progress is not None:
                 progress(int(chunk[-1] - chunk[0]))
         return acc

@@ -96,36 +96,55 @@ class WarpAccumulator:
             n_frames: number of binary frames summed into ``counts``.
             homography: (3, 3) float64 map from source-frame to target pixel coordinates.
         """
-        h, w = counts.shape
+        self.add_many(np.asarray(counts)[None], np.array([n_frames]), np.asarray(homography)[None])
+
+    def add_many(self, counts: NDArray, n_frames: NDArray[np.int64], homographies: NDArray[np.float64]) -> None:
+        """Warp and accumulate B count images at once (see :meth:`add`).
+
+        Args:
+            counts: (B, H, W) detection counts (any real dtype) in source-frame pixels.
+            n_frames: (B,) number of binary frames summed into each count image.
+            homographies: (B, 3, 3) float64 maps from source-frame to target pixels.
+        """
+        if not len(counts):
+            return
+        _, h, w = counts.shape
         th, tw = self.counts.shape
-        if (h, w) == (th, tw) and np.array_equal(homography, _IDENTITY):
-            # e.g. every group at the first level, before any motion is known
-            self.counts += counts
-            self.frames += np.float32(n_frames)
-            return
-        x0, y0, x1, y1 = geometry.footprint_bounds(homography[None], w, h)
-        x0, y0 = max(int(np.floor(x0)), 0), max(int(np.floor(y0)), 0)
-        x1, y1 = min(int(np.ceil(x1)) + 1, tw), min(int(np.ceil(y1)) + 1, th)
-        if x1 <= x0 or y1 <= y0:
-            return
-        shifted = geometry.translation(-x0, -y0) @ homography
-        shifted /= shifted[2, 2]
-        size = (x1 - x0, y1 - y0)
+        hs = geometry.normalize(np.asarray(homographies, np.float64))
+        identity = np.all(hs == _IDENTITY, axis=(1, 2)) if (h, w) == (th, tw) else np.zeros(len(hs), bool)
+        # footprint bounding boxes, and whether each warp is affine to 0.01 px, vectorised
+        edges = geometry.apply(hs, geometry.corners(w, h, edges=True))  # (B, 4, 2)
+        x0 = np.maximum(np.floor(edges[..., 0].min(axis=1)), 0).astype(np.int64)
+        y0 = np.maximum(np.floor(edges[..., 1].min(axis=1)), 0).astype(np.int64)
+        x1 = np.minimum(np.ceil(edges[..., 0].max(axis=1)) + 1, tw).astype(np.int64)
+        y1 = np.minimum(np.ceil(edges[..., 1].max(axis=1)) + 1, th).astype(np.int64)
+        corners = geometry.corners(w, h)
+        linear = corners @ np.swapaxes(hs[:, :2, :2], 1, 2) + hs[:, None, :2, 2]
+        affine = np.abs(geometry.apply(hs, corners) - linear).max(axis=(1, 2)) < 0.01
         ones = self._ones.get((h, w))
         if ones is None:
             ones = self._ones[(h, w)] = np.ones((h, w), np.float32)
-        corners = geometry.corners(w, h)
-        affine = np.abs(geometry.apply(shifted, corners) - corners @ shifted[:2, :2].T - shifted[:2, 2]).max() < 0.01
-        warp = cv2.warpAffine if affine else cv2.warpPerspective
-        matrix = shifted[:2] if affine else shifted
-        # Two single-channel warps are about 2.5x faster than one two-channel warp.
-        coverage = warp(ones, matrix, size, flags=cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
-        warped = warp(np.asarray(counts, np.float32), matrix, size, flags=cv2.INTER_LINEAR,
-                      borderMode=cv2.BORDER_REPLICATE)
-        warped *= coverage
-        self.counts[y0:y1, x0:x1] += warped
-        coverage *= np.float32(n_frames)
-        self.frames[y0:y1, x0:x1] += coverage
+        for b in range(len(hs)):
+            if identity[b]:  # e.g. every group at the first level, before any motion is known
+                self.counts += counts[b]
+                self.frames += np.float32(n_frames[b])
+                continue
+            if x1[b] <= x0[b] or y1[b] <= y0[b]:
+                continue
+            shifted = hs[b].copy()
+            shifted[0] -= x0[b] * shifted[2]
+            shifted[1] -= y0[b] * shifted[2]
+            size = (int(x1[b] - x0[b]), int(y1[b] - y0[b]))
+            warp, matrix = (cv2.warpAffine, shifted[:2]) if affine[b] else (cv2.warpPerspective, shifted)
+            # Two single-channel warps are about 2.5x faster than one two-channel warp.
+            coverage = warp(ones, matrix, size, flags=cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT,
+                            borderValue=0)
+            warped = warp(np.asarray(counts[b], np.float32), matrix, size, flags=cv2.INTER_LINEAR,
+                          borderMode=cv2.BORDER_REPLICATE)
+            warped *= coverage
+            self.counts[y0[b]:y1[b], x0[b]:x1[b]] += warped
+            coverage *= np.float32(n_frames[b])
+            self.frames[y0[b]:y1[b], x0[b]:x1[b]] += coverage
 
     def merge(self, other: WarpAccumulator) -> None:
         """Add another accumulator of the same grid (e.g. one filled by another thread)."""
@@ -172,9 +191,8 @@ def merge_groups(source, homographies: NDArray[np.float64], starts: NDArray[np.i
         b0, b1 = np.searchsorted(edges, [start - lo, stop - lo])
         warps = np.linalg.inv(homographies[int(reference)]) @ homographies[middles[b0:b1]]
         if np.allclose(warps, _IDENTITY, rtol=0, atol=1e-12):
-            warps = np.broadcast_to(_IDENTITY, warps.shape)
+            warps = np.repeat(_IDENTITY[None], len(warps), axis=0)
         acc = WarpAccumulator(source.height, source.width)
-        for b, warp in zip(range(b0, b1), warps):
-            acc.add(counts[b], int(sizes[b]), warp)
+        acc.add_many(counts[b0:b1], sizes[b0:b1], warps)
         out.append((acc.counts, acc.frames))
     return out

@@ -23,9 +23,10 @@ __all__ = ["WarpMergeConfig", "WarpMerger"]
 class WarpMergeConfig(MergerConfig):
     """Settings shared by the mergers built on :class:`WarpMerger`."""
 
-    subbatch_px: Annotated[float, Field(gt=0, le=2)] = 0.25
+    subbatch_px: Annotated[float, Field(gt=0, le=2)] = 0.5
     """Consecutive frames whose relative warps differ by less than this many pixels
-    (corner travel) are summed before one shared warp."""
+    (corner travel) are summed before one shared warp: every frame lies within half of
+    it from where it belongs, a symmetric blur far below the registration's own noise."""
     min_coverage: Annotated[float, Field(gt=0, le=1)] = 0.8
     """A merged pixel is trusted (given to the locator) when at least this fraction of
     the group's frames observed it."""
