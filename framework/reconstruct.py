@@ -368,9 +368,10 @@ def _bridge(current: NDArray[np.float64], measured: NDArray[np.float64], ok: NDA
 
 def locate_against_panorama(source: PhotonSource, merger: Merger, make_locator: Callable[[], Locator],
                             homographies: NDArray[np.float64], groups: Groups, *, min_frames: float,
+                            template: Panorama | None = None, next_template: bool = False,
                             subbatch_px: float = 0.5, window: int = 16, executor: Executor | None = None,
                             progress: Callable[[int], None] | None = None
-                            ) -> tuple[NDArray[np.float64], PairRegistrations, dict[str, int]]:
+                            ) -> tuple[NDArray[np.float64], PairRegistrations, dict[str, int], Panorama | None]:
     """Register every merged frame of a level against the panorama of the current estimate.
 
     Frame-to-mosaic alignment (Szeliski, "Image Alignment and Stitching", 2006, Sec. 6.2;
@@ -382,6 +383,10 @@ def locate_against_panorama(source: PhotonSource, merger: Merger, make_locator: 
     windows: each window is merged, registered and dropped, so memory does not grow
     with the capture length. Each worker of ``executor`` builds its own locator.
 
+    The template of the next level can be had without another pass over the photons:
+    with ``next_template``, the merged frames are also accumulated onto the same canvas
+    at their registered positions (a flux average weighted by frames).
+
     Args:
         source: the capture.
         merger: the built merger.
@@ -389,38 +394,54 @@ def locate_against_panorama(source: PhotonSource, merger: Merger, make_locator: 
         homographies: (T, 3, 3) float64 current frame-to-panorama homographies.
         groups: the level's G groups.
         min_frames: canvas pixels seen by fewer binary frames are not trusted.
-        subbatch_px: sub-batch tolerance of the panorama, in pixels.
+        template: the panorama to register against, its ``homographies`` those of the
+            current estimate on its canvas (None: assembled from every binary frame).
+        next_template: also return the merged frames' panorama at the new keyframes.
+        subbatch_px: sub-batch tolerance of an assembled template, in pixels.
         window: groups merged and registered per task.
         executor: runs windows in parallel (None: serially).
         progress: called with the number of groups done.
 
     Returns:
-        ``(keyframes, registrations, cache_stats)``: (G, 3, 3) float64 homographies of
-        the reference frames (failed registrations bridged from their neighbours), the G
-        registrations (merged frame pixels to panorama-view pixels) and the locators'
-        summed :meth:`cache_stats` (empty if they keep none).
+        ``(keyframes, registrations, cache_stats, next_template)``: (G, 3, 3) float64
+        homographies of the reference frames (failed registrations bridged from their
+        neighbours), the G registrations (merged frame pixels to panorama-view pixels),
+        the locators' summed :meth:`cache_stats` (empty if they keep none), and the
+        next template (its ``homographies`` still those of the input estimate) or None.
 
     Raises:
         StageError: if no merged frame could be registered.
     """
     import threading
 
+    from .warping import WarpAccumulator
+
     executor = executor or SerialExecutor()
-    template = assemble_panorama(source, homographies, subbatch_px=subbatch_px, executor=executor)
+    if template is None:
+        template = assemble_panorama(source, homographies, subbatch_px=subbatch_px, executor=executor)
     to_canvas = template.homographies[groups.reference]
+    canvas_from_panorama = to_canvas[0] @ np.linalg.inv(homographies[groups.reference[0]])
     local = threading.local()
-    built: list[Locator] = []
+    built: list[tuple[Locator, WarpAccumulator, WarpAccumulator]] = []
+    shape = template.flux.shape
 
     def run(index: NDArray[np.int64]) -> PairRegistrations:
         if not hasattr(local, "locator"):
             local.locator = make_locator()
-            built.append(local.locator)
+            local.sums, local.weights = WarpAccumulator(*shape), WarpAccumulator(*shape)
+            built.append((local.locator, local.sums, local.weights))
         sub = Groups(groups.start[index], groups.stop[index], groups.reference[index])
         merged = merger.merge(source, homographies, sub)
         views = panorama_views(template, to_canvas[index], source.height, source.width, min_frames)
         n = len(index)
         pairs = np.stack([np.arange(n), np.arange(n, 2 * n)], axis=1)
         result = local.locator.register_pairs(_stack(views, merged), pairs, np.repeat(np.eye(3)[None], n, axis=0))
+        if next_template:
+            placed = to_canvas[index] @ result.homographies
+            for i in np.flatnonzero(result.ok):
+                weight = np.where(merged.masks[i], merged.frames[i], 0).astype(np.float32)
+                local.sums.add(np.nan_to_num(merged.flux[i]) * weight, 1, placed[i])
+                local.weights.add(weight, 1, placed[i])
         if progress is not None:
             progress(n)
         return result
@@ -438,10 +459,19 @@ def locate_against_panorama(source: PhotonSource, merger: Merger, make_locator: 
     current = homographies[groups.reference]
     keyframes = _bridge(current, geometry.normalize(current @ regs.homographies), ok)
     stats: dict[str, int] = {}
-    for locator in built:
+    for locator, _, _ in built:
         for key, value in (locator.cache_stats() if hasattr(locator, "cache_stats") else {}).items():
             stats[key] = stats.get(key, 0) + value
-    return keyframes, regs, stats
+    following = None
+    if next_template:
+        sums, weights = built[0][1], built[0][2]
+        for _, other_sums, other_weights in built[1:]:
+            sums.merge(other_sums)
+            weights.merge(other_weights)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            flux = np.where(weights.counts > 0, sums.counts / weights.counts, np.nan).astype(np.float32)
+        following = Panorama(flux=flux, frames=weights.counts, homographies=canvas_from_panorama @ homographies)
+    return keyframes, regs, stats, following
 
 
 def _guard_keyframes(current: NDArray[np.float64], solved: NDArray[np.float64], width: int,
@@ -531,6 +561,7 @@ def estimate_motion(
     n = source.n_frames
     homographies = np.repeat(np.eye(3)[None], n, axis=0)
     results: list[LevelResult] = []
+    template: Panorama | None = None  # of the next level against the panorama, when already known
     for level in range(1, levels + 1):
         timings: dict[str, float] = {}
         t0 = time.perf_counter()
@@ -545,9 +576,10 @@ def estimate_motion(
         if level >= 2 and refine_locator is not None:
             advance = progress(f"level {level}: merge + locate", len(groups)) if progress else None
             try:
-                keyframes, pairs, cache = locate_against_panorama(
+                keyframes, pairs, cache, template = locate_against_panorama(
                     source, merger, refine_locator, homographies, groups, min_frames=group_size,
-                    subbatch_px=refine_subbatch_px, executor=executor, progress=advance)
+                    template=template, next_template=level < levels, subbatch_px=refine_subbatch_px,
+                    executor=executor, progress=advance)
             except StageError as err:
                 raise StageError("locator", err.plugin, f"level {level}: {err.reason}") from None
             pair_index = np.stack([np.full(len(groups), -1), np.arange(len(groups))], axis=1).astype(np.int64)
@@ -565,11 +597,15 @@ def estimate_motion(
         keyframes, rejected = _guard_keyframes(current, keyframes, source.width, source.height)
         t3 = time.perf_counter()
         correction = keyframes @ np.linalg.inv(current)
+        previous = homographies
         updated = geometry.normalize(interpolator.interpolate(refs, correction, n, groups) @ homographies)
         if not plausible(np.linalg.inv(homographies) @ updated, source.width, source.height).all():
             raise StageError("interpolator", type(interpolator).__name__,
                              f"level {level}: the interpolated update folds or rescales some frames")
         homographies = updated
+        if template is not None:  # the merged frames' panorama, on the updated estimate
+            template = Panorama(template.flux, template.frames,
+                                geometry.normalize(template.homographies @ np.linalg.inv(previous) @ updated))
         t4 = time.perf_counter()
         timings.update(resample=t1 - t0, merge=t2 - t1, locate=t3 - t2, interpolate=t4 - t3)
         result = LevelResult(level, groups, merged if keep_merged else None, pairs, pair_index, keyframes,

@@ -39,10 +39,12 @@ DEFAULT_PLUGINS: dict[str, str] = {
 }
 """The paper's choice for each stage, used when a spec omits the stage."""
 
-REFINE_DEFAULTS: dict[str, Any] = {"pyramid_levels": 2, "iterations": 10, "blur": 5}
+REFINE_DEFAULTS: dict[str, Any] = {"pyramid_levels": 2, "finest_level": 1, "iterations": 10, "blur": 5}
 """Settings of the default ``refine_locator`` (``opencv-ecc``): the residual motion at
-levels >= 2 is about a pixel, so two pyramid levels and a few iterations suffice. A
-``refine_locator`` mapping without ``plugin`` starts from these."""
+levels >= 2 is about a pixel, so two pyramid levels and a few iterations suffice, and
+against a low-noise template half resolution is enough (0.14 vs 0.13 px trajectory
+RMSE at 100k frames, 2.5x less ECC time). A ``refine_locator`` mapping without
+``plugin`` starts from these."""
 
 
 class OutputsConfig(BaseModel):

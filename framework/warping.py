@@ -159,10 +159,20 @@ def merge_groups(source, homographies: NDArray[np.float64], starts: NDArray[np.i
 
     Paper Sec. 4, "Merge", with the photons of overlapping groups counted once: the
     frames ``min(starts):max(stops)`` are split into sub-batches (:func:`subbatch_edges`,
-    with a break at every group boundary), each sub-batch is counted once
-    (``source.sum_ranges``) and warped into every group that holds it, by the warp of
-    its middle frame relative to the group's reference frame. Call it on a window of
-    consecutive groups: the counts of the window's sub-batches are held in memory.
+    with a break at every group boundary) and each sub-batch is counted once
+    (``source.sum_ranges``). Then either
+
+    - *direct*: each sub-batch is warped into every group that holds it, by the warp of
+      its middle frame relative to the group's reference frame; or, when groups overlap
+      so much that this would cost more warps (e.g. each frame in four groups at the
+      third midpoint level),
+    - *two-stage*: each sub-batch is warped once into a window grid (the first group's
+      reference frame, enlarged to hold every footprint) and summed per block between
+      consecutive group boundaries; each group sums its blocks and is warped once into
+      its reference grid. The second bilinear resampling adds a slight symmetric blur.
+
+    Call it on a window of consecutive groups: the window's sub-batch counts are held
+    in memory.
 
     Args:
         source: a :class:`~photonpano.stages.PhotonSource`.
@@ -180,19 +190,51 @@ def merge_groups(source, homographies: NDArray[np.float64], starts: NDArray[np.i
     if not len(starts):
         return []
     lo, hi = int(starts.min()), int(stops.max())
-    relative = np.linalg.inv(homographies[int(references[0])]) @ homographies[lo:hi]
-    edges = subbatch_edges(relative, source.width, source.height, subbatch_px,
-                           breaks=np.concatenate([starts, stops]) - lo)
+    h, w = source.height, source.width
+    base = np.linalg.inv(homographies[int(references[0])])
+    relative = base @ homographies[lo:hi]
+    boundaries = np.unique(np.concatenate([starts, stops])) - lo
+    edges = subbatch_edges(relative, w, h, subbatch_px, breaks=boundaries)
     counts = source.sum_ranges(lo + edges)
     middles = lo + (edges[:-1] + edges[1:]) // 2
     sizes = np.diff(edges)
+    spans = np.searchsorted(edges, np.stack([starts - lo, stops - lo], axis=1))  # (G, 2) sub-batch ranges
+    moving = not np.allclose(relative, _IDENTITY, rtol=0, atol=1e-12)
+    if moving and int(np.diff(spans, axis=1).sum()) > len(sizes) + 2 * len(starts):
+        return _merge_two_stage(counts, sizes, base @ homographies[middles], edges, boundaries, starts - lo,
+                                stops - lo, np.linalg.inv(homographies[references]) @ np.linalg.inv(base), w, h)
     out = []
-    for start, stop, reference in zip(starts, stops, references):
-        b0, b1 = np.searchsorted(edges, [start - lo, stop - lo])
+    for (b0, b1), reference in zip(spans, references):
         warps = np.linalg.inv(homographies[int(reference)]) @ homographies[middles[b0:b1]]
         if np.allclose(warps, _IDENTITY, rtol=0, atol=1e-12):
             warps = np.repeat(_IDENTITY[None], len(warps), axis=0)
-        acc = WarpAccumulator(source.height, source.width)
+        acc = WarpAccumulator(h, w)
         acc.add_many(counts[b0:b1], sizes[b0:b1], warps)
         out.append((acc.counts, acc.frames))
+    return out
+
+
+def _merge_two_stage(counts, sizes, to_window, edges, boundaries, starts, stops, window_to_reference,
+                     width: int, height: int) -> list[tuple[NDArray[np.float32], NDArray[np.float32]]]:
+    """The two-stage merge of :func:`merge_groups` (frame indices relative to the window start)."""
+    x0, y0, x1, y1 = geometry.footprint_bounds(to_window, width, height)
+    x0, y0 = int(np.floor(x0)), int(np.floor(y0))
+    grid = geometry.translation(-x0, -y0)
+    shape = (int(np.ceil(y1)) + 1 - y0, int(np.ceil(x1)) + 1 - x0)
+    blocks = []
+    for k0, k1 in zip(boundaries[:-1], boundaries[1:]):
+        b0, b1 = np.searchsorted(edges, [k0, k1])
+        acc = WarpAccumulator(*shape)
+        acc.add_many(counts[b0:b1], sizes[b0:b1], grid @ to_window[b0:b1])
+        blocks.append(acc)
+    out = []
+    inverse = np.linalg.inv(grid)
+    for start, stop, to_reference in zip(starts, stops, window_to_reference):
+        k0, k1 = np.searchsorted(boundaries, [start, stop])
+        total = sum(blocks[k].counts for k in range(k0, k1))
+        frames = sum(blocks[k].frames for k in range(k0, k1))
+        warp = geometry.normalize(to_reference @ inverse)
+        flags, size = cv2.INTER_LINEAR, (width, height)
+        out.append((cv2.warpPerspective(total, warp, size, flags=flags, borderValue=0),
+                    cv2.warpPerspective(frames, warp, size, flags=flags, borderValue=0)))
     return out
