@@ -29,6 +29,12 @@ class OpenCVSiftConfig(LocatorConfig):
     plugin: Literal["opencv-sift"] = "opencv-sift"
     max_features: Annotated[int, Field(ge=0)] = 2000
     """Keypoints kept per merged frame, strongest first (0 = all)."""
+    image_scale: Annotated[float, Field(gt=0, le=1)] = 0.5
+    """Merged frames are resized by this factor (area averaging) before detection, and
+    keypoints mapped back to full-resolution pixels. OpenCV's SIFT upsamples its input
+    2x, so 0.5 detects at the frame's own resolution, about 4x faster than 1.0; the
+    first level only initialises the later levels' refinement against the panorama. Use
+    1.0 for the finest keypoints (e.g. with ``refine_locator: null``)."""
     contrast_threshold: Annotated[float, Field(gt=0)] = 0.02
     """SIFT contrast threshold (OpenCV's default is 0.04; merged frames are low-contrast)."""
     ratio: Annotated[float, Field(gt=0, lt=1)] = 0.75
@@ -90,10 +96,20 @@ class OpenCVSiftLocator(FeatureLocator):
             ``(points, descriptors)``: (K, 2) float32 ``(x, y)`` pixel coordinates and
             (K, 128) float32 descriptors (K may be 0).
         """
-        keypoints, descriptors = self._sift.detectAndCompute(image, keypoint_mask(mask, 4))
+        import cv2
+
+        allowed = keypoint_mask(mask, 4)
+        scale = self.config.image_scale
+        if scale != 1.0:
+            size = (max(1, round(image.shape[1] * scale)), max(1, round(image.shape[0] * scale)))
+            image = cv2.resize(image, size, interpolation=cv2.INTER_AREA)
+            allowed = cv2.resize(allowed, size, interpolation=cv2.INTER_NEAREST)
+        keypoints, descriptors = self._sift.detectAndCompute(image, allowed)
         if descriptors is None or not keypoints:
             return np.zeros((0, 2), np.float32), np.zeros((0, 128), np.float32)
-        return np.float32([k.pt for k in keypoints]), descriptors
+        points = np.float32([k.pt for k in keypoints])
+        # pixel centres at integers: resized pixel x_s covers full-resolution (x_s + 0.5) / s - 0.5
+        return (points + 0.5) / np.float32(scale) - 0.5 if scale != 1.0 else points, descriptors
 
     def describe(self, image: NDArray[np.uint8], mask: NDArray[np.bool_],
                  flux: NDArray[np.float32]) -> Features:
