@@ -11,8 +11,11 @@ estimation of one spec once per locator on the *same* opened capture, and writes
 - ``compare.png``: trajectory RMSE and locate time per level, one line per locator;
 - ``<locator>/homographies.npy``: each run's (T, 3, 3) frame-to-panorama homographies.
 
-The panorama is not assembled (it does not depend on the locator beyond the
-homographies); run ``photonpano run`` with the chosen locator for it.
+Each backend registers pairs of merged frames at *every* level (the paper's scheme; the
+spec's ``refine_locator``, which would register levels >= 2 against the panorama with one
+shared backend, is not used), so the table compares the backends themselves. The
+panorama is not assembled (it does not depend on the locator beyond the homographies);
+run ``photonpano run`` with the chosen locator for it.
 """
 
 from __future__ import annotations

@@ -156,7 +156,8 @@ def reconstruct(spec: BaseModel, source, *, on_level=None, progress=None):
         homographies, _ = estimate_motion(
             source, spec.resampler.build(), spec.merger.build(), locator, spec.interpolator.build(),
             levels=spec.levels, group_size=spec.group_size, pair_offsets=tuple(spec.pair_offsets),
-            executor=executor, refine_locator=spec.refine_locator.build if spec.refine_locator else None, keep_merged=spec.outputs.merged_frames, on_level=level_done, progress=progress)
+            executor=executor, refine_locator=spec.refine_locator.build if spec.refine_locator else None,
+            keep_merged=spec.outputs.merged_frames, on_level=level_done, progress=progress)
         timings["levels"] = time.perf_counter() - t0
         t0 = time.perf_counter()
         advance = progress("panorama", source.n_frames) if progress else None

@@ -150,11 +150,12 @@ def refine_keyframes(initial: NDArray[np.float64], pair_index: NDArray[np.int64]
     grid = np.stack([gx.ravel(), gy.ravel()], axis=1)  # (9, 2) points of frame b
     mapped = geometry.apply(pairs.homographies[use], grid)  # (E, 9, 2) points of frame a
     weight = np.sqrt(np.maximum(pairs.inliers[use], 1) / max(np.median(pairs.inliers[use]), 1))[:, None, None]
-    x0 = geometry.params_from_homographies(initial)
     e = len(a)
-    # Jacobian layout: residual rows (edge, point, coordinate) -> 18 rows per edge;
-    # columns 8 * (keyframe - 1) + parameter; keyframe 0 is the gauge (no columns).
+    # Each keyframe is solved as a small update of its starting value, K_g = initial_g @ H(d_g):
+    # the 8 parameters of d_g are all of order 1e-3 and well conditioned, whereas the
+    # absolute parameters of keyframes far along a pan (hundreds of pixels) are not.
     rows = np.arange(e * 18).reshape(e, 9, 2)
+    points_b = np.broadcast_to(grid, (e, 9, 2))
 
     def project(k: NDArray[np.float64], points: NDArray[np.float64]):
         """Map (E, 9, 2) points by (E, 3, 3) homographies; return them and d(point)/d(p1..p8)."""
@@ -169,19 +170,45 @@ def refine_keyframes(initial: NDArray[np.float64], pair_index: NDArray[np.int64]
         dv = np.stack([zero, x, zero, y, zero, np.ones_like(u), -v * x, -v * y], axis=-1) / d[..., None]
         return np.stack([u, v], axis=-1), np.stack([du, dv], axis=-2)  # (E, 9, 2), (E, 9, 2, 8)
 
+    def point_jacobian(k: NDArray[np.float64], q: NDArray[np.float64]):
+        """Map (E, 9, 2) points q by fixed (E, 3, 3) homographies; return them and d(out)/d(q)."""
+        qh = np.concatenate([q, np.ones(q.shape[:-1] + (1,))], axis=-1)
+        out = np.einsum("eij,epj->epi", k, qh)
+        u = out[..., :2] / out[..., 2:3]
+        jac = (k[:, None, :2, :2] - u[..., :, None] * k[:, None, 2:3, :2]) / out[..., 2:3, None]
+        return u, jac  # (E, 9, 2), (E, 9, 2, 2)
+
     def unpack(free: NDArray[np.float64]) -> NDArray[np.float64]:
-        return geometry.homographies_from_params(np.concatenate([x0[:1], free.reshape(g - 1, 8)]))
+        update = geometry.homographies_from_params(np.concatenate([np.zeros((1, 8)), free.reshape(g - 1, 8)]))
+        return initial @ update
+
+    relative0 = np.linalg.inv(initial[a]) @ initial[b]  # (E, 3, 3) starting b-to-a maps
+
+    def evaluate(free: NDArray[np.float64]):
+        """Residuals in frame a's pixels, ``M x - inv(K_a) K_b x``, and their Jacobians.
+
+        Measured in the frame's own pixels (as Brown and Lowe do), not on the panorama:
+        there, shrinking every keyframe would shrink every residual, a degenerate
+        direction the solver follows on long captures.
+        """
+        update = geometry.homographies_from_params(np.concatenate([np.zeros((1, 8)), free.reshape(g - 1, 8)]))
+        y, dy = project(update[b], points_b)                # frame b after its update
+        z, dz = point_jacobian(relative0, y)                # into frame a's starting pixels
+        w = geometry.apply(np.linalg.inv(update[a]), z)     # undo frame a's update
+        _, dh = project(update[a], w)                       # d proj(H_a w) / d(params of a)
+        _, jw = point_jacobian(update[a], w)                # d proj(H_a w) / dw
+        jw_inv = np.linalg.inv(jw)
+        # H_a w = z: dw/dparams_a = -inv(jw) dh; dw/dz = inv(jw)
+        residual = mapped - w
+        ja = np.einsum("epij,epjk->epik", jw_inv, dh)
+        jb = -np.einsum("epij,epjk,epkl->epil", jw_inv, dz, dy)
+        return residual, ja, -jb
 
     def residuals(free: NDArray[np.float64]) -> NDArray[np.float64]:
-        k = unpack(free)
-        via_a, _ = project(k[a], mapped)
-        via_b, _ = project(k[b], grid[None].repeat(e, 0))
-        return ((via_a - via_b) * weight).ravel()
+        return (evaluate(free)[0] * weight).ravel()
 
     def jacobian(free: NDArray[np.float64]) -> csr_matrix:
-        k = unpack(free)
-        _, ja = project(k[a], mapped)
-        _, jb = project(k[b], grid[None].repeat(e, 0))
+        _, ja, jb = evaluate(free)
         blocks = [(ja * weight[..., None], a), (-jb * weight[..., None], b)]
         r = np.concatenate([np.repeat(rows[idx > 0].reshape(-1), 8) for _, idx in blocks])
         c = np.concatenate([(8 * (idx[idx > 0] - 1))[:, None, None, None] + np.arange(8)
@@ -190,8 +217,8 @@ def refine_keyframes(initial: NDArray[np.float64], pair_index: NDArray[np.int64]
         return csr_matrix((v, (r, c)), shape=(e * 18, (g - 1) * 8))
 
     # analytic sparse Jacobian; tolerances far below the 0.01 px the keyframes need
-    fit = least_squares(residuals, x0[1:].ravel(), jac=jacobian, method="trf", x_scale="jac", loss="soft_l1",
-                        f_scale=1.0, max_nfev=50, tr_solver="lsmr", ftol=1e-6, xtol=1e-6)
+    fit = least_squares(residuals, np.zeros((g - 1) * 8), jac=jacobian, method="trf", x_scale="jac",
+                        loss="soft_l1", f_scale=1.0, max_nfev=50, tr_solver="lsmr", ftol=1e-6, xtol=1e-6)
     return unpack(fit.x)
 
 
@@ -310,6 +337,16 @@ def locate_keyframes(locator: Locator, merged: MergedFrames, current: NDArray[np
         solved = refine_keyframes(solved, pair_index, graph, width, height)
     pairs = _concat(chain, found)
     pairs = PairRegistrations(pairs.homographies, pairs.matches, pairs.inliers, pairs.ok & ~outliers)
+    # Safety net: a joint solve that agrees with the trusted pairs worse than the chain
+    # does (it did not converge) is discarded for the chain.
+    trusted = pairs.ok
+    if trusted.any():
+        def disagreement(k: NDArray[np.float64]) -> float:
+            relative = np.linalg.inv(k[pair_index[trusted, 0]]) @ k[pair_index[trusted, 1]]
+            return float(np.median(_corner_disagreement(graph.homographies[trusted], relative, width, height)))
+
+        if not np.isfinite(disagreement(solved)) or disagreement(solved) > disagreement(keyframes):
+            solved = keyframes
     return solved, pair_index, pairs
 
 

@@ -55,7 +55,9 @@ class OutputsConfig(BaseModel):
     panorama_png: bool = True
     """Write ``panorama.png``, the tone-mapped 16-bit sRGB panorama."""
     merged_frames: bool = False
-    """Write each level's merged frames as ``level_<k>/merged.npy`` (float32 flux) and PNGs."""
+    """Write each level's merged frames as ``level_<k>/merged.npy`` (float32 flux) and PNGs
+    (levels registered against the panorama stream their merged frames and have none to
+    write; set ``refine_locator: null`` to dump every level)."""
     trajectory_plot: bool = True
     """Write ``trajectory.png``, the estimated (and true, if known) frame centres."""
 
