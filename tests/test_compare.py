@@ -17,10 +17,13 @@ TINY = ["--set", "source.frames=2400", "--set", "source.height=128", "--set", "s
 def test_compare_writes_table_plot_and_json(tmp_path):
     out = tmp_path / "cmp"
     result = CliRunner().invoke(app, ["compare", "simulate", "-o", str(out), "-l",
-                                      "opencv-sift,opencv-ecc:pyramid_levels=2,opencv-sfit", *TINY])
+                                      "opencv-sift:image_scale=1.0,opencv-ecc:pyramid_levels=2,opencv-sfit", *TINY])
     assert result.exit_code == 0, result.output
     runs = json.loads((out / "compare.json").read_text())["runs"]
-    assert [r["locator"] for r in runs] == ["opencv-sift", "opencv-ecc:pyramid_levels=2", "opencv-sfit"]
+    # compare registers pairs at every level: opencv-sift at full resolution (its default,
+    # half resolution, is tuned to initialise the refinement against the panorama)
+    assert [r["locator"] for r in runs] == ["opencv-sift:image_scale=1.0", "opencv-ecc:pyramid_levels=2",
+                                            "opencv-sfit"]
     for run in runs[:2]:
         assert run["status"] == "ok" and len(run["levels"]) == 2
         assert run["trajectory_rmse_px"] < 1.0 and run["failed_pairs"] == 0
@@ -32,7 +35,7 @@ def test_compare_writes_table_plot_and_json(tmp_path):
     table = (out / "compare.md").read_text()
     assert table.count("\n") == 2 + 3 and "| `opencv-ecc:pyramid_levels=2` |" in table
     assert (out / "compare.png").stat().st_size > 10_000
-    assert "| `opencv-sift` |" in result.output
+    assert "| `opencv-sift:image_scale=1.0` |" in result.output
 
 
 def test_compare_refuses_unknown_input_and_empty_list(tmp_path):

@@ -24,7 +24,7 @@ def _eye(n):
     return np.repeat(np.eye(3)[None], n, axis=0)
 
 
-@pytest.mark.parametrize("config", [OpenCVSiftConfig(), OpenCVOrbConfig(refine="lm")], ids=lambda c: c.plugin)
+@pytest.mark.parametrize("config", [OpenCVSiftConfig(image_scale=1.0), OpenCVOrbConfig(refine="lm")], ids=lambda c: c.plugin)
 def test_second_call_of_a_level_reuses_every_description(four_frames, config):
     locator = config.build()
     chain = locator.register_pairs(four_frames, CHAIN, _eye(3))
