@@ -178,9 +178,9 @@ def refine_keyframes(initial: NDArray[np.float64], pair_index: NDArray[np.int64]
         jac = (k[:, None, :2, :2] - u[..., :, None] * k[:, None, 2:3, :2]) / out[..., 2:3, None]
         return u, jac  # (E, 9, 2), (E, 9, 2, 2)
 
-    def unpack(free: NDArray[np.float64]) -> NDArray[np.float64]:
-        update = geometry.homographies_from_params(np.concatenate([np.zeros((1, 8)), free.reshape(g - 1, 8)]))
-        return initial @ update
+    def updates(free: NDArray[np.float64]) -> NDArray[np.float64]:
+        """(G, 3, 3) keyframe updates H(d_g), the gauge keyframe's the identity."""
+        return geometry.homographies_from_params(np.concatenate([np.zeros((1, 8)), free.reshape(g - 1, 8)]))
 
     relative0 = np.linalg.inv(initial[a]) @ initial[b]  # (E, 3, 3) starting b-to-a maps
 
@@ -191,7 +191,7 @@ def refine_keyframes(initial: NDArray[np.float64], pair_index: NDArray[np.int64]
         there, shrinking every keyframe would shrink every residual, a degenerate
         direction the solver follows on long captures.
         """
-        update = geometry.homographies_from_params(np.concatenate([np.zeros((1, 8)), free.reshape(g - 1, 8)]))
+        update = updates(free)
         y, dy = project(update[b], points_b)                # frame b after its update
         z, dz = point_jacobian(relative0, y)                # into frame a's starting pixels
         w = geometry.apply(np.linalg.inv(update[a]), z)     # undo frame a's update
@@ -219,7 +219,7 @@ def refine_keyframes(initial: NDArray[np.float64], pair_index: NDArray[np.int64]
     # analytic sparse Jacobian; tolerances far below the 0.01 px the keyframes need
     fit = least_squares(residuals, np.zeros((g - 1) * 8), jac=jacobian, method="trf", x_scale="jac",
                         loss="soft_l1", f_scale=1.0, max_nfev=50, tr_solver="lsmr", ftol=1e-6, xtol=1e-6)
-    return unpack(fit.x)
+    return initial @ updates(fit.x)
 
 
 def pairs_at_offsets(count: int, offsets: tuple[int, ...]) -> NDArray[np.int64]:
