@@ -258,20 +258,57 @@ def plausible(homographies: NDArray[np.float64], width: int, height: int,
     return finite & np.all(cross > 0, axis=1) & (ratio < max_area_change) & (ratio > 1 / max_area_change)
 
 
-def _concat(a: PairRegistrations, b: PairRegistrations) -> PairRegistrations:
-    return PairRegistrations(*(np.concatenate([getattr(a, f), getattr(b, f)])
+def _concat(*parts: PairRegistrations) -> PairRegistrations:
+    if not parts:
+        return PairRegistrations(np.zeros((0, 3, 3)), np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, bool))
+    return PairRegistrations(*(np.concatenate([getattr(p, f) for p in parts])
                                for f in ("homographies", "matches", "inliers", "ok")))
 
 
-def locate_keyframes(locator: Locator, merged: MergedFrames, current: NDArray[np.float64],
-                     pair_offsets: tuple[int, ...], width: int, height: int, *,
-                     min_overlap: float = 0.5, outlier_px: float = 1.0
+class _MergedRing:
+    """Merged frames of the last ``capacity`` groups, group j in slot ``j % capacity``."""
+
+    def __init__(self, capacity: int) -> None:
+        self.capacity = capacity
+        self.frames: MergedFrames | None = None
+
+    def put(self, index: NDArray[np.int64], merged: MergedFrames) -> None:
+        if self.frames is None:
+            shape = (self.capacity,) + merged.flux.shape[1:]
+            self.frames = MergedFrames(*(np.zeros(shape, getattr(merged, f).dtype)
+                                         for f in ("flux", "frames", "images", "masks")))
+        slots = index % self.capacity
+        for f in ("flux", "frames", "images", "masks"):
+            getattr(self.frames, f)[slots] = getattr(merged, f)
+
+    def register(self, locator: Locator, pairs: NDArray[np.int64], initial: NDArray[np.float64],
+                 width: int, height: int) -> PairRegistrations:
+        """Register group pairs held in the ring; implausible results count as failed."""
+        found = locator.register_pairs(self.frames, pairs % self.capacity, initial)
+        return PairRegistrations(found.homographies, found.matches, found.inliers,
+                                 found.ok & plausible(found.homographies, width, height))
+
+
+def _overlapping(pairs: NDArray[np.int64], keyframes: NDArray[np.float64], width: int, height: int,
+                 min_overlap: float) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
+    """Keep the pairs whose frames ``keyframes`` predict to overlap by ``min_overlap``; return them and their maps."""
+    expected = np.linalg.inv(keyframes[pairs[:, 0]]) @ keyframes[pairs[:, 1]]
+    centre = np.array([[(width - 1) / 2, (height - 1) / 2]])
+    shift = geometry.apply(expected, centre)[:, 0] - centre
+    overlap = np.clip(1 - np.abs(shift[:, 0]) / width, 0, 1) * np.clip(1 - np.abs(shift[:, 1]) / height, 0, 1)
+    keep = overlap >= min_overlap
+    return pairs[keep], expected[keep]
+
+
+def locate_keyframes(locator: Locator, merge: Callable[[NDArray[np.int64]], MergedFrames],
+                     current: NDArray[np.float64], pair_offsets: tuple[int, ...], width: int, height: int, *,
+                     window: int = 32, min_overlap: float = 0.5, outlier_px: float = 1.0
                      ) -> tuple[NDArray[np.float64], NDArray[np.int64], PairRegistrations]:
-    """Register merged frames and solve for the homographies of their reference frames.
+    """Register merged frames pairwise and solve for the homographies of their reference frames.
 
     1. Consecutive pairs are registered and chained (:func:`chain_keyframes`), failed
        or implausible pairs bridged.
-    2. For each offset k > 1, pairs ``(g, g + k)`` that the chain predicts to overlap by
+    2. For each offset k > 1, pairs ``(g - k, g)`` that the chain predicts to overlap by
        at least ``min_overlap`` are registered too.
     3. All plausible pairs are solved jointly (:func:`refine_keyframes`, robust loss);
        pairs whose corners disagree with that solution by more than
@@ -279,44 +316,62 @@ def locate_keyframes(locator: Locator, merged: MergedFrames, current: NDArray[np
        solved again. A wrong consecutive link is thereby outvoted by the longer pairs
        spanning it.
 
+    Merged frames stream: ``merge`` is called on consecutive windows of ``window``
+    groups, steps 1 and 2 run on each window as it arrives, and only the merged frames
+    of the last ``max(pair_offsets)`` groups are kept for the pairs reaching back. Memory
+    is thus bounded by ``window + max(pair_offsets)`` merged frames whatever the capture
+    length; the pose graph (step 3) holds only the pair homographies.
+
     Args:
         locator: the built locator.
-        merged: the level's G merged frames.
+        merge: ``merge(index)`` returns the merged frames of groups ``index`` ((K,)
+            int64, consecutive and increasing).
         current: (G, 3, 3) float64 current homographies of the reference frames.
         pair_offsets: offsets k (1 is always used).
         width: frame width in pixels.
         height: frame height in pixels.
+        window: groups merged and registered at a time.
         min_overlap: predicted overlap (fraction of the frame) needed to try a pair.
         outlier_px: smallest rejection threshold, in pixels (corner distance).
 
     Returns:
         ``(keyframes, pair_index, pairs)``: (G, 3, 3) float64 homographies, (P, 2)
-        int64 pairs tried and their registrations (``ok`` False where failed or rejected).
+        int64 pairs tried (the G - 1 consecutive pairs first) and their registrations
+        (``ok`` False where failed or rejected).
 
     Raises:
         StageError: if every consecutive pair failed.
     """
     g = len(current)
-    chain_index = pairs_at_offsets(g, (1,))
-    predicted = np.linalg.inv(current[:-1]) @ current[1:]
-    chain = locator.register_pairs(merged, chain_index, predicted)
-    chain = PairRegistrations(chain.homographies, chain.matches, chain.inliers,
-                              chain.ok & plausible(chain.homographies, width, height))
-    keyframes = chain_keyframes(current, chain)
     offsets = tuple(k for k in sorted(set(pair_offsets)) if 1 < k < g)
-    if not offsets:
+    ring = _MergedRing(min(g, window + max(offsets, default=1)))
+    predicted = np.linalg.inv(current[:-1]) @ current[1:]
+    chain_parts: list[PairRegistrations] = []
+    extra_parts: list[tuple[NDArray[np.int64], PairRegistrations]] = []
+    for first in range(0, g, window):
+        new = np.arange(first, min(first + window, g))
+        ring.put(new, merge(new))
+        steps = np.stack([new - 1, new], axis=1)[new > 0]
+        if len(steps):
+            chain_parts.append(ring.register(locator, steps, predicted[steps[:, 0]], width, height))
+        if not offsets:
+            continue
+        chained = _concat(*chain_parts)
+        try:  # the chain so far predicts which longer pairs overlap
+            so_far = chain_keyframes(current[:new[-1] + 1], chained)
+        except StageError:
+            so_far = current[:new[-1] + 1]
+        reach = np.concatenate([np.stack([new - k, new], axis=1)[new >= k] for k in offsets])
+        reach, expected = _overlapping(reach, so_far, width, height, min_overlap)
+        if len(reach):
+            extra_parts.append((reach, ring.register(locator, reach, expected, width, height)))
+    chain_index = pairs_at_offsets(g, (1,))
+    chain = _concat(*chain_parts)
+    keyframes = chain_keyframes(current, chain)
+    if not extra_parts:
         return keyframes, chain_index, chain
-    extra = pairs_at_offsets(g, offsets)
-    extra = extra[extra[:, 1] - extra[:, 0] > 1]
-    expected = np.linalg.inv(keyframes[extra[:, 0]]) @ keyframes[extra[:, 1]]
-    shift = geometry.apply(expected, np.array([[(width - 1) / 2, (height - 1) / 2]]))[:, 0] - [(width - 1) / 2, (height - 1) / 2]
-    overlap = np.clip(1 - np.abs(shift[:, 0]) / width, 0, 1) * np.clip(1 - np.abs(shift[:, 1]) / height, 0, 1)
-    extra, expected = extra[overlap >= min_overlap], expected[overlap >= min_overlap]
-    if not len(extra):
-        return keyframes, chain_index, chain
-    found = locator.register_pairs(merged, extra, expected)
-    found = PairRegistrations(found.homographies, found.matches, found.inliers,
-                              found.ok & plausible(found.homographies, width, height))
+    extra = np.concatenate([index for index, _ in extra_parts])
+    found = _concat(*(found for _, found in extra_parts))
     pair_index = np.concatenate([chain_index, extra])
     # Bridged consecutive pairs enter the solve with a token weight (one inlier) so
     # that the pose graph stays connected across registration failures.
@@ -388,8 +443,8 @@ def panorama_views(panorama: Panorama, to_canvas: NDArray[np.float64], height: i
     return out
 
 
-def _stack(a: MergedFrames, b: MergedFrames) -> MergedFrames:
-    return MergedFrames(*(np.concatenate([getattr(a, f), getattr(b, f)]) for f in ("flux", "frames", "images", "masks")))
+def _stack(*parts: MergedFrames) -> MergedFrames:
+    return MergedFrames(*(np.concatenate([getattr(p, f) for p in parts]) for f in ("flux", "frames", "images", "masks")))
 
 
 def _bridge(current: NDArray[np.float64], measured: NDArray[np.float64], ok: NDArray[np.bool_]) -> NDArray[np.float64]:
@@ -467,8 +522,7 @@ def locate_against_panorama(source: PhotonSource, merger: Merger, make_locator: 
             local.locator = make_locator()
             local.sums, local.weights = WarpAccumulator(*shape), WarpAccumulator(*shape)
             built.append((local.locator, local.sums, local.weights))
-        sub = Groups(groups.start[index], groups.stop[index], groups.reference[index])
-        merged = merger.merge(source, homographies, sub)
+        merged = merger.merge(source, homographies, groups.select(index))
         views = panorama_views(template, to_canvas[index], source.height, source.width, min_frames)
         n = len(index)
         pairs = np.stack([np.arange(n), np.arange(n, 2 * n)], axis=1)
@@ -485,9 +539,7 @@ def locate_against_panorama(source: PhotonSource, merger: Merger, make_locator: 
 
     windows = [np.arange(s, min(s + window, len(groups))) for s in range(0, len(groups), window)]
     parts = executor.map(run, windows)
-    regs = parts[0]
-    for part in parts[1:]:
-        regs = _concat(regs, part)
+    regs = _concat(*parts)
     ok = regs.ok & plausible(regs.homographies, source.width, source.height)
     if not ok.any():
         raise StageError("locator", "panorama", f"none of the {len(ok)} merged frames registered against "
@@ -622,15 +674,27 @@ def estimate_motion(
             pair_index = np.stack([np.full(len(groups), -1), np.arange(len(groups))], axis=1).astype(np.int64)
             t2 = t1
         else:
-            advance = progress(f"level {level}: merge", len(groups)) if progress else None
-            merged = merger.merge(source, homographies, groups, progress=advance, executor=executor)
-            t2 = time.perf_counter()
+            advance = progress(f"level {level}: merge + locate", len(groups)) if progress else None
+            kept: list[MergedFrames] = []
+            merge_s = 0.0
+
+            def merge(index: NDArray[np.int64]) -> MergedFrames:
+                nonlocal merge_s
+                start = time.perf_counter()
+                part = merger.merge(source, homographies, groups.select(index), progress=advance, executor=executor)
+                merge_s += time.perf_counter() - start
+                if keep_merged:
+                    kept.append(part)
+                return part
+
             locator.executor = executor
             try:
-                keyframes, pair_index, pairs = locate_keyframes(locator, merged, current, pair_offsets,
+                keyframes, pair_index, pairs = locate_keyframes(locator, merge, current, pair_offsets,
                                                                 source.width, source.height)
             except StageError as err:
                 raise StageError("locator", type(locator).__name__, f"level {level}: {err.reason}") from None
+            merged = _stack(*kept) if kept else None
+            t2 = t1 + merge_s
         keyframes, rejected = _guard_keyframes(current, keyframes, source.width, source.height)
         t3 = time.perf_counter()
         correction = keyframes @ np.linalg.inv(current)

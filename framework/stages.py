@@ -174,6 +174,10 @@ class Groups:
     def __len__(self) -> int:
         return len(self.reference)
 
+    def select(self, index: NDArray[np.int64]) -> "Groups":
+        """Return the groups ``index`` ((K,) int64, increasing) as a new :class:`Groups`."""
+        return Groups(self.start[index], self.stop[index], self.reference[index])
+
 
 class Resampler(abc.ABC):
     """Chooses the groups of binary frames (virtual exposures) of each level."""

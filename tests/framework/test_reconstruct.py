@@ -6,7 +6,7 @@ import pytest
 from photonpano import geometry
 from photonpano.errors import StageError
 from photonpano.reconstruct import chain_keyframes, locate_keyframes, pairs_at_offsets, plausible
-from photonpano.stages import Locator, PairRegistrations
+from photonpano.stages import Locator, MergedFrames, PairRegistrations
 
 W, H = 200, 100
 
@@ -25,7 +25,7 @@ class NoisyLocator(Locator):
 
     def register_pairs(self, merged, pairs, initial):
         out = []
-        for a, b in pairs:
+        for a, b in merged.flux[pairs, 0, 0].astype(int):  # the frames carry their group index
             rel = np.linalg.inv(self.truth[a]) @ self.truth[b]
             c = geometry.corners(W, H)
             moved = geometry.apply(rel, c) + self.rng.normal(scale=self.noise, size=(4, 2))
@@ -37,6 +37,13 @@ class NoisyLocator(Locator):
         return PairRegistrations(np.array(out).reshape(p, 3, 3), np.full(p, 100), np.full(p, 100), np.ones(p, bool))
 
 
+def _numbered(index):
+    """Merged frames of 1x1 pixel whose flux is the group index (what NoisyLocator reads)."""
+    k = len(index)
+    return MergedFrames(index.astype(np.float32).reshape(k, 1, 1), np.ones((k, 1, 1), np.float32),
+                        np.zeros((k, 1, 1), np.uint8), np.ones((k, 1, 1), bool))
+
+
 def _error(estimate, truth):
     from photonpano.metrics import trajectory_error
     return trajectory_error(estimate, truth, W, H).rmse_px
@@ -45,8 +52,8 @@ def _error(estimate, truth):
 def test_longer_pairs_remove_chaining_drift():
     truth = _truth(80)
     start = np.repeat(np.eye(3)[None], 80, 0)
-    chain, _, _ = locate_keyframes(NoisyLocator(truth, 0.3), None, start, (1,), W, H)
-    graph, _, _ = locate_keyframes(NoisyLocator(truth, 0.3), None, start, (1, 2, 4, 8, 16, 32), W, H)
+    chain, _, _ = locate_keyframes(NoisyLocator(truth, 0.3), _numbered, start, (1,), W, H)
+    graph, _, _ = locate_keyframes(NoisyLocator(truth, 0.3), _numbered, start, (1, 2, 4, 8, 16, 32), W, H)
     assert _error(graph, truth) < 0.5 * _error(chain, truth)
 
 
@@ -54,7 +61,7 @@ def test_a_wrong_consecutive_link_is_outvoted():
     truth = _truth(40)
     start = np.repeat(np.eye(3)[None], 40, 0)
     loc = NoisyLocator(truth, 0.05, wrong={(10, 11)})
-    solved, index, pairs = locate_keyframes(loc, None, start, (1, 2, 4, 8), W, H)
+    solved, index, pairs = locate_keyframes(loc, _numbered, start, (1, 2, 4, 8), W, H)
     assert _error(solved, truth) < 0.2
     wrong = np.flatnonzero((index[:, 0] == 10) & (index[:, 1] == 11))[0]
     assert not pairs.ok[wrong]
@@ -83,3 +90,25 @@ def test_plausible_flags_folds_and_rescaling():
 
 def test_pairs_at_offsets():
     np.testing.assert_array_equal(pairs_at_offsets(4, (2,)), [[0, 1], [1, 2], [2, 3], [0, 2], [1, 3]])
+
+
+def test_merged_frames_stream_through_a_bounded_window():
+    """Each group is merged once and the locator never sees more than window + max offset frames."""
+    truth = _truth(100)
+    merged_groups, seen = [], []
+
+    def merge(index):
+        merged_groups.extend(index.tolist())
+        return _numbered(index)
+
+    class Recording(NoisyLocator):
+        def register_pairs(self, merged, pairs, initial):
+            seen.append(len(merged))
+            return super().register_pairs(merged, pairs, initial)
+
+    solved, index, _ = locate_keyframes(Recording(truth, 0.05), merge, truth[:1].repeat(100, 0), (1, 2, 8), W, H,
+                                        window=10)
+    assert merged_groups == list(range(100))
+    assert max(seen) == 10 + 8
+    assert {8} <= set((index[:, 1] - index[:, 0]).tolist()) <= {1, 2, 8}
+    assert _error(solved, truth) < 0.2
