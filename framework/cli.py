@@ -200,7 +200,11 @@ def compare(input: Annotated[str, typer.Argument(help="A spec (.yaml), a capture
             locators: Annotated[str, typer.Option(
                 "--locators", "-l",
                 help="Comma-separated locator keys, each optionally key:field=value[:field=value].")],
-            set_: SetOption = None, force: ForceOption = False) -> None:
+            set_: SetOption = None, force: ForceOption = False,
+            refine: Annotated[bool, typer.Option(
+                "--refine", help="Keep the spec's refine_locator for levels >= 2 (compare whole pipelines "
+                                 "as `run` executes them); default: each locator registers pairs at every level.")
+            ] = False) -> None:
     """Run the same pipeline with each locator; write a table and a plot of error and time.
 
     Writes compare.md, compare.json, compare.png and <locator>/homographies.npy into OUTPUT.
@@ -233,7 +237,7 @@ def compare(input: Annotated[str, typer.Argument(help="A spec (.yaml), a capture
             raise PhotonpanoError("--locators: give at least one locator key")
         prepare_output(output, force)
         rows = compare_locators(data, keys, host, output, origin=input, log=typer.echo,
-                                on_row=lambda done: write_comparison(done, output, data))
+                                on_row=lambda done: write_comparison(done, output, data), refine=refine)
     except PhotonpanoError as exc:
         _fail(str(exc))
     typer.echo(markdown_table(rows))

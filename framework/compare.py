@@ -11,11 +11,14 @@ estimation of one spec once per locator on the *same* opened capture, and writes
 - ``compare.png``: trajectory RMSE and locate time per level, one line per locator;
 - ``<locator>/homographies.npy``: each run's (T, 3, 3) frame-to-panorama homographies.
 
-Each backend registers pairs of merged frames at *every* level (the paper's scheme; the
-spec's ``refine_locator``, which would register levels >= 2 against the panorama with one
-shared backend, is not used), so the table compares the backends themselves. The
-panorama is not assembled (it does not depend on the locator beyond the homographies);
-run ``photonpano run`` with the chosen locator for it.
+By default each backend registers pairs of merged frames at *every* level (the paper's
+scheme; the spec's ``refine_locator``, which registers levels >= 2 against the panorama
+with one shared backend, is not used), so the table compares the backends themselves.
+With ``refine=True`` the spec's ``refine_locator`` is kept: the table then compares whole
+pipelines as ``photonpano run`` would execute them (each backend at level 1, the refine
+locator after). Runs use the spec's executor. The panorama is not assembled (it does not
+depend on the locator beyond the homographies); run ``photonpano run`` with the chosen
+locator for it.
 """
 
 from __future__ import annotations
@@ -36,7 +39,7 @@ __all__ = ["compare_locators", "markdown_table", "plot_comparison", "write_compa
 
 def compare_locators(base: dict[str, Any], locators: list[str], host: PluginHost, out_dir: Path | None = None,
                      *, origin: str = "compare", source: Any = None, log: Any = None,
-                     on_row: Any = None) -> list[dict[str, Any]]:
+                     on_row: Any = None, refine: bool = False) -> list[dict[str, Any]]:
     """Run the pipeline's motion estimation once per locator on one capture.
 
     Args:
@@ -51,6 +54,8 @@ def compare_locators(base: dict[str, Any], locators: list[str], host: PluginHost
         log: optional callable receiving one progress line per finished level and run.
         on_row: optional callable receiving the rows so far after each locator (to
             write partial results of a long comparison).
+        refine: keep the spec's ``refine_locator`` for levels >= 2 (False: every level
+            registers pairs with the compared locator).
 
     Returns:
         One row per locator: ``{"locator", "spec", "status", "levels": [...],
@@ -64,15 +69,16 @@ def compare_locators(base: dict[str, Any], locators: list[str], host: PluginHost
     """
     rows: list[dict[str, Any]] = []
     for item in locators:
-        source = _compare_one(item, base, host, out_dir, origin, source, log, rows)
+        source = _compare_one(item, base, host, out_dir, origin, source, log, rows, refine)
         if on_row is not None:
             on_row(rows)
     return rows
 
 
 def _compare_one(item: str, base: dict[str, Any], host: PluginHost, out_dir: Path | None, origin: str,
-                 source: Any, log: Any, rows: list[dict[str, Any]]) -> Any:
+                 source: Any, log: Any, rows: list[dict[str, Any]], refine: bool) -> Any:
     """Run one locator (see :func:`compare_locators`); append its row; return the source."""
+    from .executor import make_executor
     from .metrics import trajectory_error
     from .reconstruct import estimate_motion
     from .spec import apply_overrides, validate_spec
@@ -90,6 +96,7 @@ def _compare_one(item: str, base: dict[str, Any], host: PluginHost, out_dir: Pat
         row["status"] = str(exc)
         return source
     row["spec"] = spec.locator.model_dump(mode="json")
+    row["refine_locator"] = spec.refine_locator.model_dump(mode="json") if refine and spec.refine_locator else None
     if source is None:
         source = spec.source.build()
     locator = spec.locator.build()
@@ -111,11 +118,13 @@ def _compare_one(item: str, base: dict[str, Any], host: PluginHost, out_dir: Pat
                 f"{stats['failed_pairs']} failed pairs" + _rmse_text(rmse))
 
     t0 = time.perf_counter()
+    refine_locator = spec.refine_locator.build if refine and spec.refine_locator else None
     try:
-        homographies, _ = estimate_motion(
-            source, spec.resampler.build(), spec.merger.build(), locator, spec.interpolator.build(),
-            levels=spec.levels, group_size=spec.group_size, pair_offsets=tuple(spec.pair_offsets),
-            on_level=on_level)
+        with make_executor(spec.executor, spec.workers) as executor:
+            homographies, _ = estimate_motion(
+                source, spec.resampler.build(), spec.merger.build(), locator, spec.interpolator.build(),
+                levels=spec.levels, group_size=spec.group_size, pair_offsets=tuple(spec.pair_offsets),
+                executor=executor, refine_locator=refine_locator, on_level=on_level)
     except PhotonpanoError as exc:
         row["status"] = str(exc)
         return source
