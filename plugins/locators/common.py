@@ -28,7 +28,7 @@ from pydantic import Field
 
 __all__ = ["Features", "PairResult", "FrameCache", "CachingLocator", "FeatureLocator", "PolishConfig",
            "frame_key", "to_registrations", "keypoint_mask", "ecc_image", "ecc_polish", "corner_change",
-           "check_pairs"]
+           "check_pairs", "MotionModel", "MOTION_PARAMETERS", "robust_method", "robust_motion", "gric"]
 
 
 @dataclass(frozen=True)
@@ -405,3 +405,101 @@ def ecc_polish(image_a: NDArray[np.float32], image_b: NDArray[np.float32], mask_
     warp = warp.astype(np.float64) / warp[2, 2]
     h, w = image_b.shape
     return warp if corner_change(warp, homography, w, h) < max_change_px else homography
+
+
+MotionModel = Literal["auto", "homography", "affine", "similarity"]
+"""Motion models a feature locator can fit; ``auto`` picks one per pair by :func:`gric`."""
+
+MOTION_PARAMETERS = {"homography": 8, "affine": 6, "similarity": 4}
+"""Degrees of freedom of each motion model."""
+
+
+def robust_method(name: str) -> int:
+    """Return OpenCV's flag for a robust estimator name (``ransac``, ``usac-magsac``, ``usac-accurate``, ``lmeds``)."""
+    import cv2
+
+    return {"ransac": cv2.RANSAC, "usac-magsac": cv2.USAC_MAGSAC, "usac-accurate": cv2.USAC_ACCURATE,
+            "lmeds": cv2.LMEDS}[name]
+
+
+def gric(model: NDArray[np.float64], src: NDArray[np.float32], dst: NDArray[np.float32], sigma_px: float,
+         parameters: int) -> float:
+    """Torr's Geometric Robust Information Criterion of a 2D motion model (lower is better).
+
+    ``GRIC = sum_i min(e_i^2 / sigma^2, 2 (r - d)) + lambda1 d n + lambda2 k`` with data
+    dimension r = 4 (two image points), model dimension d = 2 (every model here maps
+    points to points), ``lambda1 = ln r``, ``lambda2 = ln(r n)`` and k the model's degrees
+    of freedom (Torr, "Bayesian model estimation and selection for epipolar geometry and
+    generic manifold fitting", IJCV 50(1), 2002, Eq. 22). The residual term caps outliers,
+    the parameter term charges each degree of freedom: a homography wins only where its
+    extra parameters explain the data beyond the noise.
+
+    Args:
+        model: (3, 3) float64 mapping ``src`` to ``dst``.
+        src: (N, 2) float32 points of frame b, pixels.
+        dst: (N, 2) float32 matching points of frame a, pixels.
+        sigma_px: standard deviation of keypoint positions, pixels.
+        parameters: degrees of freedom k of the model.
+
+    Returns:
+        The criterion (dimensionless).
+    """
+    from photonpano import geometry
+
+    n = len(src)
+    error2 = np.sum((geometry.apply(model, src.astype(np.float64)) - dst) ** 2, axis=-1)
+    return float(np.sum(np.minimum(error2 / sigma_px ** 2, 4.0)) + 2 * np.log(4) * n + np.log(4 * n) * parameters)
+
+
+def robust_motion(src: NDArray[np.float32], dst: NDArray[np.float32], *, motion: str = "homography",
+                  method: str = "usac-magsac", threshold_px: float = 1.5, min_inliers: int = 12,
+                  refine: bool = True) -> PairResult:
+    """Fit a motion model to tentative correspondences with an OpenCV robust estimator.
+
+    Homographies are fitted by ``cv2.findHomography`` (refit to all inliers by least
+    squares with ``refine``), affine and similarity models by ``cv2.estimateAffine2D`` and
+    ``cv2.estimateAffinePartial2D`` (Levenberg-Marquardt on the inliers with ``refine``).
+    With ``motion="auto"`` all three are fitted and the one of lowest :func:`gric` (keypoint
+    noise ``threshold_px / 2``) is returned. This guards against degenerate
+    configurations: when the static scene's keypoints lie on a thin band (a floor, a
+    horizon), a homography can fit them *and* a few keypoints of an independently moving
+    object, a lower-order model fitted to the band alone scores better.
+
+    Args:
+        src: (N, 2) float32 points of frame b (pixels, photonpano's convention).
+        dst: (N, 2) float32 matching points of frame a.
+        motion: ``homography``, ``affine``, ``similarity`` or ``auto``.
+        method: robust estimator, see :func:`robust_method` (affine and similarity
+            models use RANSAC unless ``lmeds``).
+        threshold_px: inlier threshold in pixels.
+        min_inliers: fewer inliers than this flags the pair as failed.
+        refine: refit each model to its inliers.
+
+    Returns:
+        The pair's result: (3, 3) float64 homography mapping ``src`` to ``dst`` (of the
+        chosen model), the number of correspondences and of the model's inliers.
+    """
+    import cv2
+
+    fits: dict[str, tuple[NDArray[np.float64], int]] = {}
+    for name in (("homography", "affine", "similarity") if motion == "auto" else (motion,)):
+        if name == "homography":
+            model, mask = cv2.findHomography(src, dst, robust_method(method), threshold_px, maxIters=5000,
+                                             confidence=0.999)
+            if model is not None and mask is not None and refine and mask.sum() >= 8:
+                refined, _ = cv2.findHomography(src[mask.ravel() > 0], dst[mask.ravel() > 0], 0)
+                model = refined if refined is not None else model
+        else:
+            estimate = cv2.estimateAffine2D if name == "affine" else cv2.estimateAffinePartial2D
+            affine, mask = estimate(src, dst, method=cv2.LMEDS if method == "lmeds" else cv2.RANSAC,
+                                    ransacReprojThreshold=threshold_px, maxIters=5000, confidence=0.999,
+                                    refineIters=10 if refine else 0)
+            model = None if affine is None else np.vstack([affine, [0.0, 0.0, 1.0]])
+        if model is not None and mask is not None and np.all(np.isfinite(model)) and abs(model[2, 2]) > 1e-12:
+            fits[name] = (model.astype(np.float64) / model[2, 2], int(mask.sum()))
+    if not fits:
+        return PairResult(matches=len(src))
+    chosen = min(fits, key=lambda name: gric(fits[name][0], src, dst, threshold_px / 2, MOTION_PARAMETERS[name]))
+    h, n_in = fits[chosen]
+    ok = n_in >= min_inliers and abs(np.linalg.det(h[:2, :2])) > 1e-3
+    return PairResult(h, len(src), n_in, bool(ok))

@@ -19,9 +19,9 @@ from photonpano import hookimpl
 from photonpano.stages import LocatorConfig
 from pydantic import Field
 
-from .common import FeatureLocator, Features, PairResult, PolishConfig, keypoint_mask
+from .common import FeatureLocator, Features, MotionModel, PairResult, PolishConfig, keypoint_mask, robust_motion
 
-__all__ = ["OpenCVOrbConfig", "OpenCVBinaryLocator", "robust_homography"]
+__all__ = ["OpenCVOrbConfig", "OpenCVBinaryLocator"]
 
 
 class _BinaryFeatureConfig(PolishConfig):
@@ -33,6 +33,9 @@ class _BinaryFeatureConfig(PolishConfig):
     """Robust estimator of the homography."""
     reprojection_px: Annotated[float, Field(gt=0)] = 1.5
     """Inlier threshold of the robust estimator, in pixels."""
+    motion: MotionModel = "auto"
+    """Motion model between merged frames: ``homography``, ``affine``, ``similarity``, or
+    ``auto`` (the one of lowest GRIC per pair; see ``opencv-sift``)."""
     min_inliers: Annotated[int, Field(ge=4)] = 12
     """A pair with fewer inliers is flagged as failed (and bridged)."""
     border_px: Annotated[int, Field(ge=0)] = 8
@@ -83,8 +86,6 @@ class OpenCVBinaryLocator(FeatureLocator):
         self._detector = detector
         self._max_features = max_features
         self._matcher = cv2.BFMatcher(cv2.NORM_HAMMING)
-        self._method = {"ransac": cv2.RANSAC, "usac-magsac": cv2.USAC_MAGSAC,
-                        "usac-accurate": cv2.USAC_ACCURATE, "lmeds": cv2.LMEDS}[config.method]
 
     def describe(self, image: NDArray[np.uint8], mask: NDArray[np.bool_],
                  flux: NDArray[np.float32]) -> Features:
@@ -112,38 +113,9 @@ class OpenCVBinaryLocator(FeatureLocator):
             return PairResult(matches=len(good))
         src = feat_b.points[[m.queryIdx for m in good]].astype(np.float32)
         dst = feat_a.points[[m.trainIdx for m in good]].astype(np.float32)
-        return robust_homography(src, dst, self._method, self.config.reprojection_px, self.config.min_inliers,
-                                 refine=self.config.refine != "none")
-
-
-def robust_homography(src: NDArray[np.float32], dst: NDArray[np.float32], method: int, threshold_px: float,
-                      min_inliers: int, *, refine: bool) -> PairResult:
-    """Fit a homography to correspondences with an OpenCV robust estimator.
-
-    Args:
-        src: (N, 2) float32 points of frame b (pixels, photonpano's convention).
-        dst: (N, 2) float32 matching points of frame a.
-        method: ``cv2.RANSAC``, ``cv2.USAC_MAGSAC``, ...
-        threshold_px: inlier threshold in pixels.
-        min_inliers: fewer inliers than this flags the pair as failed.
-        refine: refit to all inliers by least squares (Levenberg-Marquardt).
-
-    Returns:
-        The pair's result, homography mapping ``src`` to ``dst``.
-    """
-    import cv2
-
-    h, inlier_mask = cv2.findHomography(src, dst, method, threshold_px, maxIters=5000, confidence=0.999)
-    if h is None or inlier_mask is None:
-        return PairResult(matches=len(src))
-    inl = inlier_mask.ravel().astype(bool)
-    n_in = int(inl.sum())
-    if refine and n_in >= 8:
-        refined, _ = cv2.findHomography(src[inl], dst[inl], 0)
-        if refined is not None:
-            h = refined
-    ok = n_in >= min_inliers and abs(np.linalg.det(h[:2, :2])) > 1e-3
-    return PairResult(h / h[2, 2], len(src), n_in, bool(ok))
+        return robust_motion(src, dst, motion=self.config.motion, method=self.config.method,
+                             threshold_px=self.config.reprojection_px, min_inliers=self.config.min_inliers,
+                             refine=self.config.refine != "none")
 
 
 @hookimpl

@@ -16,7 +16,7 @@ from photonpano import hookimpl
 from photonpano.stages import LocatorConfig
 from pydantic import Field
 
-from .common import FeatureLocator, Features, PairResult, ecc_image, ecc_polish, keypoint_mask
+from .common import FeatureLocator, Features, MotionModel, PairResult, ecc_image, ecc_polish, keypoint_mask, robust_motion
 
 __all__ = ["OpenCVSiftConfig", "OpenCVSiftLocator", "ecc_image"]
 
@@ -43,6 +43,11 @@ class OpenCVSiftConfig(LocatorConfig):
     """Robust estimator of the homography."""
     reprojection_px: Annotated[float, Field(gt=0)] = 1.5
     """Inlier threshold of the robust estimator, in pixels."""
+    motion: MotionModel = "auto"
+    """Motion model between merged frames: ``homography`` (the paper's), ``affine``,
+    ``similarity``, or ``auto``: all three, the one of lowest GRIC per pair (Torr 2002),
+    which rejects homographies that bend to fit a few keypoints of a moving object when
+    the static scene's keypoints lie on a thin band."""
     min_inliers: Annotated[int, Field(ge=4)] = 12
     """A pair with fewer inliers is flagged as failed (and bridged)."""
     refine: Literal["none", "lm", "ecc"] = "lm"
@@ -82,8 +87,6 @@ class OpenCVSiftLocator(FeatureLocator):
         self._sift = cv2.SIFT_create(nfeatures=config.max_features,
                                      contrastThreshold=config.contrast_threshold)
         self._matcher = cv2.BFMatcher(cv2.NORM_L2)
-        self._method = {"ransac": cv2.RANSAC, "usac-magsac": cv2.USAC_MAGSAC,
-                        "usac-accurate": cv2.USAC_ACCURATE, "lmeds": cv2.LMEDS}[config.method]
 
     def features(self, image: NDArray[np.uint8], mask: NDArray[np.bool_]):
         """Detect and describe SIFT keypoints of one merged frame.
@@ -128,8 +131,6 @@ class OpenCVSiftLocator(FeatureLocator):
         Returns:
             The pair's result; ``homography`` is (3, 3) float64.
         """
-        import cv2
-
         (pts_a, desc_a), (pts_b, desc_b) = _native(feat_a), _native(feat_b)
         if len(pts_a) < 4 or len(pts_b) < 4:
             return PairResult()
@@ -137,20 +138,10 @@ class OpenCVSiftLocator(FeatureLocator):
         good = [p[0] for p in pairs if len(p) == 2 and p[0].distance < self.config.ratio * p[1].distance]
         if len(good) < max(4, self.config.min_inliers):
             return PairResult(matches=len(good))
-        src = pts_b[[m.queryIdx for m in good]]
-        dst = pts_a[[m.trainIdx for m in good]]
-        h, inlier_mask = cv2.findHomography(src, dst, self._method, self.config.reprojection_px,
-                                            maxIters=5000, confidence=0.999)
-        if h is None or inlier_mask is None:
-            return PairResult(matches=len(good))
-        inl = inlier_mask.ravel().astype(bool)
-        n_in = int(inl.sum())
-        if self.config.refine != "none" and n_in >= 8:
-            refined, _ = cv2.findHomography(src[inl], dst[inl], 0)
-            if refined is not None:
-                h = refined
-        ok = n_in >= self.config.min_inliers and abs(np.linalg.det(h[:2, :2])) > 1e-3
-        return PairResult(h / h[2, 2], len(good), n_in, bool(ok))
+        return robust_motion(pts_b[[m.queryIdx for m in good]], pts_a[[m.trainIdx for m in good]],
+                             motion=self.config.motion, method=self.config.method,
+                             threshold_px=self.config.reprojection_px, min_inliers=self.config.min_inliers,
+                             refine=self.config.refine != "none")
 
     def refine_ecc(self, image_a: NDArray[np.float32], image_b: NDArray[np.float32],
                    mask_b: NDArray[np.bool_], homography: NDArray[np.float64]) -> NDArray[np.float64]:
