@@ -292,7 +292,7 @@ class FeatureLocator(CachingLocator):
         def polish(result: PairResult, a: int, b: int) -> PairResult:
             if not result.ok:
                 return result
-            polished = ecc_polish(ecc(int(a)), ecc(int(b)), merged.masks[b], result.homography,
+            polished = ecc_polish(ecc(int(a)), ecc(int(b)), merged.masks[a], merged.masks[b], result.homography,
                                   iterations=self.config.ecc_iterations, blur=self.config.ecc_blur,
                                   max_change_px=self.config.ecc_max_change_px)
             return PairResult(polished, result.matches, result.inliers, True)
@@ -375,15 +375,19 @@ def corner_change(h1: NDArray[np.float64], h2: NDArray[np.float64], width: int, 
     return float(change) if np.isfinite(change) else float("inf")
 
 
-def ecc_polish(image_a: NDArray[np.float32], image_b: NDArray[np.float32], mask_b: NDArray[np.bool_],
-               homography: NDArray[np.float64], *, iterations: int = 30, blur: int = 5,
+def ecc_polish(image_a: NDArray[np.float32], image_b: NDArray[np.float32], mask_a: NDArray[np.bool_],
+               mask_b: NDArray[np.bool_], homography: NDArray[np.float64], *, iterations: int = 30, blur: int = 5,
                max_change_px: float = 2.0) -> NDArray[np.float64]:
     """Polish a homography (b to a) by ECC maximisation; return the input on failure.
+
+    OpenCV's ``findTransformECCWithMask`` with frame b as the template: only pixels
+    trusted in b whose warped position is trusted in a enter the correlation.
 
     Args:
         image_a: (H, W) float32 normalised flux of frame a (the moving image).
         image_b: (H, W) float32 normalised flux of frame b (the template).
-        mask_b: (H, W) bool pixels of frame b to use.
+        mask_a: (H, W) bool trusted pixels of frame a.
+        mask_b: (H, W) bool trusted pixels of frame b.
         homography: (3, 3) float64 starting estimate mapping b's pixels to a's.
         iterations: maximum Gauss-Newton iterations.
         blur: Gaussian pre-filter size in pixels (made odd).
@@ -398,8 +402,9 @@ def ecc_polish(image_a: NDArray[np.float32], image_b: NDArray[np.float32], mask_
 
     criteria = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, iterations, 1e-5)
     try:
-        _, warp = cv2.findTransformECC(image_b, image_a, homography.astype(np.float32),
-                                       cv2.MOTION_HOMOGRAPHY, criteria, mask_b.astype(np.uint8), blur | 1)
+        _, warp = cv2.findTransformECCWithMask(image_b, image_a, mask_b.astype(np.uint8), mask_a.astype(np.uint8),
+                                               homography.astype(np.float32), cv2.MOTION_HOMOGRAPHY, criteria,
+                                               blur | 1)
     except cv2.error:  # did not converge
         return homography
     warp = warp.astype(np.float64) / warp[2, 2]

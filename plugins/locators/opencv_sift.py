@@ -16,9 +16,9 @@ from photonpano import hookimpl
 from photonpano.stages import LocatorConfig
 from pydantic import Field
 
-from .common import FeatureLocator, Features, MotionModel, PairResult, ecc_image, ecc_polish, keypoint_mask, robust_motion
+from .common import FeatureLocator, Features, MotionModel, PairResult, keypoint_mask, robust_motion
 
-__all__ = ["OpenCVSiftConfig", "OpenCVSiftLocator", "ecc_image"]
+__all__ = ["OpenCVSiftConfig", "OpenCVSiftLocator"]
 
 ROBUST_METHODS = ("ransac", "usac-magsac", "usac-accurate", "lmeds")
 
@@ -142,23 +142,6 @@ class OpenCVSiftLocator(FeatureLocator):
                              motion=self.config.motion, method=self.config.method,
                              threshold_px=self.config.reprojection_px, min_inliers=self.config.min_inliers,
                              refine=self.config.refine != "none")
-
-    def refine_ecc(self, image_a: NDArray[np.float32], image_b: NDArray[np.float32],
-                   mask_b: NDArray[np.bool_], homography: NDArray[np.float64]) -> NDArray[np.float64]:
-        """Polish a homography (b to a) by ECC maximisation; return the input on failure.
-
-        Args:
-            image_a: (H, W) float32 normalised flux of frame a (the moving image).
-            image_b: (H, W) float32 normalised flux of frame b (the template).
-            mask_b: (H, W) bool pixels of frame b to use.
-            homography: (3, 3) float64 starting estimate mapping b's pixels to a's.
-
-        Returns:
-            (3, 3) float64 refined homography, or ``homography`` if ECC fails or moves
-            a corner by more than ``ecc_max_change_px``.
-        """
-        return ecc_polish(image_a, image_b, mask_b, homography, iterations=self.config.ecc_iterations,
-                          blur=self.config.ecc_blur, max_change_px=self.config.ecc_max_change_px)
 
 
 def _native(features):
