@@ -4,9 +4,9 @@ Not a plugin (it registers nothing). Locators built on it:
 
 - :class:`CachingLocator` keeps per-merged-frame data (features, prepared images) in a
   cache keyed by the *content* of the frame, so a frame registered by several calls of
-  :meth:`~photonpano.stages.Locator.register_pairs` (the framework calls it once for the
-  consecutive pairs and once for the longer-offset pairs of each level) or a frame that did
-  not change between levels is described once. :meth:`CachingLocator.cache_stats` reports
+  :meth:`~photonpano.stages.Locator.register_pairs` (the framework calls it once per
+  window of groups, and a frame belongs to the pairs of a few consecutive calls) or a
+  frame that did not change between levels is described once. :meth:`CachingLocator.cache_stats` reports
   hits and misses.
 - :class:`FeatureLocator` adds the feature-based recipe: describe each frame once, match
   each pair, estimate a robust homography, optionally polish it by ECC.
@@ -95,7 +95,7 @@ class FrameCache:
     """Content-keyed cache of per-frame data with hit and miss counters.
 
     Entries live until :meth:`retain` drops those whose frames are no longer current, so
-    the cache holds at most one level's frames.
+    the cache holds at most the frames of one call.
     """
 
     def __init__(self) -> None:

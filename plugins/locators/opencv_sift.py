@@ -76,7 +76,7 @@ class OpenCVSiftLocator(FeatureLocator):
     """Registers pairs of merged frames with SIFT (see :class:`OpenCVSiftConfig`).
 
     Features are cached by frame content (see ``common.CachingLocator``): a frame used by
-    both calls of a level (consecutive and longer-offset pairs) is described once;
+    consecutive calls of a level is described once;
     :meth:`cache_stats` counts hits and misses.
     """
 
