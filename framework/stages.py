@@ -296,7 +296,10 @@ class Locator(abc.ABC):
         """Register each pair ``(a, b)``: find H mapping frame b's pixels to frame a's.
 
         Args:
-            merged: the merged frames of this level.
+            merged: merged frames of this level: at pairwise levels a ring of the
+                recent ones (the framework streams a level's frames in windows and
+                calls once per window), so indices are positions in ``merged``, not
+                group numbers, and a slot may hold another group in the next call.
             pairs: (P, 2) int64 indices into ``merged``.
             initial: (P, 3, 3) float64 current estimate of each pair's homography (for
                 direct methods or to guide matching; feature methods may ignore it).
