@@ -118,17 +118,26 @@ def pano(input: Annotated[Path, typer.Argument(help="A capture: a .npy photon cu
 
     try:
         host = _host()
-        if not input.exists():
-            raise PhotonpanoError(f"input {input} does not exist")
-        source = host.hook.photonpano_source_for_input(path=input)
-        if source is None:
-            raise PhotonpanoError(f"no source plugin reads {input} (supported: .npy photon cubes, folders of "
-                                  ".bin readouts, videos, image folders, .mraw; see `photonpano plugins`)")
-        data = apply_overrides({"source": source, **_merger_for(source, host)}, set_ or [])
+        data = apply_overrides(_spec_for_capture(input, host), set_ or [])
         parsed = validate_spec(data, host, origin="pano")
         _report(_execute(parsed, output, force, host), output)
     except PhotonpanoError as exc:
         _fail(str(exc))
+
+
+def _spec_for_capture(path: Path, host) -> dict[str, Any]:
+    """Return the spec mapping of a capture file or folder: the source plugin that reads it and its merger.
+
+    Raises:
+        PhotonpanoError: if ``path`` does not exist or no source plugin reads it.
+    """
+    if not path.exists():
+        raise PhotonpanoError(f"input {path} does not exist")
+    source = host.hook.photonpano_source_for_input(path=path)
+    if source is None:
+        raise PhotonpanoError(f"no source plugin reads {path} (supported: .npy photon cubes, folders of "
+                              ".bin readouts, videos, image folders, .mraw; see `photonpano plugins`)")
+    return {"source": source, **_merger_for(source, host)}
 
 
 def _merger_for(source: dict[str, Any], host) -> dict[str, Any]:
@@ -225,12 +234,7 @@ def compare(input: Annotated[str, typer.Argument(help="A spec (.yaml), a capture
                 raise PhotonpanoError(f"spec {input} does not exist")
             data = yaml.safe_load(path.read_text()) or {}
         else:
-            if not path.exists():
-                raise PhotonpanoError(f"input {input} does not exist")
-            source = host.hook.photonpano_source_for_input(path=path)
-            if source is None:
-                raise PhotonpanoError(f"no source plugin reads {input} (see `photonpano plugins`)")
-            data = {"source": source}
+            data = _spec_for_capture(path, host)
         data = apply_overrides(data, set_ or [])
         keys = [k.strip() for k in locators.split(",") if k.strip()]
         if not keys:

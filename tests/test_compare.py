@@ -54,3 +54,20 @@ def test_markdown_table_reports_failures_and_numbers():
     table = markdown_table(rows)
     assert "| `a` | 0.123 | 0.500 | 2 | 1.5 | 12.0 | 3/4 |" in table
     assert "| `b` | – | locator (b): needs kornia: pip install x |" in table
+
+
+def test_compare_on_a_video_capture_merges_intensities_and_keeps_the_camera_static(tmp_path):
+    """A capture of intensity frames gets the `mean` merger, as in `photonpano pano` (the real Photron clip)."""
+    pytest.importorskip("pyMRAW")
+    from pathlib import Path
+
+    from photonpano.geometry import apply, corners
+
+    clip = Path(__file__).parent / "data" / "highspeed" / "ball_12bit.mraw"
+    out = tmp_path / "cmp"
+    result = CliRunner().invoke(app, ["compare", str(clip), "-o", str(out), "-l", "opencv-sift",
+                                      "--set", "group_size=3", "--set", "levels=2"])
+    assert result.exit_code == 0, result.output
+    assert json.loads((out / "compare.json").read_text())["runs"][0]["status"] == "ok"
+    c = apply(np.load(out / "opencv-sift" / "homographies.npy"), corners(384, 384))
+    assert np.abs(c - c[:1]).max() < 1.0
