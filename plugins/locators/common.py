@@ -9,7 +9,7 @@ Not a plugin (it registers nothing). Locators built on it:
   frame that did not change between levels is described once. :meth:`CachingLocator.cache_stats` reports
   hits and misses.
 - :class:`FeatureLocator` adds the feature-based recipe: describe each frame once, match
-  each pair, estimate a robust homography, optionally polish it by ECC.
+  each pair, fit a robust motion model (:func:`robust_motion`), optionally polish it by ECC.
 
 Only numpy at module level; OpenCV is imported inside functions.
 """

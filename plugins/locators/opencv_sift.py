@@ -20,8 +20,6 @@ from .common import FeatureLocator, Features, MotionModel, PairResult, keypoint_
 
 __all__ = ["OpenCVSiftConfig", "OpenCVSiftLocator"]
 
-ROBUST_METHODS = ("ransac", "usac-magsac", "usac-accurate", "lmeds")
-
 
 class OpenCVSiftConfig(LocatorConfig):
     """OpenCV SIFT + ratio test + RANSAC/USAC homography between merged frames."""
