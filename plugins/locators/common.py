@@ -28,7 +28,8 @@ from pydantic import Field
 
 __all__ = ["Features", "PairResult", "FrameCache", "CachingLocator", "FeatureLocator", "PolishConfig",
            "frame_key", "to_registrations", "keypoint_mask", "ecc_image", "ecc_polish", "corner_change",
-           "check_pairs", "MotionModel", "MOTION_PARAMETERS", "robust_method", "robust_motion", "gric"]
+           "check_pairs", "MotionModel", "MOTION_PARAMETERS", "robust_method", "robust_motion", "gric",
+           "ratio_test_motion"]
 
 
 @dataclass(frozen=True)
@@ -508,3 +509,32 @@ def robust_motion(src: NDArray[np.float32], dst: NDArray[np.float32], *, motion:
     h, n_in = fits[chosen]
     ok = n_in >= min_inliers and abs(np.linalg.det(h[:2, :2])) > 1e-3
     return PairResult(h, len(src), n_in, bool(ok))
+
+
+def ratio_test_motion(matcher: Any, points_a: NDArray, descriptors_a: NDArray, points_b: NDArray,
+                      descriptors_b: NDArray, config: Any) -> PairResult:
+    """Match descriptors of frame b to frame a, keep Lowe's ratio-test survivors, fit :func:`robust_motion`.
+
+    Args:
+        matcher: an OpenCV ``DescriptorMatcher`` (e.g. ``cv2.BFMatcher``) for the descriptors.
+        points_a: (Ka, 2) keypoints of frame a, pixels (photonpano's convention).
+        descriptors_a: (Ka, D) their descriptors.
+        points_b: (Kb, 2) keypoints of frame b.
+        descriptors_b: (Kb, D) their descriptors.
+        config: the locator's config, with ``ratio``, ``min_inliers``, ``motion``,
+            ``method``, ``reprojection_px`` and ``refine``.
+
+    Returns:
+        The pair's result (b to a); failed (``ok=False``) with fewer than four keypoints
+        in a frame or fewer than ``max(4, min_inliers)`` ratio-test matches.
+    """
+    if len(points_a) < 4 or len(points_b) < 4:
+        return PairResult()
+    knn = matcher.knnMatch(descriptors_b, descriptors_a, k=2)
+    good = [p[0] for p in knn if len(p) == 2 and p[0].distance < config.ratio * p[1].distance]
+    if len(good) < max(4, config.min_inliers):
+        return PairResult(matches=len(good))
+    src = np.asarray(points_b, np.float32)[[m.queryIdx for m in good]]
+    dst = np.asarray(points_a, np.float32)[[m.trainIdx for m in good]]
+    return robust_motion(src, dst, motion=config.motion, method=config.method, threshold_px=config.reprojection_px,
+                         min_inliers=config.min_inliers, refine=config.refine != "none")

@@ -19,7 +19,7 @@ from photonpano import hookimpl
 from photonpano.stages import LocatorConfig
 from pydantic import Field
 
-from .common import FeatureLocator, Features, MotionModel, PairResult, PolishConfig, keypoint_mask, robust_motion
+from .common import FeatureLocator, Features, MotionModel, PairResult, PolishConfig, keypoint_mask, ratio_test_motion
 
 __all__ = ["OpenCVOrbConfig", "OpenCVBinaryLocator"]
 
@@ -104,18 +104,9 @@ class OpenCVBinaryLocator(FeatureLocator):
         return Features(np.array([k.pt for k in keypoints], np.float64), descriptors)
 
     def match(self, feat_a: Features, feat_b: Features) -> PairResult:
-        """Ratio-test matching by Hamming distance and a robust homography (b to a)."""
-        if len(feat_a) < 4 or len(feat_b) < 4:
-            return PairResult()
-        knn = self._matcher.knnMatch(feat_b.descriptors, feat_a.descriptors, k=2)
-        good = [p[0] for p in knn if len(p) == 2 and p[0].distance < self.config.ratio * p[1].distance]
-        if len(good) < max(4, self.config.min_inliers):
-            return PairResult(matches=len(good))
-        src = feat_b.points[[m.queryIdx for m in good]].astype(np.float32)
-        dst = feat_a.points[[m.trainIdx for m in good]].astype(np.float32)
-        return robust_motion(src, dst, motion=self.config.motion, method=self.config.method,
-                             threshold_px=self.config.reprojection_px, min_inliers=self.config.min_inliers,
-                             refine=self.config.refine != "none")
+        """Ratio-test matching by Hamming distance and a robust motion model (b to a)."""
+        return ratio_test_motion(self._matcher, feat_a.points, feat_a.descriptors, feat_b.points,
+                                 feat_b.descriptors, self.config)
 
 
 @hookimpl

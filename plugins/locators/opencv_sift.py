@@ -16,7 +16,7 @@ from photonpano import hookimpl
 from photonpano.stages import LocatorConfig
 from pydantic import Field
 
-from .common import FeatureLocator, Features, MotionModel, PairResult, keypoint_mask, robust_motion
+from .common import FeatureLocator, Features, MotionModel, PairResult, keypoint_mask, ratio_test_motion
 
 __all__ = ["OpenCVSiftConfig", "OpenCVSiftLocator"]
 
@@ -130,16 +130,7 @@ class OpenCVSiftLocator(FeatureLocator):
             The pair's result; ``homography`` is (3, 3) float64.
         """
         (pts_a, desc_a), (pts_b, desc_b) = _native(feat_a), _native(feat_b)
-        if len(pts_a) < 4 or len(pts_b) < 4:
-            return PairResult()
-        pairs = self._matcher.knnMatch(desc_b, desc_a, k=2)
-        good = [p[0] for p in pairs if len(p) == 2 and p[0].distance < self.config.ratio * p[1].distance]
-        if len(good) < max(4, self.config.min_inliers):
-            return PairResult(matches=len(good))
-        return robust_motion(pts_b[[m.queryIdx for m in good]], pts_a[[m.trainIdx for m in good]],
-                             motion=self.config.motion, method=self.config.method,
-                             threshold_px=self.config.reprojection_px, min_inliers=self.config.min_inliers,
-                             refine=self.config.refine != "none")
+        return ratio_test_motion(self._matcher, pts_a, desc_a, pts_b, desc_b, self.config)
 
 
 def _native(features):
