@@ -23,6 +23,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .stages import PhotonSource
+from .streaming import sum_ranges_by_blocks
 
 __all__ = [
     "Response",
@@ -122,24 +123,15 @@ class IntensitySource(PhotonSource):
         Raises:
             ValueError: if the edges are not increasing or leave the capture.
         """
-        edges = np.asarray(edges, dtype=np.int64)
-        if edges.ndim != 1 or np.any(np.diff(edges) <= 0):
-            raise ValueError(f"frame range edges must be strictly increasing, got {edges}")
-        if len(edges) and (edges[0] < 0 or edges[-1] > self.n_frames):
-            raise ValueError(f"frame ranges {edges[0]}:{edges[-1]} leave the capture of {self.n_frames} frames")
-        out = np.zeros((max(len(edges) - 1, 0), self.height, self.width), np.float32)
-        if len(edges) < 2:
-            return out
-        pos = int(edges[0])
-        while pos < edges[-1]:
-            end = min(int(edges[-1]), pos + self.chunk_frames)
-            codes = self.read_codes(pos, end)
-            local = np.concatenate([[pos], edges[(edges > pos) & (edges < end)], [end]]).astype(np.int64)
-            idx = np.searchsorted(edges, local[:-1], side="right") - 1
-            for a, b, r in zip(local[:-1], local[1:], idx):
-                out[r] += self.lut[codes[a - pos:b - pos]].sum(axis=0, dtype=np.float32)
-            pos = end
-        return out
+        def blocks(start: int, stop: int):
+            for pos in range(start, stop, self.chunk_frames):
+                yield pos, self.read_codes(pos, min(stop, pos + self.chunk_frames))
+
+        def count(codes: NDArray, local: NDArray[np.int64]) -> NDArray[np.float32]:
+            return np.stack([self.lut[codes[a:b]].sum(axis=0, dtype=np.float32)
+                             for a, b in zip(local[:-1], local[1:])])
+
+        return sum_ranges_by_blocks(edges, self.n_frames, blocks, count, (self.height, self.width), np.float32)
 
 
 def mean_intensity(sums: NDArray, n_frames: NDArray | float, *, min_frames: float = 0.5) -> NDArray[np.float32]:

@@ -14,12 +14,12 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable
+from typing import Callable, Iterable
 
 import numpy as np
 from numpy.typing import NDArray
 
-__all__ = ["FrameSegment", "FrameFiles", "DEFAULT_CHUNK_BYTES"]
+__all__ = ["FrameSegment", "FrameFiles", "DEFAULT_CHUNK_BYTES", "sum_ranges_by_blocks"]
 
 DEFAULT_CHUNK_BYTES = 32 * 2**20
 """Default read buffer size of :class:`FrameFiles` in bytes (32 MiB)."""
@@ -133,19 +133,47 @@ class FrameFiles:
         Raises:
             ValueError: if the edges are not increasing or leave the frames.
         """
-        edges = np.asarray(edges, dtype=np.int64)
-        if edges.ndim != 1 or np.any(np.diff(edges) <= 0):
-            raise ValueError(f"frame range edges must be strictly increasing, got {edges}")
-        if len(edges) and (edges[0] < 0 or edges[-1] > self.n_frames):
-            raise ValueError(f"frame ranges {edges[0]}:{edges[-1]} leave the capture of {self.n_frames} frames")
-        out = np.zeros((max(len(edges) - 1, 0),) + tuple(out_shape), dtype=out_dtype)
-        if len(edges) < 2:
-            return out
-        for pos, block in self.blocks(int(edges[0]), int(edges[-1])):
-            end = pos + len(block)
-            inner = edges[(edges > pos) & (edges < end)]
-            local = np.concatenate([[pos], inner, [end]]).astype(np.int64)
-            pieces = count(block, local - pos)
-            # each piece is the part of one range that lies in this block
-            out[np.searchsorted(edges, local[:-1], side="right") - 1] += pieces
+        return sum_ranges_by_blocks(edges, self.n_frames, self.blocks, count, out_shape, out_dtype)
+
+
+def sum_ranges_by_blocks(edges: NDArray[np.int64], n_frames: int,
+                         blocks: Callable[[int, int], Iterable[tuple[int, NDArray]]],
+                         count: Callable[[NDArray, NDArray[np.int64]], NDArray],
+                         out_shape: tuple[int, ...], out_dtype=np.uint16) -> NDArray:
+    """Sum frames over consecutive ranges from blocks of frames read one at a time.
+
+    The streaming loop shared by the sources: each block is split at the range edges
+    inside it, ``count`` sums the pieces, and each piece is added to its range.
+
+    Args:
+        edges: (B + 1,) strictly increasing frame indices within ``[0, n_frames]``.
+        n_frames: number of frames of the capture.
+        blocks: ``blocks(start, stop)`` yields ``(block_start, frames)`` for consecutive
+            in-memory blocks covering frames ``start:stop``.
+        count: ``count(block, local_edges) -> (b, *out_shape)`` sums a block over the
+            ranges ``local_edges`` (relative to the block's first frame).
+        out_shape: shape of one range's sum, e.g. ``(H, W)``.
+        out_dtype: dtype of the sums.
+
+    Returns:
+        (B, *out_shape) sums; range ``b`` covers frames ``edges[b]:edges[b+1]``.
+
+    Raises:
+        ValueError: if the edges are not increasing or leave the frames.
+    """
+    edges = np.asarray(edges, dtype=np.int64)
+    if edges.ndim != 1 or np.any(np.diff(edges) <= 0):
+        raise ValueError(f"frame range edges must be strictly increasing, got {edges}")
+    if len(edges) and (edges[0] < 0 or edges[-1] > n_frames):
+        raise ValueError(f"frame ranges {edges[0]}:{edges[-1]} leave the capture of {n_frames} frames")
+    out = np.zeros((max(len(edges) - 1, 0),) + tuple(out_shape), dtype=out_dtype)
+    if len(edges) < 2:
         return out
+    for pos, block in blocks(int(edges[0]), int(edges[-1])):
+        end = pos + len(block)
+        inner = edges[(edges > pos) & (edges < end)]
+        local = np.concatenate([[pos], inner, [end]]).astype(np.int64)
+        pieces = count(block, local - pos)
+        # each piece is the part of one range that lies in this block
+        out[np.searchsorted(edges, local[:-1], side="right") - 1] += pieces
+    return out
