@@ -8,6 +8,8 @@ Not a plugin (it registers nothing). Locators built on it:
   window of groups, and a frame belongs to the pairs of a few consecutive calls) or a
   frame that did not change between levels is described once. :meth:`CachingLocator.cache_stats` reports
   hits and misses.
+- :class:`DirectLocator` adds the direct recipe: prepare each frame once, register each pair
+  from its initial estimate.
 - :class:`FeatureLocator` adds the feature-based recipe: describe each frame once, match
   each pair, fit a robust motion model (:func:`robust_motion`), optionally polish it by ECC.
 
@@ -29,7 +31,7 @@ from pydantic import Field
 __all__ = ["Features", "PairResult", "FrameCache", "CachingLocator", "FeatureLocator", "PolishConfig",
            "frame_key", "to_registrations", "keypoint_mask", "ecc_image", "ecc_polish", "corner_change",
            "check_pairs", "MotionModel", "MOTION_PARAMETERS", "robust_method", "robust_motion", "gric",
-           "ratio_test_motion"]
+           "ratio_test_motion", "DirectLocator"]
 
 
 @dataclass(frozen=True)
@@ -299,6 +301,41 @@ class FeatureLocator(CachingLocator):
             return PairResult(polished, result.matches, result.inliers, True)
 
         return to_registrations(executor.map(polish, results, pairs[:, 0], pairs[:, 1]))
+
+
+class DirectLocator(CachingLocator):
+    """A direct (intensity-based) locator: per-frame prepared data, each pair from its start.
+
+    Each distinct frame is prepared once (:meth:`prepare`, cached under
+    :attr:`prepared_kind`), then every pair is registered by :meth:`register` starting
+    from the framework's ``initial`` estimate.
+    """
+
+    prepared_kind: str = "prepared"
+    """Cache name of the prepared frames (``<kind>_hits`` / ``<kind>_misses`` in :meth:`cache_stats`)."""
+
+    @abc.abstractmethod
+    def prepare(self, flux: NDArray[np.float32], mask: NDArray[np.bool_]) -> Any:
+        """Prepare one merged frame ((H, W) float32 flux, NaN where unobserved; (H, W) bool trusted)."""
+
+    @abc.abstractmethod
+    def register(self, prepared_a: Any, prepared_b: Any, initial: NDArray[np.float64]) -> PairResult:
+        """Register one pair: frame a (moving) and b (template) as prepared, (3, 3) float64 start b to a."""
+
+    def register_pairs(self, merged: MergedFrames, pairs: NDArray[np.int64],
+                       initial: NDArray[np.float64]) -> PairRegistrations:
+        """Register each pair starting from ``initial`` (see :meth:`Locator.register_pairs`)."""
+        pairs = check_pairs(merged, pairs, initial)
+        self.begin(merged, pairs)
+        try:
+            def frame(i: int) -> Any:
+                return self.frame_data(self.prepared_kind, i, lambda: self.prepare(merged.flux[i], merged.masks[i]),
+                                       flux=True)
+
+            return to_registrations([self.register(frame(int(a)), frame(int(b)), np.asarray(h, np.float64))
+                                     for (a, b), h in zip(pairs, initial)])
+        finally:
+            self.finish()
 
 
 def to_registrations(results: list[PairResult]) -> PairRegistrations:

@@ -38,10 +38,10 @@ from typing import Annotated, Any, ClassVar, Literal
 import numpy as np
 from numpy.typing import NDArray
 from photonpano import hookimpl
-from photonpano.stages import LocatorConfig, MergedFrames, PairRegistrations
+from photonpano.stages import LocatorConfig
 from pydantic import Field
 
-from .common import CachingLocator, PairResult, check_pairs, corner_change, ecc_image, to_registrations
+from .common import DirectLocator, PairResult, corner_change, ecc_image
 
 __all__ = ["KorniaDirectConfig", "KorniaDirectLocator"]
 
@@ -150,12 +150,14 @@ def _reduction(full: tuple[int, int], small: tuple[int, int]) -> NDArray[np.floa
     return np.array([[sx, 0, 0.5 * sx - 0.5], [0, sy, 0.5 * sy - 0.5], [0, 0, 1]], np.float64)
 
 
-class KorniaDirectLocator(CachingLocator):
+class KorniaDirectLocator(DirectLocator):
     """Registers pairs with kornia's ImageRegistrator (see :class:`KorniaDirectConfig`).
 
     Attributes:
         device: the ``torch.device`` kornia runs on.
     """
+
+    prepared_kind = "tensor"
 
     def __init__(self, config: KorniaDirectConfig) -> None:
         import torch
@@ -198,21 +200,6 @@ class KorniaDirectLocator(CachingLocator):
             trust = cv2.resize(trust, size, interpolation=cv2.INTER_AREA)
         stack = np.stack([image, trust])[None]
         return self._torch.from_numpy(stack).to(self.device), (flux.shape[0], flux.shape[1])
-
-    def register_pairs(self, merged: MergedFrames, pairs: NDArray[np.int64],
-                       initial: NDArray[np.float64]) -> PairRegistrations:
-        """Register each pair starting from ``initial`` (see :meth:`Locator.register_pairs`)."""
-        pairs = check_pairs(merged, pairs, initial)
-        self.begin(merged, pairs)
-        try:
-            def frame(i: int):
-                return self.frame_data("tensor", i, lambda: self.prepare(merged.flux[i], merged.masks[i]),
-                                       flux=True)
-
-            return to_registrations([self.register(frame(int(a)), frame(int(b)), np.asarray(h, np.float64))
-                                     for (a, b), h in zip(pairs, initial)])
-        finally:
-            self.finish()
 
     def register(self, frame_a: Any, frame_b: Any, initial: NDArray[np.float64]) -> PairResult:
         """Register one pair.

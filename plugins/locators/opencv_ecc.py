@@ -26,10 +26,10 @@ from typing import Annotated, Literal
 import numpy as np
 from numpy.typing import NDArray
 from photonpano import hookimpl
-from photonpano.stages import LocatorConfig, MergedFrames, PairRegistrations
+from photonpano.stages import LocatorConfig
 from pydantic import Field
 
-from .common import CachingLocator, PairResult, check_pairs, corner_change, ecc_image, to_registrations
+from .common import DirectLocator, PairResult, corner_change, ecc_image
 
 __all__ = ["OpenCVEccConfig", "OpenCVEccLocator", "ecc_pyramid", "pyramid_homography"]
 
@@ -114,12 +114,14 @@ def pyramid_homography(homography: NDArray[np.float64], level: int) -> NDArray[n
     return out / out[2, 2]
 
 
-class OpenCVEccLocator(CachingLocator):
+class OpenCVEccLocator(DirectLocator):
     """Registers pairs by pyramid ECC (see :class:`OpenCVEccConfig`).
 
     Each frame's normalised flux pyramid is built once per distinct frame content
     (:meth:`cache_stats`).
     """
+
+    prepared_kind = "pyramid"
 
     def __init__(self, config: OpenCVEccConfig) -> None:
         import cv2
@@ -130,22 +132,9 @@ class OpenCVEccLocator(CachingLocator):
                         "euclidean": cv2.MOTION_EUCLIDEAN,
                         "translation": cv2.MOTION_TRANSLATION}[config.motion]
 
-    def register_pairs(self, merged: MergedFrames, pairs: NDArray[np.int64],
-                       initial: NDArray[np.float64]) -> PairRegistrations:
-        """Register each pair starting from ``initial`` (see :meth:`Locator.register_pairs`)."""
-        pairs = check_pairs(merged, pairs, initial)
-        self.begin(merged, pairs)
-        try:
-            def pyramid(i: int):
-                return self.frame_data("pyramid", i, lambda: ecc_pyramid(
-                    ecc_image(merged.flux[i], merged.masks[i]), merged.masks[i], self.config.pyramid_levels),
-                    flux=True)
-
-            return to_registrations([self.register(pyramid(int(a)), pyramid(int(b)),
-                                                   np.asarray(h, np.float64))
-                                     for (a, b), h in zip(pairs, initial)])
-        finally:
-            self.finish()
+    def prepare(self, flux: NDArray[np.float32], mask: NDArray[np.bool_]):
+        """Return the :func:`ecc_pyramid` of a merged frame's normalised flux (:func:`ecc_image`)."""
+        return ecc_pyramid(ecc_image(flux, mask), mask, self.config.pyramid_levels)
 
     def register(self, pyramid_a, pyramid_b, initial: NDArray[np.float64]) -> PairResult:
         """Register one pair coarse to fine.
