@@ -1,5 +1,9 @@
 """photonpano: motion estimation and panoramas from single-photon cameras.
 
+Run a pipeline from Python with :func:`photonpano.run` (a spec file, YAML text or a
+mapping; returns homographies, panorama and summary) and read a finished run back with
+:func:`photonpano.load`; see :mod:`photonpano.api`.
+
 The method is "Panoramas from Photons" (Jungerman, Ingle, Gupta, ICCV 2023): stratified
 temporal re-sampling of a photon cube, iterated over levels (re-sample, merge, locate,
 interpolate), then every binary frame is warped onto one panorama canvas.
@@ -34,4 +38,13 @@ hookimpl = pluggy.HookimplMarker("photonpano")
 hookspec = pluggy.HookspecMarker("photonpano")
 """Marker for photonpano hook specifications (used in :mod:`photonpano.hookspecs`)."""
 
-__all__ = ["__version__", "hookimpl", "hookspec"]
+__all__ = ["__version__", "hookimpl", "hookspec", "run", "load"]
+
+
+def __getattr__(name: str):
+    """Import the Python API on first use, so ``import photonpano`` stays cheap."""
+    if name in ("run", "load"):
+        from . import api
+
+        return getattr(api, name)
+    raise AttributeError(f"module 'photonpano' has no attribute {name!r}")

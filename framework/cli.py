@@ -9,15 +9,16 @@ from __future__ import annotations
 
 import json
 import sys
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Annotated, Any, Optional
 
 import typer
 
-from . import hookimpl
+from . import __version__
 from .errors import PhotonpanoError
 
-app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False,
+app = typer.Typer(add_completion=True, no_args_is_help=True, pretty_exceptions_enable=False,
                   help="Motion estimation and panoramas from single-photon cameras "
                        "(stratified temporal re-sampling, Jungerman et al., ICCV 2023).")
 
@@ -25,6 +26,58 @@ SetOption = Annotated[Optional[list[str]], typer.Option(
     "--set", "-s", help="Override a spec field: stage.field=value (value parsed as YAML). Repeatable.")]
 OutOption = Annotated[Path, typer.Option("--output", "-o", help="Output folder (must be empty unless --force).")]
 ForceOption = Annotated[bool, typer.Option("--force", help="Write into a non-empty output folder.")]
+
+
+class _Options:
+    """Global options of the command line (set by :func:`_global_options`)."""
+
+    quiet = False
+
+
+def _version(value: bool) -> None:
+    if value:
+        typer.echo(f"photonpano {__version__}")
+        raise typer.Exit()
+
+
+@app.callback()
+def _global_options(
+    version: Annotated[bool, typer.Option("--version", callback=_version, is_eager=True,
+                                          help="Print the version and exit.")] = False,
+    verbose: Annotated[bool, typer.Option("--verbose", "-v", help="Print debug messages.")] = False,
+    quiet: Annotated[bool, typer.Option("--quiet", "-q", help="Print only warnings, errors and the result; "
+                                                             "no progress bars.")] = False,
+    log_file: Annotated[Optional[Path], typer.Option(
+        "--log-file", help="Append a detailed log (debug level, with timestamps) to this file.")] = None,
+) -> None:
+    """Motion estimation and panoramas from single-photon cameras."""
+    import logging
+
+    _Options.quiet = quiet
+    logger = logging.getLogger("photonpano")
+    logger.setLevel(logging.DEBUG)
+    for handler in list(logger.handlers):  # one set of handlers per invocation (tests call main repeatedly)
+        if getattr(handler, "_photonpano_cli", False):
+            logger.removeHandler(handler)
+            handler.close()
+    console = logging.StreamHandler(sys.stderr)
+    # the progress display already prints each level's line: the console log adds only
+    # warnings, or everything with --verbose
+    console.setLevel(logging.DEBUG if verbose else logging.WARNING)
+    console.setFormatter(logging.Formatter("%(message)s"))
+    handlers: list[logging.Handler] = [console]
+    if log_file is not None:
+        try:
+            file_handler = logging.FileHandler(log_file, encoding="utf-8")
+        except OSError as exc:
+            _fail(f"--log-file {log_file}: {exc.strerror or exc}")
+        file_handler.setLevel(logging.DEBUG)
+        file_handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
+        handlers.append(file_handler)
+    for handler in handlers:
+        handler._photonpano_cli = True  # type: ignore[attr-defined]
+        logger.addHandler(handler)
+    logger.propagate = False
 
 
 def _fail(message: str) -> None:
@@ -38,47 +91,34 @@ def _host():
     return PluginHost()
 
 
-class _RichProgress:
-    """Observer plugin drawing progress bars with rich (registered by the CLI only)."""
+@contextmanager
+def _observed(host):
+    """Register the log observer and, unless ``--quiet``, progress bars on ``host`` for a block."""
+    from .progress import LogObserver, RichProgress, reporting
 
-    def __init__(self) -> None:
-        from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+    observers = {"cli-log": LogObserver()}
+    bars = None
+    if not _Options.quiet:
+        from rich.console import Console
 
-        self.bars = Progress(TextColumn("{task.description:<20}"), BarColumn(), MofNCompleteColumn(),
-                             TimeElapsedColumn(), transient=False)
-        self.tasks: dict[str, Any] = {}
-
-    @hookimpl
-    def photonpano_run_start(self, source) -> None:
-        typer.echo(f"source: {source.name}: {source.n_frames} frames of {source.height}x{source.width}")
-        self.bars.start()
-
-    @hookimpl
-    def photonpano_progress(self, task: str, total, advance: int) -> None:
-        if task not in self.tasks:
-            self.tasks[task] = self.bars.add_task(task, total=total)
-        self.bars.advance(self.tasks[task], advance)
-
-    @hookimpl
-    def photonpano_level_finished(self, level) -> None:
-        s = level.statistics()
-        self.bars.console.print(f"level {s['level']}: {s['groups']} groups, median {s['median_inliers']:.0f} "
-                                f"inliers, {s['failed_pairs']} failed pairs")
-
-    @hookimpl
-    def photonpano_run_finished(self, summary) -> None:
-        self.bars.stop()
+        bars = observers["cli-progress"] = RichProgress(Console(stderr=True))
+    for name, observer in observers.items():
+        host.register(observer, name=name)
+    try:
+        with reporting(host):
+            yield
+    finally:
+        if bars is not None:
+            bars.stop()
+        for name in observers:
+            host.unregister(name)
 
 
 def _execute(spec, out: Path, force: bool, host) -> dict[str, Any]:
     from .pipeline import run_pipeline
 
-    observer = _RichProgress()
-    host.register(observer, name="cli-progress")
-    try:
-        return run_pipeline(spec, out, host, force=force)
-    finally:
-        observer.bars.stop()
+    with _observed(host):
+        return run_pipeline(spec, out, host, force=force).summary
 
 
 def _report(summary: dict[str, Any], out: Path) -> None:
@@ -92,6 +132,8 @@ def _report(summary: dict[str, Any], out: Path) -> None:
         if "psnr_db" in gt:
             typer.echo(f"panorama PSNR {gt['psnr_db']:.2f} dB; with the true homographies "
                        f"{gt['psnr_true_homographies_db']:.2f} dB (gap {gt['psnr_gap_db']:.2f} dB)")
+    for warning in summary.get("warnings", []):
+        typer.secho(f"warning: {warning}", fg=typer.colors.YELLOW, err=True)
 
 
 @app.command()
@@ -114,38 +156,16 @@ def pano(input: Annotated[Path, typer.Argument(help="A capture: a .npy photon cu
          output: OutOption,
          set_: SetOption = None, force: ForceOption = False) -> None:
     """Reconstruct a panorama from INPUT with the paper's default settings."""
+    from .presets import spec_for_capture
     from .spec import apply_overrides, validate_spec
 
     try:
         host = _host()
-        data = apply_overrides(_spec_for_capture(input, host), set_ or [])
+        data = apply_overrides(spec_for_capture(input, host), set_ or [])
         parsed = validate_spec(data, host, origin="pano")
         _report(_execute(parsed, output, force, host), output)
     except PhotonpanoError as exc:
         _fail(str(exc))
-
-
-def _spec_for_capture(path: Path, host) -> dict[str, Any]:
-    """Return the spec mapping of a capture file or folder: the source plugin that reads it and its merger.
-
-    Raises:
-        PhotonpanoError: if ``path`` does not exist or no source plugin reads it.
-    """
-    if not path.exists():
-        raise PhotonpanoError(f"input {path} does not exist")
-    source = host.hook.photonpano_source_for_input(path=path)
-    if source is None:
-        raise PhotonpanoError(f"no source plugin reads {path} (supported: .npy photon cubes, folders of "
-                              ".bin readouts, videos, image folders, .mraw; see `photonpano plugins`)")
-    return {"source": source, **_merger_for(source, host)}
-
-
-def _merger_for(source: dict[str, Any], host) -> dict[str, Any]:
-    """Sources of intensity frames (config class ``kind = "intensity"``) get the ``mean`` merger."""
-    cls = host.registry("source").get(source.get("plugin"))
-    if getattr(cls, "kind", "binary") == "intensity" and "mean" in host.registry("merger"):
-        return {"merger": "mean"}
-    return {}
 
 
 @app.command()
@@ -166,11 +186,12 @@ def convert(inputs: Annotated[list[Path], typer.Argument(help="A folder of Swiss
         for path in inputs:
             if not path.exists():
                 raise PhotonpanoError(f"input {path} does not exist")
-        from rich.progress import Progress
-
         from photonpano.plugins.sources.swissspad import convert_bin_to_npy
 
-        with Progress(transient=True) as bar:
+        from .progress import RichProgress
+
+        bars = RichProgress()
+        with bars.bars as bar:
             task = bar.add_task("convert", total=None)
             frames, notes = convert_bin_to_npy(inputs, output, layout, check_layout=check_layout,
                                                progress=lambda done, total: bar.update(task, completed=done,
@@ -234,14 +255,17 @@ def compare(input: Annotated[str, typer.Argument(help="A spec (.yaml), a capture
                 raise PhotonpanoError(f"spec {input} does not exist")
             data = yaml.safe_load(path.read_text()) or {}
         else:
-            data = _spec_for_capture(path, host)
+            from .presets import spec_for_capture
+
+            data = spec_for_capture(path, host)
         data = apply_overrides(data, set_ or [])
         keys = [k.strip() for k in locators.split(",") if k.strip()]
         if not keys:
             raise PhotonpanoError("--locators: give at least one locator key")
         prepare_output(output, force)
-        rows = compare_locators(data, keys, host, output, origin=input, log=typer.echo,
-                                on_row=lambda done: write_comparison(done, output, data), refine=refine)
+        with _observed(host):
+            rows = compare_locators(data, keys, host, output, origin=input, log=typer.echo,
+                                    on_row=lambda done: write_comparison(done, output, data), refine=refine)
     except PhotonpanoError as exc:
         _fail(str(exc))
     typer.echo(markdown_table(rows))
@@ -253,11 +277,14 @@ def compare(input: Annotated[str, typer.Argument(help="A spec (.yaml), a capture
 def plugins() -> None:
     """List installed plugins: key, stage, module, distribution, version, status."""
     from rich.console import Console
+    from rich.markup import escape
     from rich.table import Table
 
     table = Table("key", "stage", "module", "distribution", "version", "status")
     for info in _host().plugin_infos():
-        table.add_row(info.key, info.stage, info.module, info.distribution, info.version, info.status)
+        # escape: rich would read "photonpano[kornia]" in an install hint as markup and drop it
+        table.add_row(*(escape(str(v)) for v in (info.key, info.stage, info.module, info.distribution,
+                                                 info.version, info.status)))
     Console(width=200).print(table)
 
 
@@ -268,8 +295,9 @@ def validate(spec: Annotated[Path, typer.Argument(help="Pipeline spec (YAML).")]
 
     try:
         parsed = load_spec(spec, _host(), set_ or [])
-        for stage in ("source", "resampler", "merger", "locator", "interpolator"):
-            type(getattr(parsed, stage)).check_available()
+        for stage in ("source", "resampler", "merger", "locator", "interpolator", "refine_locator"):
+            if getattr(parsed, stage) is not None:
+                type(getattr(parsed, stage)).check_available()
     except PhotonpanoError as exc:
         _fail(str(exc))
     typer.echo(f"{spec}: valid")

@@ -103,13 +103,14 @@ def photonpano_source_for_input(path: Path) -> dict[str, Any] | None:
 
 
 @hookspec
-def photonpano_run_start(spec: Any, source: PhotonSource, out_dir: Path) -> None:
+def photonpano_run_start(spec: Any, source: PhotonSource, out_dir: Path | None) -> None:
     """Called once the source is open, before the first level.
 
     Args:
         spec: the validated pipeline spec.
         source: the opened capture.
-        out_dir: the output folder (exists and is empty or ``--force`` was given).
+        out_dir: the output folder (exists and is empty or ``--force`` was given), or
+            None for a run kept in memory (``photonpano.run`` without ``out_dir``).
 
     .. versionadded:: 0.1
     """
@@ -132,7 +133,7 @@ def photonpano_progress(task: str, total: int | None, advance: int) -> None:
 
 
 @hookspec
-def photonpano_level_finished(level: LevelResult, spec: Any, source: PhotonSource, out_dir: Path) -> None:
+def photonpano_level_finished(level: LevelResult, spec: Any, source: PhotonSource, out_dir: Path | None) -> None:
     """Called after each level with its groups, merged frames, pairs and homographies.
 
     Args:
@@ -140,20 +141,20 @@ def photonpano_level_finished(level: LevelResult, spec: Any, source: PhotonSourc
             merged-frame outputs).
         spec: the validated pipeline spec.
         source: the capture.
-        out_dir: the output folder.
+        out_dir: the output folder, or None for a run kept in memory.
 
     .. versionadded:: 0.1
     """
 
 
 @hookspec
-def photonpano_run_finished(spec: Any, summary: dict[str, Any], out_dir: Path) -> None:
+def photonpano_run_finished(spec: Any, summary: dict[str, Any], out_dir: Path | None) -> None:
     """Called after all outputs are written.
 
     Args:
         spec: the validated pipeline spec.
         summary: the content of ``run.json``.
-        out_dir: the output folder.
+        out_dir: the output folder, or None for a run kept in memory.
 
     .. versionadded:: 0.1
     """

@@ -8,8 +8,9 @@ bit-packed along the width, ``(T, H, W/8)`` uint8 with the most significant bit 
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
 from numpy.typing import NDArray
+
+from .jit import cached_njit
 
 __all__ = [
     "sum_packed_ranges",
@@ -29,7 +30,7 @@ for _v in range(256):
         _LANES[_v] |= np.uint64(((_v >> (7 - _k)) & 1) << (8 * _k))
 
 
-@njit(cache=True, nogil=True)
+@cached_njit(nogil=True)
 def _sum_packed_ranges(cube, edges, lanes, out):  # pragma: no cover - compiled
     rows, nbytes = cube.shape[1], cube.shape[2]
     acc = np.zeros(rows * nbytes, dtype=np.uint64)
@@ -102,7 +103,7 @@ def _check_edges(edges, n_frames: int) -> NDArray[np.int64]:
     return edges
 
 
-@njit(cache=True, nogil=True)
+@cached_njit(nogil=True)
 def _splitmix64(state):  # pragma: no cover - compiled
     state = state + np.uint64(0x9E3779B97F4A7C15)
     z = state
@@ -111,7 +112,7 @@ def _splitmix64(state):  # pragma: no cover - compiled
     return state, z ^ (z >> np.uint64(31))
 
 
-@njit(cache=True, nogil=True)
+@cached_njit(nogil=True)
 def _simulate_packed(thresholds, seed, frame_index, out):  # pragma: no cover - compiled
     rows, cols = thresholds.shape
     state = np.uint64(seed) * np.uint64(0x9E3779B97F4A7C15) + np.uint64(frame_index)

@@ -17,18 +17,21 @@ from __future__ import annotations
 import json
 import platform
 import time
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+from numpy.typing import NDArray
 from pydantic import BaseModel
 
 from . import __version__
 from .errors import PhotonpanoError
 from .host import PluginHost
+from .progress import reporting, start_task
 from .spec import dump_spec
 
-__all__ = ["prepare_output", "run_pipeline", "ground_truth_report"]
+__all__ = ["RunResult", "prepare_output", "run_pipeline", "reconstruct", "ground_truth_report", "library_versions"]
 
 
 def prepare_output(out_dir: Path, force: bool) -> None:
@@ -44,36 +47,60 @@ def prepare_output(out_dir: Path, force: bool) -> None:
     out_dir.mkdir(parents=True, exist_ok=True)
 
 
-def _progress(host: PluginHost):
-    def start(task: str, total: int | None):
-        host.hook.photonpano_progress(task=task, total=total, advance=0)
-        return lambda n: host.hook.photonpano_progress(task=task, total=total, advance=n)
-    return start
+@dataclass(frozen=True)
+class RunResult:
+    """What a run produced (the Python API returns it; ``run.json`` holds ``summary``).
+
+    Attributes:
+        spec: the validated ``PipelineSpec``.
+        homographies: (T, 3, 3) float64 frame-to-canvas homographies, one per binary
+            frame: frame pixel coordinates (x right, y down, pixel centres at integers)
+            to panorama canvas pixels (including the super-resolution scale).
+        panorama: (Hc, Wc) float32 linear flux of the panorama canvas in photons/s, NaN
+            where no frame looked (``panorama.npy``).
+        summary: the ``run.json`` content (versions, spec, timings, per-level
+            statistics, ground truth report if known).
+        out_dir: the output folder, or None for a run kept in memory.
+    """
+
+    spec: BaseModel
+    homographies: NDArray[np.float64]
+    panorama: NDArray[np.float32]
+    summary: dict[str, Any]
+    out_dir: Path | None = None
 
 
-def run_pipeline(spec: BaseModel, out_dir: Path, host: PluginHost, *, force: bool = False) -> dict[str, Any]:
-    """Run ``spec`` and write every output into ``out_dir``.
+def run_pipeline(spec: BaseModel, out_dir: Path | None, host: PluginHost, *, force: bool = False) -> RunResult:
+    """Run ``spec`` and, if ``out_dir`` is given, write every output into it.
 
     Args:
         spec: a validated ``PipelineSpec`` (see :func:`photonpano.spec.load_spec`).
-        out_dir: output folder (created; must be empty unless ``force``).
-        host: the plugin host (its lifecycle hooks are called).
+        out_dir: output folder (created; must be empty unless ``force``), or None to
+            keep the results in memory only (nothing is written).
+        host: the plugin host (its lifecycle hooks are called; observers get
+            ``out_dir=None`` for in-memory runs).
         force: allow writing into a non-empty folder (files of the same name are
             replaced; nothing else is touched).
 
     Returns:
-        The ``run.json`` summary.
+        The :class:`RunResult`.
 
     Raises:
         PhotonpanoError: bad output folder, unreadable source, failed stage.
     """
-    from .photons import tone_map
-
     for stage in ("source", "resampler", "merger", "locator", "interpolator"):
         type(getattr(spec, stage)).check_available()
-    prepare_output(out_dir, force)
-    (out_dir / "spec.yaml").write_text(dump_spec(spec))
-    progress = _progress(host)
+    if spec.refine_locator is not None:
+        type(spec.refine_locator).check_available()
+    if out_dir is not None:
+        prepare_output(out_dir, force)
+        (out_dir / "spec.yaml").write_text(dump_spec(spec))
+    with reporting(host):
+        return _run(spec, out_dir, host)
+
+
+def _run(spec: BaseModel, out_dir: Path | None, host: PluginHost) -> RunResult:
+    progress = start_task
     timings: dict[str, float] = {}
 
     t0 = time.perf_counter()
@@ -87,14 +114,10 @@ def run_pipeline(spec: BaseModel, out_dir: Path, host: PluginHost, *, force: boo
     homographies, stats, pano, stage_timings = reconstruct(spec, source, on_level=on_level, progress=progress)
     timings.update(stage_timings)
 
-    np.save(out_dir / "homographies.npy", pano.homographies)
-    np.save(out_dir / "panorama.npy", pano.flux)
-    if spec.outputs.panorama_png:
-        _write_png(out_dir / "panorama.png", tone_map(pano.flux, bits=16))
-
     summary: dict[str, Any] = {
         "photonpano": __version__,
         "python": platform.python_version(),
+        "versions": library_versions(spec),
         "plugins": host.versions(),
         "spec": spec.model_dump(mode="json"),
         "source": source.describe(),
@@ -103,15 +126,68 @@ def run_pipeline(spec: BaseModel, out_dir: Path, host: PluginHost, *, force: boo
         "levels": stats,
         "timings_s": timings,
     }
+    error = None
     if source.ground_truth is not None:
         t0 = time.perf_counter()
-        summary["ground_truth"] = ground_truth_report(source, homographies, pano, spec.panorama_subbatch_px)
+        advance = progress("ground truth report", source.n_frames) if source.scene_flux is not None else None
+        summary["ground_truth"] = ground_truth_report(source, homographies, pano, spec.panorama_subbatch_px,
+                                                      progress=advance)
         timings["ground_truth_report"] = time.perf_counter() - t0
-    if spec.outputs.trajectory_plot:
-        _plot_trajectory(out_dir / "trajectory.png", homographies, source)
-    (out_dir / "run.json").write_text(json.dumps(summary, indent=2, default=_json_default))
+        error = _trajectory_error(homographies, source)
+    if out_dir is not None:
+        _write_outputs(out_dir, spec, pano, summary, source, homographies, error)
     host.hook.photonpano_run_finished(spec=spec, summary=summary, out_dir=out_dir)
-    return summary
+    return RunResult(spec=spec, homographies=pano.homographies, panorama=pano.flux, summary=summary, out_dir=out_dir)
+
+
+def _write_outputs(out_dir: Path, spec: BaseModel, pano, summary: dict[str, Any], source,
+                   homographies: NDArray[np.float64], error) -> None:
+    """Write homographies, panorama, optional plot and, last, ``run.json``."""
+    from .photons import tone_map
+
+    np.save(out_dir / "homographies.npy", pano.homographies)
+    np.save(out_dir / "panorama.npy", pano.flux)
+    if spec.outputs.panorama_png:
+        _write_png(out_dir / "panorama.png", tone_map(pano.flux, bits=16))
+    if spec.outputs.trajectory_plot:
+        _plot_trajectory(out_dir / "trajectory.png", homographies, pano.homographies, source, error)
+    (out_dir / "run.json").write_text(json.dumps(summary, indent=2, default=_json_default))
+
+
+#: distributions whose versions every run.json records (import name -> distribution).
+CORE_LIBRARIES = {"numpy": "numpy", "cv2": "opencv-python-headless", "numba": "numba", "scipy": "scipy",
+                  "pluggy": "pluggy", "pydantic": "pydantic"}
+
+
+def library_versions(spec: BaseModel | None = None) -> dict[str, str]:
+    """Return the versions of the core libraries and of the optional backends ``spec`` uses.
+
+    Args:
+        spec: a validated ``PipelineSpec``; the ``requires`` of its stages' configs (e.g.
+            torch and kornia for ``kornia-sift``) are added. None: core libraries only.
+
+    Returns:
+        ``{import name: version}``; ``"not installed"`` for a missing one. OpenCV's is
+        ``cv2.__version__`` (whatever wheel provides it).
+    """
+    import importlib
+    from importlib import metadata
+
+    names = list(CORE_LIBRARIES)
+    if spec is not None:
+        for stage in ("source", "resampler", "merger", "locator", "interpolator", "refine_locator"):
+            config = getattr(spec, stage, None)
+            names += [name for name in getattr(type(config), "requires", ()) if name not in names]
+    versions: dict[str, str] = {}
+    for name in names:
+        try:
+            versions[name] = str(getattr(importlib.import_module(name), "__version__"))
+        except (ImportError, AttributeError):
+            try:
+                versions[name] = metadata.version(CORE_LIBRARIES.get(name, name))
+            except metadata.PackageNotFoundError:
+                versions[name] = "not installed"
+    return versions
 
 
 def reconstruct(spec: BaseModel, source, *, on_level=None, progress=None):
@@ -167,13 +243,18 @@ def reconstruct(spec: BaseModel, source, *, on_level=None, progress=None):
     return homographies, stats, pano, timings
 
 
-def _rmse(homographies: np.ndarray, source) -> float:
+def _trajectory_error(homographies: np.ndarray, source):
     from .metrics import trajectory_error
 
-    return trajectory_error(homographies, source.ground_truth, source.width, source.height).rmse_px
+    return trajectory_error(homographies, source.ground_truth, source.width, source.height)
 
 
-def ground_truth_report(source, homographies: np.ndarray, pano, subbatch_px: float) -> dict[str, Any]:
+def _rmse(homographies: np.ndarray, source) -> float:
+    return _trajectory_error(homographies, source).rmse_px
+
+
+def ground_truth_report(source, homographies: np.ndarray, pano, subbatch_px: float, *,
+                        progress=None) -> dict[str, Any]:
     """Measure a reconstruction against a capture's ground truth.
 
     The trajectory error is taken after the best global alignment G (the panorama's
@@ -187,6 +268,7 @@ def ground_truth_report(source, homographies: np.ndarray, pano, subbatch_px: flo
         homographies: (T, 3, 3) float64 estimated frame-to-panorama homographies.
         pano: the estimated :class:`~photonpano.reconstruct.Panorama`.
         subbatch_px: sub-batch tolerance used for the reference panorama.
+        progress: called with the number of binary frames merged into the reference.
 
     Returns:
         ``{"trajectory_rmse_px", "trajectory_max_px"}`` and, with a scene, ``"psnr_db",
@@ -194,19 +276,18 @@ def ground_truth_report(source, homographies: np.ndarray, pano, subbatch_px: flo
     """
     import cv2
 
-    from .metrics import psnr, trajectory_error
+    from .metrics import psnr
     from .reconstruct import assemble_panorama
 
-    err = trajectory_error(homographies, source.ground_truth, source.width, source.height)
+    err = _trajectory_error(homographies, source)
     report: dict[str, Any] = {"trajectory_rmse_px": err.rmse_px,
                               "trajectory_max_px": float(err.per_frame_px.max())}
     if source.scene_flux is None:
         return report
-    canvas_from_pano = pano.homographies[0] @ np.linalg.inv(homographies[0])
-    canvas_from_scene = canvas_from_pano @ np.linalg.inv(err.alignment)
+    canvas_from_scene = _canvas_from_scene(homographies, pano.homographies, err)
     shape = pano.flux.shape
     truth = assemble_panorama(source, canvas_from_scene @ source.ground_truth, subbatch_px=subbatch_px,
-                              canvas_shape=shape)
+                              canvas_shape=shape, progress=progress)
     scene = cv2.warpPerspective(source.scene_flux, canvas_from_scene, shape[::-1], flags=cv2.INTER_LINEAR,
                                 borderMode=cv2.BORDER_CONSTANT, borderValue=np.nan)
     both = np.isfinite(pano.flux) & np.isfinite(truth.flux) & np.isfinite(scene)
@@ -223,8 +304,26 @@ def _write_png(path: Path, image: np.ndarray) -> None:
         raise PhotonpanoError(f"cannot write {path}")
 
 
-def _plot_trajectory(path: Path, homographies: np.ndarray, source) -> None:
-    """Plot the frame centres over time (estimated, and true after alignment if known)."""
+def _canvas_from_scene(homographies: np.ndarray, to_canvas: np.ndarray, error) -> np.ndarray:
+    """(3, 3) homography from ground-truth scene coordinates to the panorama canvas.
+
+    ``homographies`` map frames to the middle frame's coordinates, ``to_canvas`` the same
+    frames to the canvas; ``error.alignment`` maps the former to the scene.
+    """
+    canvas_from_pano = to_canvas[0] @ np.linalg.inv(homographies[0])
+    return canvas_from_pano @ np.linalg.inv(error.alignment)
+
+
+def _plot_trajectory(path: Path, homographies: np.ndarray, to_canvas: np.ndarray, source, error) -> None:
+    """Plot the frame centres over time in canvas pixels, and the per-frame error if known.
+
+    Args:
+        path: the PNG to write.
+        homographies: (T, 3, 3) frame-to-middle-frame homographies (the estimate's gauge).
+        to_canvas: (T, 3, 3) frame-to-canvas homographies (``homographies.npy``).
+        source: the capture (frame size, frame rate, ground truth).
+        error: the :class:`~photonpano.metrics.TrajectoryError` of the estimate, or None.
+    """
     import matplotlib
 
     matplotlib.use("Agg")
@@ -233,22 +332,25 @@ def _plot_trajectory(path: Path, homographies: np.ndarray, source) -> None:
     from . import geometry
 
     centre = np.array([[(source.width - 1) / 2, (source.height - 1) / 2]])
-    t = np.arange(len(homographies)) / source.frame_rate_hz
-    fig, axes = plt.subplots(2, 1, figsize=(8, 5), sharex=True)
-    est = geometry.apply(homographies, centre)[:, 0]
+    t = np.arange(len(to_canvas)) / source.frame_rate_hz
+    panels = 3 if error is not None else 2
+    fig, axes = plt.subplots(panels, 1, figsize=(8, 2.2 * panels + 0.6), sharex=True)
+    est = geometry.apply(to_canvas, centre)[:, 0]
     truth = None
-    if source.ground_truth is not None:
-        from .metrics import trajectory_error
-
-        align = trajectory_error(homographies, source.ground_truth, source.width, source.height).alignment
-        truth = geometry.apply(np.linalg.inv(align) @ source.ground_truth, centre)[:, 0]
+    if error is not None:
+        truth = geometry.apply(_canvas_from_scene(homographies, to_canvas, error) @ source.ground_truth, centre)[:, 0]
     for axis, name in enumerate("xy"):
-        axes[axis].plot(t, est[:, axis], label="estimated", lw=1)
         if truth is not None:
-            axes[axis].plot(t, truth[:, axis], "--", label="true", lw=1)
-        axes[axis].set_ylabel(f"frame centre {name} (panorama px)")
-    axes[0].legend()
-    axes[1].set_xlabel("time (s)")
+            axes[axis].plot(t, truth[:, axis], color="0.6", lw=3, label="true")
+        axes[axis].plot(t, est[:, axis], color="C0", lw=1, label="estimated")
+        axes[axis].set_ylabel(f"centre {name} (canvas px)")
+    axes[0].legend(loc="best")
+    if error is not None:
+        axes[2].plot(t, error.per_frame_px, color="C3", lw=1)
+        axes[2].set_ylabel("error (scene px)")
+        axes[2].set_title(f"per-frame mean corner error after global alignment (RMSE {error.rmse_px:.3f} px)",
+                          fontsize=9)
+    axes[-1].set_xlabel("time (s)")
     fig.tight_layout()
     fig.savefig(path, dpi=100)
     plt.close(fig)

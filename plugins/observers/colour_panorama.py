@@ -86,9 +86,9 @@ def colour_panorama(source: Any, homographies: NDArray[np.float64], canvas_shape
 
 
 @hookimpl
-def photonpano_run_finished(spec: Any, summary: dict[str, Any], out_dir: Path) -> None:
-    """Write ``panorama_rgb.npy``/``.png`` when the source asks for a colour panorama."""
-    if not getattr(spec.source, "colour_panorama", False):
+def photonpano_run_finished(spec: Any, summary: dict[str, Any], out_dir: Path | None) -> None:
+    """Write ``panorama_rgb.npy``/``.png`` when the source asks for a colour panorama (runs with an output folder)."""
+    if out_dir is None or not getattr(spec.source, "colour_panorama", False):
         return
     import cv2
 

@@ -16,9 +16,9 @@ from photonpano import hookimpl
 
 
 @hookimpl
-def photonpano_level_finished(level: Any, spec: Any, out_dir: Path) -> None:
-    """Dump ``level.merged`` into ``out_dir/level_<k>/`` if the spec enables it."""
-    if not spec.outputs.merged_frames or level.merged is None:
+def photonpano_level_finished(level: Any, spec: Any, out_dir: Path | None) -> None:
+    """Dump ``level.merged`` into ``out_dir/level_<k>/`` if the spec enables it (not for in-memory runs)."""
+    if out_dir is None or not spec.outputs.merged_frames or level.merged is None:
         return
     import cv2
 

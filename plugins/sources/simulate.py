@@ -187,6 +187,7 @@ class SimulatedCapture(PhotonSource):
         import cv2
 
         from photonpano.photons import simulate_packed_frames
+        from photonpano.progress import start_task
 
         self.config = config
         photo = config.photo or bundled_photo()
@@ -209,11 +210,15 @@ class SimulatedCapture(PhotonSource):
         size = (config.width, config.height)
         flags = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
 
+        advance = start_task("simulate", config.frames)
+
         def render(start: int, stop: int) -> None:
             for t in range(start, stop):
                 intensity = cv2.warpPerspective(scene, self.ground_truth[t], size, flags=flags)
                 probability = -np.expm1(-config.flux * intensity)
                 self.cube[t] = simulate_packed_frames(probability, config.seed, t)
+                if (t - start) % 256 == 255 or t == stop - 1:
+                    advance((t - start) % 256 + 1)
 
         # Frames depend only on (seed, index), so threads give the same cube; OpenCV and
         # the photon kernel release the GIL.

@@ -158,16 +158,41 @@ def test_unreadable_videos_are_one_line_errors(tmp_path, clip):
         _video_source(tmp_path / "missing.mp4")
 
 
-def test_pano_picks_sources_and_the_mean_merger(host, tmp_path, clip):
-    from photonpano.cli import _merger_for
+def test_pano_picks_sources_and_video_settings(host, tmp_path, clip):
+    from photonpano.presets import INTENSITY_SETTINGS, spec_for_capture
 
     video = tmp_path / "a.mp4"
     video.write_bytes(b"")
     assert host.hook.photonpano_source_for_input(path=video) == {"plugin": "video", "path": str(video)}
+    _pymraw()
     mraw = HIGHSPEED / "ball_12bit.mraw"
-    assert host.hook.photonpano_source_for_input(path=mraw)["plugin"] == "photron-mraw"
-    assert _merger_for({"plugin": "video"}, host) == {"merger": "mean"}
-    assert _merger_for({"plugin": "npy-cube"}, host) == {}
+    spec = spec_for_capture(mraw, host)
+    assert spec["source"]["plugin"] == "photron-mraw"
+    assert {k: spec[k] for k in INTENSITY_SETTINGS} == INTENSITY_SETTINGS  # mean merger, pairwise levels
+    assert 2 <= spec["group_size"] <= 3  # clean 12-bit frames; 15 frames: at least 5 groups at level 1
+    cube = tmp_path / "cube.npy"
+    np.save(cube, np.zeros((16, 8, 1), np.uint8))
+    assert spec_for_capture(cube, host) == {"source": {"plugin": "npy-cube", "path": str(cube)}}
+
+
+def test_video_group_size_follows_noise_and_length():
+    from photonpano.presets import video_group_size
+
+    class Frames:
+        name = "synthetic"
+
+        def __init__(self, n, sigma):
+            rng = np.random.default_rng(0)
+            self.frames = 0.5 + sigma * rng.standard_normal((n, 32, 32))
+            self.n_frames = n
+
+        def sum_ranges(self, edges):
+            return np.stack([self.frames[a:b].sum(0) for a, b in zip(edges[:-1], edges[1:])])
+
+    assert video_group_size(Frames(1000, 0.001)) == 2  # clean frames: no averaging needed
+    noisy = video_group_size(Frames(1000, 0.1))  # SNR 5 per frame -> (30 / 5)^2 = 36 frames
+    assert 30 <= noisy <= 42
+    assert video_group_size(Frames(20, 0.1)) == 4  # capped: at least 5 groups
 
 
 # --- the mean merger ----------------------------------------------------------------
@@ -291,5 +316,20 @@ def test_real_photron_clip_static_within_one_pixel_with_the_default_locator():
     spec = validate_spec({"source": {"plugin": "photron-mraw", "path": str(HIGHSPEED / "ball_12bit.mraw")},
                           "merger": "mean", "group_size": 3, "levels": 2, "refine_locator": None}, PluginHost())
     h, _, _, _ = reconstruct(spec, spec.source.build())
+    c = apply(h, corners(384, 384))
+    assert np.abs(c - c[:1]).max() < 1.0
+
+
+def test_pano_on_the_real_photron_clip_needs_no_overrides(tmp_path):
+    """Acceptance (issue 10): ``photonpano pano ball_12bit.mraw -o out`` alone keeps the static camera static."""
+    _pymraw()
+    from typer.testing import CliRunner
+
+    from photonpano.cli import app
+    from photonpano.geometry import apply, corners
+
+    result = CliRunner().invoke(app, ["-q", "pano", str(HIGHSPEED / "ball_12bit.mraw"), "-o", str(tmp_path / "out")])
+    assert result.exit_code == 0, result.output
+    h = np.load(tmp_path / "out" / "homographies.npy")
     c = apply(h, corners(384, 384))
     assert np.abs(c - c[:1]).max() < 1.0
