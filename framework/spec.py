@@ -18,6 +18,7 @@ plugins installed, so third-party plugins validate exactly like built-ins.
 from __future__ import annotations
 
 import difflib
+import typing
 from pathlib import Path
 from typing import Annotated, Any, Literal, Union
 
@@ -28,7 +29,7 @@ from .errors import PluginError, SpecError
 from .host import PluginHost
 from .stages import STAGES
 
-__all__ = ["DEFAULT_PLUGINS", "OutputsConfig", "spec_model", "load_spec", "validate_spec",
+__all__ = ["DEFAULT_PLUGINS", "OutputsConfig", "spec_model", "load_spec", "validate_spec", "resolve_relative_paths",
            "apply_overrides", "dump_spec"]
 
 DEFAULT_PLUGINS: dict[str, str] = {
@@ -162,8 +163,55 @@ def load_spec(path: Path, host: PluginHost, overrides: list[str] = ()) -> BaseMo
         data = {}
     if not isinstance(data, dict):
         raise SpecError(f"{path}: a spec must be a mapping of stage and setting names, got {type(data).__name__}")
+    data = resolve_relative_paths(data, host, path.parent)
     data = apply_overrides(data, overrides)
     return validate_spec(data, host, origin=str(path), node=node, overridden=overrides)
+
+
+def _is_path_field(annotation: Any) -> bool:
+    """True if a field annotation is ``Path`` or contains it (``Path | None``, ``list[Path]``)."""
+    if annotation is Path:
+        return True
+    return any(_is_path_field(arg) for arg in typing.get_args(annotation))
+
+
+def resolve_relative_paths(data: dict[str, Any], host: PluginHost, base_dir: Path) -> dict[str, Any]:
+    """Return a copy of ``data`` whose relative stage paths are joined to ``base_dir``.
+
+    A spec file's relative paths (e.g. ``source: {path: capture.npy}``) mean "next to
+    the spec", wherever the command runs; paths given with ``--set`` keep meaning
+    "relative to the working directory" (they are resolved at validation). Only fields
+    whose type is a path (``Path``, ``Path | None``, ``list[Path]``) of the selected
+    plugin's config are touched; unknown plugins are left for validation to report.
+
+    Args:
+        data: a spec mapping as read from YAML.
+        host: the plugin host (to find each stage's config class).
+        base_dir: the folder of the spec file.
+
+    Returns:
+        A new mapping (``data`` is not modified).
+    """
+    out = dict(data)
+    for stage in STAGES:
+        section = out.get(stage)
+        if not isinstance(section, dict):
+            continue
+        config = host.registry(stage).get(section.get("plugin", DEFAULT_PLUGINS.get(stage)))
+        if config is None:
+            continue
+        section = dict(section)
+        for name, field in config.model_fields.items():
+            value = section.get(name)
+            if not _is_path_field(field.annotation) or value is None:
+                continue
+            if isinstance(value, str) and value and not Path(value).is_absolute():
+                section[name] = str(base_dir.absolute() / value)
+            elif isinstance(value, list):
+                section[name] = [str(base_dir.absolute() / v) if isinstance(v, str) and not Path(v).is_absolute()
+                                 else v for v in value]
+        out[stage] = section
+    return out
 
 
 def apply_overrides(data: dict[str, Any], overrides: list[str]) -> dict[str, Any]:

@@ -12,11 +12,12 @@ from __future__ import annotations
 import abc
 import importlib.util
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any, ClassVar
 
 import numpy as np
 from numpy.typing import NDArray
-from pydantic import BaseModel, ConfigDict
+from pydantic import BaseModel, ConfigDict, ValidationInfo, field_validator
 
 from .errors import MissingDependency
 from .types import check_shape
@@ -59,6 +60,22 @@ class StageConfig(BaseModel):
     stage: ClassVar[str] = ""
     requires: ClassVar[tuple[str, ...]] = ()
     install_hint: ClassVar[str] = ""
+
+    @field_validator("*", mode="after")
+    @classmethod
+    def _absolute_paths(cls, value: Any, info: ValidationInfo) -> Any:
+        """Make relative paths absolute, against ``context["base_dir"]`` or the working directory.
+
+        Specs are saved with absolute paths, so a saved ``spec.yaml`` runs from anywhere;
+        :func:`photonpano.spec.load_spec` resolves a spec file's own relative paths
+        against the file's folder before this runs.
+        """
+        base = Path((info.context or {}).get("base_dir") or Path.cwd())
+        if isinstance(value, Path):
+            return value if value.is_absolute() else base / value
+        if isinstance(value, list) and value and all(isinstance(v, Path) for v in value):
+            return [v if v.is_absolute() else base / v for v in value]
+        return value
 
     @classmethod
     def missing_requirements(cls) -> list[str]:

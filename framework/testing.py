@@ -217,12 +217,14 @@ class PluginContract:
         return self.config_class(**self.config_kwargs)
 
     @pytest.fixture(scope="class")
-    def config(self, tmp_path_factory: pytest.TempPathFactory) -> StageConfig:
-        """A valid config instance of the plugin."""
-        return self.make_config(tmp_path_factory)
+    @classmethod
+    def config(cls, tmp_path_factory: pytest.TempPathFactory) -> StageConfig:
+        """A valid config instance of the plugin (one per test class)."""
+        return cls().make_config(tmp_path_factory)
 
     @pytest.fixture(scope="class")
-    def built(self, config: StageConfig) -> Any:
+    @classmethod
+    def built(cls, config: StageConfig) -> Any:
         """The built stage object (skipped with the install hint if an extra is missing)."""
         missing = type(config).missing_requirements()
         if missing:
