@@ -299,11 +299,11 @@ class SwissSpadCorrections(SourceConfig):
     """Sensor-specific fix of raw frames: ``colorspad`` (half array 256x512 -> 254x496:
     crop rows 2: and columns :496, swap columns 252:256 with 260:264), ``grayspad``
     (crop to 254x496, or 509x496 for a full array), or ``none``."""
-    inpaint_mask: Path | None = None
+    inpaint_mask: Literal["colorspad"] | Path | None = None
     """Hot/dead pixels to inpaint: a bool ``.npy`` (True = inpaint) or an image (non-zero =
     inpaint) in the coordinates after ``fix``; a larger mask is cropped to its top-left
     corner. ``colorspad`` selects the bundled real mask of a SwissSPAD2 colour half array."""
-    cfa: Path | None = None
+    cfa: Literal["colorspad"] | Path | None = None
     """Colour filter array: an RGB image (white = no filter, pure red/green/blue = that
     filter) or an ``.npy`` of codes (-1 none, 0 R, 1 G, 2 B), in the coordinates after
     ``fix`` (a larger one is cropped to its top-left corner, as ``photoncube`` does).
@@ -323,8 +323,8 @@ class SwissSpadCorrections(SourceConfig):
         return self
 
 
-def _resolve(path: Path | None, kind: Literal["inpaint_mask", "cfa"]) -> Path | None:
-    if path is not None and str(path) == "colorspad" and not path.exists():
+def _resolve(path: Path | str | None, kind: Literal["inpaint_mask", "cfa"]) -> Path | None:
+    if path == "colorspad":
         return bundled_sensor_file(kind)
     return path
 

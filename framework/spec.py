@@ -175,6 +175,13 @@ def _is_path_field(annotation: Any) -> bool:
     return any(_is_path_field(arg) for arg in typing.get_args(annotation))
 
 
+def _literals(annotation: Any) -> set[Any]:
+    """Values of the ``Literal`` members of an annotation (``Literal["colorspad"] | Path`` -> {"colorspad"})."""
+    if typing.get_origin(annotation) is Literal:
+        return set(typing.get_args(annotation))
+    return set().union(*(_literals(arg) for arg in typing.get_args(annotation)))
+
+
 def resolve_relative_paths(data: dict[str, Any], host: PluginHost, base_dir: Path) -> dict[str, Any]:
     """Return a copy of ``data`` whose relative stage paths are joined to ``base_dir``.
 
@@ -203,7 +210,8 @@ def resolve_relative_paths(data: dict[str, Any], host: PluginHost, base_dir: Pat
         section = dict(section)
         for name, field in config.model_fields.items():
             value = section.get(name)
-            if not _is_path_field(field.annotation) or value is None:
+            if not _is_path_field(field.annotation) or value is None or (
+                    isinstance(value, str) and value in _literals(field.annotation)):
                 continue
             if isinstance(value, str) and value and not Path(value).is_absolute():
                 section[name] = str(base_dir.absolute() / value)

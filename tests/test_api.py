@@ -116,3 +116,18 @@ def test_version_and_log_file(tmp_path):
     text = log.read_text()
     assert "run start" in text and "level 2:" in text and "run finished" in text
     assert "━" not in result.output  # --quiet: no progress bars
+
+
+def test_keywords_in_path_fields_and_path_lists_are_kept(tmp_path, host):
+    """``inpaint_mask: colorspad`` names the bundled mask, not a file next to the spec."""
+    from photonpano.spec import resolve_relative_paths
+
+    data = {"source": {"plugin": "npy-cube", "path": "c.npy", "inpaint_mask": "colorspad", "cfa": "cfa.png"},
+            "resampler": "midpoint"}
+    out = resolve_relative_paths(data, host, tmp_path)
+    assert out["source"] == {"plugin": "npy-cube", "path": str(tmp_path / "c.npy"), "inpaint_mask": "colorspad",
+                             "cfa": str(tmp_path / "cfa.png")}
+    assert data["source"]["path"] == "c.npy"  # the input mapping is not modified
+    bins = resolve_relative_paths({"source": {"plugin": "swissspad-bin", "path": ["a.bin", "/abs/b.bin"]}},
+                                  host, tmp_path)
+    assert bins["source"]["path"] == [str(tmp_path / "a.bin"), "/abs/b.bin"]
