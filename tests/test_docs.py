@@ -72,3 +72,12 @@ def test_mkdocs_build_is_strict_clean(tmp_path):
     assert result.returncode == 0 and not warnings, "\n".join(warnings) or result.stderr[-2000:]
     assert (tmp_path / "site" / "reference" / "stages" / "index.html").exists()
 
+
+
+def test_tutorial_pictures_are_small_and_used():
+    """Every picture under docs/img is under 300 KB and shown by a page (none is missing)."""
+    pages = "".join(path.read_text() for path in (ROOT / "docs").glob("*.md"))
+    shown = set(re.findall(r"\]\(img/([^)]+)\)", pages))
+    present = {path.name: path.stat().st_size for path in (ROOT / "docs" / "img").glob("*.png")}
+    assert shown == set(present), f"shown {sorted(shown)}, present {sorted(present)}"
+    assert max(present.values()) < 300_000, present
