@@ -24,7 +24,20 @@ app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_
 SetOption = Annotated[Optional[list[str]], typer.Option(
     "--set", "-s", help="Override a spec field: stage.field=value (value parsed as YAML). Repeatable.")]
 OutOption = Annotated[Path, typer.Option("--output", "-o", help="Output folder (must be empty unless --force).")]
-ForceOption = Annotated[bool, typer.Option("--force", help="Write into a non-empty output folder.")]
+ForceOption = Annotated[bool, typer.Option("--force", help="Replace the previous run's outputs in the output "
+                                           "folder (the files its manifest lists; other files are kept).")]
+ResumeOption = Annotated[bool, typer.Option("--resume", help="Continue the interrupted run in the output "
+                                            "folder from its last finished level (same spec).")]
+
+
+_state: dict[str, Any] = {"debug": False}
+
+
+@app.callback()
+def _global_options(debug: Annotated[bool, typer.Option(
+        "--debug", help="Show the full traceback of unexpected errors (plugin bugs) instead of one line.")]
+        = False) -> None:
+    _state["debug"] = debug
 
 
 def _fail(message: str) -> None:
@@ -70,13 +83,18 @@ class _RichProgress:
         self.bars.stop()
 
 
-def _execute(spec, out: Path, force: bool, host) -> dict[str, Any]:
+def _execute(spec, out: Path, force: bool, host, resume: bool = False) -> dict[str, Any]:
+    from .faults import plugin_failure
     from .pipeline import run_pipeline
 
     observer = _RichProgress()
     host.register(observer, name="cli-progress")
     try:
-        return run_pipeline(spec, out, host, force=force)
+        return run_pipeline(spec, out, host, force=force, resume=resume)
+    except Exception as exc:  # plugin code raising anything: one line naming it
+        if isinstance(exc, PhotonpanoError) or _state["debug"]:
+            raise
+        raise plugin_failure(exc, host, spec) from exc
     finally:
         observer.bars.stop()
 
@@ -96,14 +114,14 @@ def _report(summary: dict[str, Any], out: Path) -> None:
 
 @app.command()
 def run(spec: Annotated[Path, typer.Argument(help="Pipeline spec (YAML).")], output: OutOption,
-        set_: SetOption = None, force: ForceOption = False) -> None:
+        set_: SetOption = None, force: ForceOption = False, resume: ResumeOption = False) -> None:
     """Run the pipeline described by a YAML spec."""
     from .spec import load_spec
 
     try:
         host = _host()
         parsed = load_spec(spec, host, set_ or [])
-        _report(_execute(parsed, output, force, host), output)
+        _report(_execute(parsed, output, force, host, resume), output)
     except PhotonpanoError as exc:
         _fail(str(exc))
 
@@ -112,7 +130,7 @@ def run(spec: Annotated[Path, typer.Argument(help="Pipeline spec (YAML).")], out
 def pano(input: Annotated[Path, typer.Argument(help="A capture: a .npy photon cube, a folder of SwissSPAD .bin "
                                                  "files, a video, an image folder or a Photron .mraw.")],
          output: OutOption,
-         set_: SetOption = None, force: ForceOption = False) -> None:
+         set_: SetOption = None, force: ForceOption = False, resume: ResumeOption = False) -> None:
     """Reconstruct a panorama from INPUT with the paper's default settings."""
     from .spec import apply_overrides, validate_spec
 
@@ -120,7 +138,7 @@ def pano(input: Annotated[Path, typer.Argument(help="A capture: a .npy photon cu
         host = _host()
         data = apply_overrides(_spec_for_capture(input, host), set_ or [])
         parsed = validate_spec(data, host, origin="pano")
-        _report(_execute(parsed, output, force, host), output)
+        _report(_execute(parsed, output, force, host, resume), output)
     except PhotonpanoError as exc:
         _fail(str(exc))
 
@@ -133,7 +151,14 @@ def _spec_for_capture(path: Path, host) -> dict[str, Any]:
     """
     if not path.exists():
         raise PhotonpanoError(f"input {path} does not exist")
-    source = host.hook.photonpano_source_for_input(path=path)
+    try:
+        source = host.hook.photonpano_source_for_input(path=path)
+    except Exception as exc:  # a plugin's bug: one line naming it
+        if _state["debug"]:
+            raise
+        from .faults import plugin_failure
+
+        raise plugin_failure(exc, host) from exc
     if source is None:
         raise PhotonpanoError(f"no source plugin reads {path} (supported: .npy photon cubes, folders of "
                               ".bin readouts, videos, image folders, .mraw; see `photonpano plugins`)")
@@ -183,7 +208,7 @@ def convert(inputs: Annotated[list[Path], typer.Argument(help="A folder of Swiss
 
 
 @app.command()
-def demo(output: OutOption, set_: SetOption = None, force: ForceOption = False,
+def demo(output: OutOption, set_: SetOption = None, force: ForceOption = False, resume: ResumeOption = False,
          frames: Annotated[int, typer.Option(help="Binary frames to simulate.")] = 20_000) -> None:
     """Simulate a capture from the bundled real photograph and reconstruct it.
 
@@ -197,7 +222,7 @@ def demo(output: OutOption, set_: SetOption = None, force: ForceOption = False,
         parsed = validate_spec(data, host, origin="demo")
         typer.echo(f"simulating {parsed.source.frames} binary frames of {parsed.source.height}x"
                    f"{parsed.source.width} at flux {parsed.source.flux} from the bundled photo ...")
-        _report(_execute(parsed, output, force, host), output)
+        _report(_execute(parsed, output, force, host, resume), output)
     except PhotonpanoError as exc:
         _fail(str(exc))
 
