@@ -253,11 +253,11 @@ def compare(input: Annotated[str, typer.Argument(help="A spec (.yaml), a capture
         if input == "simulate":
             data: dict[str, Any] = {"source": {"plugin": "simulate"}}
         elif path.suffix in (".yaml", ".yml"):
-            import yaml
+            from .spec import read_spec_file
 
             if not path.exists():
                 raise PhotonpanoError(f"spec {input} does not exist")
-            data = yaml.safe_load(path.read_text()) or {}
+            data = read_spec_file(path)[0] or {}
         else:
             data = _spec_for_capture(path, host)
         data = apply_overrides(data, set_ or [])

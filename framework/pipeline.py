@@ -117,6 +117,7 @@ def _run_into(spec: BaseModel, folder, host: PluginHost) -> dict[str, Any]:
 
     def on_level(result):
         host.hook.photonpano_level_finished(level=result, spec=spec, source=source, out_dir=out_dir)
+        folder.adopt_new_files()  # what observers wrote
 
     homographies, stats, pano, stage_timings = reconstruct(spec, source, on_level=on_level, progress=progress,
                                                            checkpoint=folder.save_checkpoint, resume=start)
