@@ -87,6 +87,10 @@ def _execute(spec, out: Path, force: bool, host, resume: bool = False) -> dict[s
     from .faults import plugin_failure
     from .pipeline import run_pipeline
 
+    import warnings
+
+    for note in host.collisions:  # a third party offering a key or name already taken
+        warnings.warn(note, stacklevel=1)
     observer = _RichProgress()
     host.register(observer, name="cli-progress")
     try:
