@@ -914,6 +914,7 @@ def assemble_panorama(source: PhotonSource, homographies: NDArray[np.float64], *
     def accumulate(run: NDArray[np.int64]) -> WarpAccumulator:
         acc = WarpAccumulator(ch, cw)
         for c in run:
+            executor.raise_if_cancelled()  # Ctrl-C: stop within a chunk
             chunk = edges[starts[c]:starts[c] + chunk_batches + 1]
             counts = source.sum_ranges(chunk)
             acc.add_many(counts, np.diff(chunk), to_canvas[(chunk[:-1] + chunk[1:]) // 2])
