@@ -305,7 +305,8 @@ def _describe_loc(loc: tuple, data: dict[str, Any]) -> str:
     head, rest = str(loc[0]), list(loc[1:])
     if head in STAGES and rest and isinstance(rest[0], str) and _plugin_of(data.get(head)) == rest[0]:
         head = f"{head} ({rest.pop(0)})"
-    return ".".join([head, *map(str, rest)])
+    text = ".".join([head, *map(str, rest)])
+    return text if len(text) <= 120 else f"{text[:117]}..."
 
 
 def _plugin_of(section: Any) -> str | None:

@@ -48,7 +48,7 @@ def load_yaml(text: str, origin: str) -> tuple[Any, yaml.Node | None]:
             return None, None
         _check(node, origin)
         return loader.construct_document(node), node
-    except yaml.YAMLError as exc:
+    except (yaml.YAMLError, ValueError) as exc:  # ValueError: e.g. an integer of 100k digits
         mark = getattr(exc, "problem_mark", None)
         where = f" line {mark.line + 1}" if mark else ""
         problem = " ".join(str(getattr(exc, "problem", None) or exc).split())[:200]
