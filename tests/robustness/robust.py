@@ -12,9 +12,8 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-from typer.testing import CliRunner
-
 from photonpano.cli import app
+from typer.testing import CliRunner
 
 TINY = ["--set", "source.frames=1200", "--set", "source.height=64", "--set", "source.width=120",
         "--set", "group_size=200", "--set", "levels=2", "--set", "pair_offsets=[1, 2]",
