@@ -88,6 +88,6 @@ def test_a_valid_spec_still_validates(tmp_path):
     spec = tmp_path / "spec.yaml"
     spec.write_text("source: simulate\nbase: &b {ratio: 0.7}\n")  # one alias is fine, unknown key is not
     assert_one_line_error(invoke("validate", spec), "base")
-    spec.write_text("source: &s {plugin: simulate, frames: 1000}\nlocator: {plugin: opencv-sift, ratio: 0.6}\n")
+    spec.write_text("source: &s {plugin: simulate}\nlocator: {plugin: opencv-sift, ratio: 0.6}\n")
     result = invoke("validate", spec)
     assert result.exit_code == 0, result.stderr
