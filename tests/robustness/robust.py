@@ -15,8 +15,8 @@ import numpy as np
 from photonpano.cli import app
 from typer.testing import CliRunner
 
-TINY = ["--set", "source.frames=1200", "--set", "source.height=64", "--set", "source.width=120",
-        "--set", "group_size=200", "--set", "levels=2", "--set", "pair_offsets=[1, 2]",
+TINY = ["--set", "source.frames=1500", "--set", "source.height=96", "--set", "source.width=200",
+        "--set", "group_size=250", "--set", "levels=2", "--set", "pair_offsets=[1, 2]",
         "--set", "outputs.trajectory_plot=false"]
 """A demo small enough for a test (about a second)."""
 
