@@ -94,8 +94,9 @@ def _host_with(monkeypatch, tmp_path, **modules):
 
 def test_a_locator_bug_names_the_locator(monkeypatch, tmp_path):
     _host_with(monkeypatch, tmp_path, boom_locator=BOOM_LOCATOR)
-    line = assert_one_line_error(invoke("demo", "-o", tmp_path / "out", *TINY, "--set", "locator=boom-locator"),
-                                 "locator (boom-locator)", "RuntimeError", "boom in register_pairs", "traceback in")
+    result = invoke("demo", "-o", tmp_path / "out", *TINY, "--set", "locator=boom-locator")
+    line = assert_one_line_error(result, "locator (boom-locator)", "RuntimeError", "boom in register_pairs",
+                                 "traceback in")
     log = line.split("traceback in ")[1].split(";")[0]
     assert "register_pairs" in open(log).read()
     assert not (tmp_path / "out").exists()
