@@ -109,7 +109,9 @@ def photonpano_run_start(spec: Any, source: PhotonSource, out_dir: Path) -> None
     Args:
         spec: the validated pipeline spec.
         source: the opened capture.
-        out_dir: the output folder (exists and is empty or ``--force`` was given).
+        out_dir: the output folder (locked by this run; the previous run's outputs
+            removed with ``--force``). Files an observer writes there are added to the
+            run's manifest; write them through :func:`photonpano.outputs.atomic_path`.
 
     .. versionadded:: 0.1
     """
@@ -148,7 +150,10 @@ def photonpano_level_finished(level: LevelResult, spec: Any, source: PhotonSourc
 
 @hookspec
 def photonpano_run_finished(spec: Any, summary: dict[str, Any], out_dir: Path) -> None:
-    """Called after all outputs are written.
+    """Called after all other outputs are written, just before ``run.json`` (written last).
+
+    Files written here are part of the run (its manifest); a hook that raises fails
+    the run, which then removes its outputs.
 
     Args:
         spec: the validated pipeline spec.
