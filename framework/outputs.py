@@ -214,6 +214,9 @@ class RunFolder:
             self._inspect()
         except BaseException:
             self._unlock()
+            if self._created:
+                with contextlib.suppress(OSError):
+                    root.rmdir()
             raise
         return self
 
@@ -343,15 +346,16 @@ class RunFolder:
 
     # -- finishing -------------------------------------------------------------------
     def commit(self, summary_text: str) -> None:
-        """Record every output, drop the checkpoints and write ``run.json`` last."""
+        """Record every output, write ``run.json`` last, then drop the checkpoints."""
         self.adopt_new_files()
-        shutil.rmtree(self.root / CHECKPOINTS, ignore_errors=True)
-        self.files = [n for n in self.files if not n.startswith(f"{CHECKPOINTS}/")]
         if RUN_JSON not in self.files:
             self.files.append(RUN_JSON)
         self._write_manifest(complete=True)
         write_text(self.root / RUN_JSON, summary_text)
         self._committed = True
+        shutil.rmtree(self.root / CHECKPOINTS, ignore_errors=True)
+        self.files = [n for n in self.files if not n.startswith(f"{CHECKPOINTS}/")]
+        self._write_manifest(complete=True)
 
     def __exit__(self, kind: type[BaseException] | None, exc: BaseException | None, tb: Any) -> None:
         try:

@@ -85,8 +85,8 @@ def run_pipeline(spec: BaseModel, out_dir: Path, host: PluginHost, *, force: boo
 
 
 def _input_paths(spec: BaseModel) -> list[Path]:
-    """The files and folders named by the spec's source section."""
-    return [value for value in vars(spec.source).values() if isinstance(value, Path)]
+    """The existing files and folders named by the spec's source section."""
+    return [value for value in vars(spec.source).values() if isinstance(value, Path) and value.exists()]
 
 
 def _resume_state(folder, spec_text: str):
