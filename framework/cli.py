@@ -84,10 +84,10 @@ class _RichProgress:
 
 
 def _execute(spec, out: Path, force: bool, host, resume: bool = False) -> dict[str, Any]:
+    import warnings
+
     from .faults import plugin_failure
     from .pipeline import run_pipeline
-
-    import warnings
 
     for note in host.collisions:  # a third party offering a key or name already taken
         warnings.warn(note, stacklevel=1)
