@@ -91,3 +91,22 @@ def test_resume_after_an_interrupted_level_equals_an_uninterrupted_run(reference
     assert summary["resumed_after_level"] == stop_after and len(summary["levels"]) == 3
     assert np.array_equal(np.load(out / "homographies.npy"), expected)
     assert assert_sound_folder(out) and not (out / outputs.CHECKPOINTS).exists()
+
+
+@pytest.mark.slow
+def test_ctrl_c_exits_promptly_and_keeps_the_checkpoints(reference, tmp_path):
+    spec, expected, _ = reference
+    out = tmp_path / "out"
+    process = _start(spec, out)
+    while not list((out / outputs.CHECKPOINTS).glob("level_*.npz")) and process.poll() is None:
+        time.sleep(0.01)
+    time.sleep(0.2)
+    start = time.perf_counter()
+    process.send_signal(signal.SIGINT)
+    assert process.wait(timeout=30) == 130
+    assert time.perf_counter() - start < 3.0  # within a second or so on an idle machine
+    assert not assert_sound_folder(out) and not (out / outputs.LOCK).exists()
+    assert list((out / outputs.CHECKPOINTS).glob("level_*.npz"))
+    result = run_subprocess("run", spec, "-o", out, "--resume")
+    assert result.returncode == 0, result.stderr
+    assert np.array_equal(np.load(out / "homographies.npy"), expected)
