@@ -25,13 +25,14 @@ app = typer.Typer(add_completion=True, no_args_is_help=True, pretty_exceptions_e
 SetOption = Annotated[Optional[list[str]], typer.Option(
     "--set", "-s", help="Override a spec field: stage.field=value (value parsed as YAML). Repeatable.")]
 OutOption = Annotated[Path, typer.Option("--output", "-o", help="Output folder (must be empty unless --force).")]
-ForceOption = Annotated[bool, typer.Option("--force", help="Write into a non-empty output folder.")]
+ForceOption = Annotated[bool, typer.Option("--force", help="Replace the previous run's outputs in the output "
+                                           "folder (the files its manifest lists; other files are kept).")]
+ResumeOption = Annotated[bool, typer.Option("--resume", help="Continue the interrupted run in the output "
+                                            "folder from its last finished level (same spec).")]
 
 
-class _Options:
-    """Global options of the command line (set by :func:`_global_options`)."""
-
-    quiet = False
+_state: dict[str, Any] = {"debug": False, "quiet": False}
+"""Global options of the command line (set by :func:`_global_options`)."""
 
 
 def _version(value: bool) -> None:
@@ -48,12 +49,15 @@ def _global_options(
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="Print only warnings, errors and the result; "
                                                              "no progress bars.")] = False,
     log_file: Annotated[Optional[Path], typer.Option(
-        "--log-file", help="Append a detailed log (debug level, with timestamps) to this file.")] = None,
+        "--log-file", help="Append a detailed log (debug level, with timestamps, tracebacks of plugin "
+                           "failures) to this file.")] = None,
+    debug: Annotated[bool, typer.Option(
+        "--debug", help="Show the full traceback of unexpected errors (plugin bugs) instead of one line.")] = False,
 ) -> None:
     """Motion estimation and panoramas from single-photon cameras."""
     import logging
 
-    _Options.quiet = quiet
+    _state.update(quiet=quiet, debug=debug)
     logger = logging.getLogger("photonpano")
     logger.setLevel(logging.DEBUG)
     for handler in list(logger.handlers):  # one set of handlers per invocation (tests call main repeatedly)
@@ -98,7 +102,7 @@ def _observed(host):
 
     observers = {"cli-log": LogObserver()}
     bars = None
-    if not _Options.quiet:
+    if not _state["quiet"]:
         from rich.console import Console
 
         bars = observers["cli-progress"] = RichProgress(Console(stderr=True))
@@ -114,11 +118,21 @@ def _observed(host):
             host.unregister(name)
 
 
-def _execute(spec, out: Path, force: bool, host) -> dict[str, Any]:
+def _execute(spec, out: Path, force: bool, host, resume: bool = False) -> dict[str, Any]:
+    import warnings
+
+    from .faults import plugin_failure
     from .pipeline import run_pipeline
 
+    for note in host.collisions:  # a third party offering a key or name already taken
+        warnings.warn(note, stacklevel=1)
     with _observed(host):
-        return run_pipeline(spec, out, host, force=force).summary
+        try:
+            return run_pipeline(spec, out, host, force=force, resume=resume).summary
+        except Exception as exc:  # plugin code raising anything: one line naming it
+            if isinstance(exc, PhotonpanoError) or _state["debug"]:
+                raise
+            raise _plugin_failure(exc, host, spec) from exc
 
 
 def _report(summary: dict[str, Any], out: Path) -> None:
@@ -138,14 +152,14 @@ def _report(summary: dict[str, Any], out: Path) -> None:
 
 @app.command()
 def run(spec: Annotated[Path, typer.Argument(help="Pipeline spec (YAML).")], output: OutOption,
-        set_: SetOption = None, force: ForceOption = False) -> None:
+        set_: SetOption = None, force: ForceOption = False, resume: ResumeOption = False) -> None:
     """Run the pipeline described by a YAML spec."""
     from .spec import load_spec
 
     try:
         host = _host()
         parsed = load_spec(spec, host, set_ or [])
-        _report(_execute(parsed, output, force, host), output)
+        _report(_execute(parsed, output, force, host, resume), output)
     except PhotonpanoError as exc:
         _fail(str(exc))
 
@@ -154,18 +168,41 @@ def run(spec: Annotated[Path, typer.Argument(help="Pipeline spec (YAML).")], out
 def pano(input: Annotated[Path, typer.Argument(help="A capture: a .npy photon cube, a folder of SwissSPAD .bin "
                                                  "files, a video, an image folder or a Photron .mraw.")],
          output: OutOption,
-         set_: SetOption = None, force: ForceOption = False) -> None:
+         set_: SetOption = None, force: ForceOption = False, resume: ResumeOption = False) -> None:
     """Reconstruct a panorama from INPUT with the paper's default settings."""
-    from .presets import spec_for_capture
     from .spec import apply_overrides, validate_spec
 
     try:
         host = _host()
-        data = apply_overrides(spec_for_capture(input, host), set_ or [])
+        data = apply_overrides(_capture_spec(input, host), set_ or [])
         parsed = validate_spec(data, host, origin="pano")
-        _report(_execute(parsed, output, force, host), output)
+        _report(_execute(parsed, output, force, host, resume), output)
     except PhotonpanoError as exc:
         _fail(str(exc))
+
+
+def _plugin_failure(exc: Exception, host, spec=None):
+    """One-line :class:`PluginError` for a plugin's bug; the traceback goes to the log (file)."""
+    import logging
+
+    from .faults import plugin_failure
+
+    logging.getLogger("photonpano").debug("unexpected exception in plugin code", exc_info=exc)
+    return plugin_failure(exc, host, spec)
+
+
+def _capture_spec(path: Path, host) -> dict[str, Any]:
+    """:func:`photonpano.presets.spec_for_capture`, with a plugin's bug reported as one line."""
+    from .presets import spec_for_capture
+
+    try:
+        return spec_for_capture(path, host)
+    except PhotonpanoError:
+        raise
+    except Exception as exc:  # a plugin's bug: one line naming it
+        if _state["debug"]:
+            raise
+        raise _plugin_failure(exc, host) from exc
 
 
 @app.command()
@@ -204,7 +241,7 @@ def convert(inputs: Annotated[list[Path], typer.Argument(help="A folder of Swiss
 
 
 @app.command()
-def demo(output: OutOption, set_: SetOption = None, force: ForceOption = False,
+def demo(output: OutOption, set_: SetOption = None, force: ForceOption = False, resume: ResumeOption = False,
          frames: Annotated[int, typer.Option(help="Binary frames to simulate.")] = 20_000) -> None:
     """Simulate a capture from the bundled real photograph and reconstruct it.
 
@@ -218,7 +255,7 @@ def demo(output: OutOption, set_: SetOption = None, force: ForceOption = False,
         parsed = validate_spec(data, host, origin="demo")
         typer.echo(f"simulating {parsed.source.frames} binary frames of {parsed.source.height}x"
                    f"{parsed.source.width} at flux {parsed.source.flux} from the bundled photo ...")
-        _report(_execute(parsed, output, force, host), output)
+        _report(_execute(parsed, output, force, host, resume), output)
     except PhotonpanoError as exc:
         _fail(str(exc))
 
@@ -249,15 +286,13 @@ def compare(input: Annotated[str, typer.Argument(help="A spec (.yaml), a capture
         if input == "simulate":
             data: dict[str, Any] = {"source": {"plugin": "simulate"}}
         elif path.suffix in (".yaml", ".yml"):
-            import yaml
+            from .spec import read_spec_file
 
             if not path.exists():
                 raise PhotonpanoError(f"spec {input} does not exist")
-            data = yaml.safe_load(path.read_text()) or {}
+            data = read_spec_file(path)[0] or {}
         else:
-            from .presets import spec_for_capture
-
-            data = spec_for_capture(path, host)
+            data = _capture_spec(path, host)
         data = apply_overrides(data, set_ or [])
         keys = [k.strip() for k in locators.split(",") if k.strip()]
         if not keys:

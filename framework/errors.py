@@ -2,7 +2,8 @@
 
 from __future__ import annotations
 
-__all__ = ["PhotonpanoError", "SpecError", "PluginError", "MissingDependency", "SourceError", "StageError"]
+__all__ = ["PhotonpanoError", "SpecError", "PluginError", "MissingDependency", "SourceError", "StageError",
+           "OutputError"]
 
 
 class PhotonpanoError(Exception):
@@ -34,3 +35,7 @@ class StageError(PhotonpanoError):
     def __init__(self, stage: str, plugin: str, reason: str) -> None:
         super().__init__(f"{stage} ({plugin}): {reason}")
         self.stage, self.plugin, self.reason = stage, plugin, reason
+
+
+class OutputError(PhotonpanoError):
+    """The output folder cannot be written (in use, not empty, read-only, full) or resumed."""

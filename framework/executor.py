@@ -13,16 +13,31 @@ OpenCV's own thread pool is set to one thread while a threaded executor runs.
 from __future__ import annotations
 
 import os
+import threading
 from concurrent.futures import ThreadPoolExecutor
 from typing import Any, Callable, Iterable
 
-__all__ = ["Executor", "SerialExecutor", "ThreadExecutor", "make_executor"]
+__all__ = ["Executor", "SerialExecutor", "ThreadExecutor", "make_executor", "Cancelled"]
+
+
+class Cancelled(Exception):
+    """Raised inside a task when its executor was cancelled (the caller was interrupted)."""
 
 
 class Executor:
     """Runs a function over independent items and returns the results in order."""
 
     workers: int = 1
+    cancelled: threading.Event | None = None
+
+    def raise_if_cancelled(self) -> None:
+        """Raise :class:`Cancelled` if the caller was interrupted: long tasks call this between chunks.
+
+        Raises:
+            Cancelled: once :meth:`map` saw an exception (e.g. Ctrl-C) in the caller.
+        """
+        if self.cancelled is not None and self.cancelled.is_set():
+            raise Cancelled("the run was interrupted")
 
     def map(self, fn: Callable[..., Any], *items: Iterable[Any]) -> list[Any]:
         """Return ``[fn(*args) for args in zip(*items)]``, in the order of the items."""
@@ -53,20 +68,34 @@ class ThreadExecutor(Executor):
         import cv2
 
         self.workers = max(1, workers)
+        self.cancelled = threading.Event()
         self._pool = ThreadPoolExecutor(self.workers, thread_name_prefix="photonpano")
         self._cv_threads = cv2.getNumThreads()
         cv2.setNumThreads(1)
 
     def map(self, fn: Callable[..., Any], *items: Iterable[Any]) -> list[Any]:
-        """Run ``fn`` over the items on the pool; exceptions propagate to the caller."""
-        return list(self._pool.map(fn, *items))
+        """Run ``fn`` over the items on the pool; exceptions propagate to the caller.
+
+        If the caller is interrupted (Ctrl-C) or a task fails, the tasks not started
+        are cancelled and running ones see :meth:`raise_if_cancelled` fire, so the
+        pool drains in well under a second instead of finishing its queue.
+        """
+        futures = [self._pool.submit(fn, *args) for args in zip(*items)]
+        try:
+            return [future.result() for future in futures]
+        except BaseException as exc:
+            if not isinstance(exc, Exception):  # interrupted: running tasks stop at their next check
+                self.cancelled.set()
+            for future in futures:
+                future.cancel()
+            raise
 
     def close(self) -> None:
         """Shut the pool down and restore OpenCV's thread count."""
         import cv2
 
         if self._pool is not None:
-            self._pool.shutdown()
+            self._pool.shutdown(cancel_futures=True)
             self._pool = None
             cv2.setNumThreads(self._cv_threads)
 

@@ -109,8 +109,10 @@ def photonpano_run_start(spec: Any, source: PhotonSource, out_dir: Path | None) 
     Args:
         spec: the validated pipeline spec.
         source: the opened capture.
-        out_dir: the output folder (exists and is empty or ``--force`` was given), or
-            None for a run kept in memory (``photonpano.run`` without ``out_dir``).
+        out_dir: the output folder (locked by this run; the previous run's outputs
+            removed with ``--force``), or None for a run kept in memory
+            (``photonpano.run`` without ``out_dir``). Files an observer writes there are
+            added to the run's manifest; write them through :func:`photonpano.outputs.atomic_path`.
 
     .. versionadded:: 0.1
     """
@@ -149,7 +151,10 @@ def photonpano_level_finished(level: LevelResult, spec: Any, source: PhotonSourc
 
 @hookspec
 def photonpano_run_finished(spec: Any, summary: dict[str, Any], out_dir: Path | None) -> None:
-    """Called after all outputs are written.
+    """Called after all other outputs are written, just before ``run.json`` (written last).
+
+    Files written here are part of the run (its manifest); a hook that raises fails
+    the run, which then removes its outputs.
 
     Args:
         spec: the validated pipeline spec.

@@ -72,12 +72,15 @@ class PluginHost:
     Attributes:
         pm: the pluggy plugin manager (use the methods below rather than ``pm.hook``).
         broken: entry-point or plugin name -> reason it is broken.
+        collisions: entry-point names and plugin keys offered twice (the built-in, else
+            the first registered, keeps them); also listed in ``broken``.
     """
 
     def __init__(self, autoload: bool = True) -> None:
         self.pm = pluggy.PluginManager("photonpano")
         self.pm.add_hookspecs(hookspecs)
         self.broken: dict[str, str] = {}
+        self.collisions: list[str] = []
         self._dists: dict[str, tuple[str, str]] = {}
         self._registries: dict[str, dict[str, type[StageConfig]]] | None = None
         for name in filter(None, os.environ.get("PHOTONPANO_DISABLE_PLUGINS", "").split(",")):
@@ -89,16 +92,32 @@ class PluginHost:
             self.pm.enable_tracing()
 
     def load_entry_points(self) -> None:
-        """Register every module named in the ``photonpano.plugins`` entry-point group."""
-        for ep in importlib.metadata.entry_points(group=GROUP):
-            if self.pm.is_blocked(ep.name) or self.pm.has_plugin(ep.name):
-                continue
+        """Register every module named in the ``photonpano.plugins`` entry-point group.
+
+        photonpano's own entry points load first and keep their names: a third-party
+        entry point of the same name is not loaded and is reported (in ``broken`` and
+        ``collisions``). A plugin that raises anything at import, ``SystemExit``
+        included, is recorded as broken (``KeyboardInterrupt`` still interrupts).
+        """
+        eps = sorted(importlib.metadata.entry_points(group=GROUP), key=lambda ep: not _is_builtin_ep(ep))
+        for ep in eps:
             dist = ep.dist.name if ep.dist else "?"
             version = ep.dist.version if ep.dist else "?"
+            if self.pm.is_blocked(ep.name):
+                continue
+            if self.pm.has_plugin(ep.name):
+                owner = self._dists.get(ep.name, ("?", ""))[0]
+                note = (f"entry point {ep.name!r} of {dist} ({ep.value}) is ignored: the name is taken by "
+                        f"{owner}")
+                self.broken[f"{ep.name} ({dist})"] = note
+                self.collisions.append(note)
+                continue
             try:
                 self.register(ep.load(), name=ep.name)
-            except Exception as exc:  # a broken plugin is reported, not fatal
-                self.broken[ep.name] = f"{dist}: cannot load {ep.value}: {type(exc).__name__}: {exc}"
+            except KeyboardInterrupt:
+                raise
+            except BaseException as exc:  # a broken plugin (even one calling sys.exit) is reported, not fatal
+                self.broken[ep.name] = f"{dist}: cannot load {ep.value}: {type(exc).__name__}: {exc}"[:300]
                 continue
             self._dists[ep.name] = (dist, version)
 
@@ -115,12 +134,12 @@ class PluginHost:
             if self.pm.is_registered(plugin):
                 self.pm.unregister(plugin)
             raise PluginError(f"plugin {name!r}: {exc}") from None
-        self._registries = None
+        self._invalidate()
 
     def unregister(self, name: str) -> None:
         """Remove the plugin registered under ``name``."""
         self.pm.unregister(name=name)
-        self._registries = None
+        self._invalidate()
 
     @property
     def hook(self) -> Any:
@@ -132,24 +151,34 @@ class PluginHost:
         for stage, hook_name in _REGISTER_HOOKS.items():
             base = STAGES[stage]
             # Registration hooks take no arguments: call each implementation on its own
-            # so that errors name the plugin that caused them.
-            for impl in reversed(getattr(self.pm.hook, hook_name).get_hookimpls()):
+            # so that errors name the plugin that caused them. Built-ins first, then in
+            # registration order: the first to offer a key keeps it.
+            impls = getattr(self.pm.hook, hook_name).get_hookimpls()
+            for impl in sorted(impls, key=lambda i: not _is_builtin(i.plugin)):
                 try:
                     offered = list(impl.function() or [])
-                except Exception as exc:
-                    self.broken[impl.plugin_name] = f"{hook_name} raised {type(exc).__name__}: {exc}"
+                except KeyboardInterrupt:
+                    raise
+                except BaseException as exc:
+                    self.broken[impl.plugin_name] = f"{hook_name} raised {type(exc).__name__}: {exc}"[:300]
                     continue
                 for cls in offered:
                     problem = _check_config_class(cls, base, stage)
                     key = cls.model_fields["plugin"].default if not problem else None
                     if not problem and key in registries[stage]:
                         other = registries[stage][key]
-                        problem = f"{stage} key {key!r} already registered by {other.__module__}"
+                        problem = (f"{stage} key {key!r} of {cls.__module__} is ignored: already registered "
+                                   f"by {other.__module__}")
+                        self.collisions.append(f"plugin {impl.plugin_name!r}: {problem}")
                     if problem:
                         self.broken[impl.plugin_name] = f"{hook_name}: {problem}"
                         continue
                     registries[stage][key] = cls
         return registries
+
+    def _invalidate(self) -> None:
+        self._registries = None
+        self.collisions = [c for c in self.collisions if c.startswith("entry point")]
 
     def registry(self, stage: str) -> dict[str, type[StageConfig]]:
         """Return plugin key -> config class for one stage kind.
@@ -183,6 +212,15 @@ class PluginHost:
     def versions(self) -> dict[str, str]:
         """Return distribution name -> version of every loaded plugin distribution."""
         return {dist: version for dist, version in self._dists.values()}
+
+
+def _is_builtin(plugin: object) -> bool:
+    """Whether a registered plugin object is one of photonpano's built-in plugin modules."""
+    return (getattr(plugin, "__name__", "") or "").startswith("photonpano.plugins.")
+
+
+def _is_builtin_ep(ep: importlib.metadata.EntryPoint) -> bool:
+    return ep.value.startswith("photonpano.plugins.") and (ep.dist is None or ep.dist.name == "photonpano")
 
 
 def _check_config_class(cls: Any, base: type[StageConfig], stage: str) -> str | None:

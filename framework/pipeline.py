@@ -28,6 +28,7 @@ from pydantic import BaseModel
 from . import __version__
 from .errors import PhotonpanoError
 from .host import PluginHost
+from .outputs import json_default
 from .progress import reporting, start_task
 from .spec import dump_spec
 
@@ -70,17 +71,24 @@ class RunResult:
     out_dir: Path | None = None
 
 
-def run_pipeline(spec: BaseModel, out_dir: Path | None, host: PluginHost, *, force: bool = False) -> RunResult:
+def run_pipeline(spec: BaseModel, out_dir: Path | None, host: PluginHost, *, force: bool = False,
+                 resume: bool = False) -> RunResult:
     """Run ``spec`` and, if ``out_dir`` is given, write every output into it.
+
+    Outputs are written atomically, ``run.json`` last, under a lock and a manifest
+    (:class:`~photonpano.outputs.RunFolder`, ``docs/outputs.md``); nothing is written
+    before the source is open, and a failed run removes what it wrote.
 
     Args:
         spec: a validated ``PipelineSpec`` (see :func:`photonpano.spec.load_spec`).
-        out_dir: output folder (created; must be empty unless ``force``), or None to
-            keep the results in memory only (nothing is written).
-        host: the plugin host (its lifecycle hooks are called; observers get
-            ``out_dir=None`` for in-memory runs).
-        force: allow writing into a non-empty folder (files of the same name are
-            replaced; nothing else is touched).
+        out_dir: output folder (created; must be empty unless ``force`` or ``resume``),
+            or None to keep the results in memory only (nothing is written; observers
+            get ``out_dir=None``).
+        host: the plugin host (its lifecycle hooks are called).
+        force: replace the previous run's outputs in ``out_dir`` (the files its
+            manifest lists; nothing else is touched).
+        resume: continue the interrupted run in ``out_dir`` from its last finished
+            level (same spec); the homographies equal those of an uninterrupted run.
 
     Returns:
         The :class:`RunResult`.
@@ -88,31 +96,67 @@ def run_pipeline(spec: BaseModel, out_dir: Path | None, host: PluginHost, *, for
     Raises:
         PhotonpanoError: bad output folder, unreadable source, failed stage.
     """
+    from .outputs import RunFolder
+
     for stage in ("source", "resampler", "merger", "locator", "interpolator"):
         type(getattr(spec, stage)).check_available()
     if spec.refine_locator is not None:
         type(spec.refine_locator).check_available()
-    if out_dir is not None:
-        prepare_output(out_dir, force)
-        (out_dir / "spec.yaml").write_text(dump_spec(spec))
     with reporting(host):
-        return _run(spec, out_dir, host)
+        if out_dir is None:
+            return _run_into(spec, None, host)
+        with RunFolder(out_dir, force=force, resume=resume, inputs=_input_paths(spec)) as folder:
+            return _run_into(spec, folder, host)
 
 
-def _run(spec: BaseModel, out_dir: Path | None, host: PluginHost) -> RunResult:
+def _input_paths(spec: BaseModel) -> list[Path]:
+    """The existing files and folders named by the spec's source section."""
+    return [value for value in vars(spec.source).values() if isinstance(value, Path) and value.exists()]
+
+
+def _resume_state(folder, spec_text: str):
+    """Return the checkpoint to continue from (None: start at level 1); the spec must not change."""
+    from .outputs import OutputError
+
+    previous = folder.root / "spec.yaml"
+    if previous.is_file() and previous.read_text() != spec_text:
+        raise OutputError(f"--resume: the spec differs from that of the interrupted run in {previous}; "
+                          "resume with the same spec, or pass --force to start anew")
+    return folder.last_checkpoint()
+
+
+def _run_into(spec: BaseModel, folder, host: PluginHost) -> RunResult:
+    """Run ``spec``, writing into ``folder`` (a :class:`~photonpano.outputs.RunFolder`) unless it is None."""
+    from .photons import tone_map
+
+    out_dir = folder.root if folder is not None else None
     progress = start_task
     timings: dict[str, float] = {}
 
     t0 = time.perf_counter()
     source = spec.source.build()
     timings["source"] = time.perf_counter() - t0
+    spec_text = dump_spec(spec)
+    start = _resume_state(folder, spec_text) if folder is not None and folder.resume else None
+    if folder is not None:
+        folder.write_text("spec.yaml", spec_text)
     host.hook.photonpano_run_start(spec=spec, source=source, out_dir=out_dir)
 
     def on_level(result):
         host.hook.photonpano_level_finished(level=result, spec=spec, source=source, out_dir=out_dir)
+        if folder is not None:
+            folder.adopt_new_files()  # what observers wrote
 
-    homographies, stats, pano, stage_timings = reconstruct(spec, source, on_level=on_level, progress=progress)
+    homographies, stats, pano, stage_timings = reconstruct(
+        spec, source, on_level=on_level, progress=progress, resume=start,
+        checkpoint=folder.save_checkpoint if folder is not None else None)
     timings.update(stage_timings)
+
+    if folder is not None:
+        folder.save_npy("homographies.npy", pano.homographies)
+        folder.save_npy("panorama.npy", pano.flux)
+        if spec.outputs.panorama_png:
+            folder.write_with("panorama.png", lambda path: _write_png(path, tone_map(pano.flux, bits=16)))
 
     summary: dict[str, Any] = {
         "photonpano": __version__,
@@ -126,6 +170,8 @@ def _run(spec: BaseModel, out_dir: Path | None, host: PluginHost) -> RunResult:
         "levels": stats,
         "timings_s": timings,
     }
+    if start is not None:
+        summary["resumed_after_level"] = start.level
     error = None
     if source.ground_truth is not None:
         t0 = time.perf_counter()
@@ -134,24 +180,13 @@ def _run(spec: BaseModel, out_dir: Path | None, host: PluginHost) -> RunResult:
                                                       progress=advance)
         timings["ground_truth_report"] = time.perf_counter() - t0
         error = _trajectory_error(homographies, source)
-    if out_dir is not None:
-        _write_outputs(out_dir, spec, pano, summary, source, homographies, error)
+    if folder is not None and spec.outputs.trajectory_plot:
+        folder.write_with("trajectory.png",
+                          lambda path: _plot_trajectory(path, homographies, pano.homographies, source, error))
     host.hook.photonpano_run_finished(spec=spec, summary=summary, out_dir=out_dir)
+    if folder is not None:
+        folder.commit(json.dumps(summary, indent=2, default=json_default))
     return RunResult(spec=spec, homographies=pano.homographies, panorama=pano.flux, summary=summary, out_dir=out_dir)
-
-
-def _write_outputs(out_dir: Path, spec: BaseModel, pano, summary: dict[str, Any], source,
-                   homographies: NDArray[np.float64], error) -> None:
-    """Write homographies, panorama, optional plot and, last, ``run.json``."""
-    from .photons import tone_map
-
-    np.save(out_dir / "homographies.npy", pano.homographies)
-    np.save(out_dir / "panorama.npy", pano.flux)
-    if spec.outputs.panorama_png:
-        _write_png(out_dir / "panorama.png", tone_map(pano.flux, bits=16))
-    if spec.outputs.trajectory_plot:
-        _plot_trajectory(out_dir / "trajectory.png", homographies, pano.homographies, source, error)
-    (out_dir / "run.json").write_text(json.dumps(summary, indent=2, default=_json_default))
 
 
 #: distributions whose versions every run.json records (import name -> distribution).
@@ -190,7 +225,7 @@ def library_versions(spec: BaseModel | None = None) -> dict[str, str]:
     return versions
 
 
-def reconstruct(spec: BaseModel, source, *, on_level=None, progress=None):
+def reconstruct(spec: BaseModel, source, *, on_level=None, progress=None, checkpoint=None, resume=None):
     """Estimate the motion of ``source`` and assemble its panorama as ``spec`` says.
 
     Args:
@@ -198,6 +233,8 @@ def reconstruct(spec: BaseModel, source, *, on_level=None, progress=None):
         source: the opened capture.
         on_level: called with each :class:`~photonpano.reconstruct.LevelResult`.
         progress: ``progress(task, total)`` returning an ``advance(n)`` callable.
+        checkpoint: called with a :class:`~photonpano.outputs.Checkpoint` after each level.
+        resume: a :class:`~photonpano.outputs.Checkpoint` to continue from (None: level 1).
 
     Returns:
         ``(homographies, level_statistics, panorama, timings_s)``: (T, 3, 3) float64
@@ -206,10 +243,10 @@ def reconstruct(spec: BaseModel, source, *, on_level=None, progress=None):
         :class:`~photonpano.reconstruct.Panorama` and wall times in seconds.
     """
     from .executor import make_executor
+    from .outputs import Checkpoint
     from .reconstruct import assemble_panorama, estimate_motion
 
-    stats: list[dict[str, Any]] = []
-
+    stats: list[dict[str, Any]] = list(resume.statistics) if resume is not None else []
     locator = spec.locator.build()
 
     def level_done(result):
@@ -225,6 +262,10 @@ def reconstruct(spec: BaseModel, source, *, on_level=None, progress=None):
             row["trajectory_rmse_px"] = _rmse(result.homographies, source)
         stats.append(row)
         result.merged = None  # free memory; observers have seen it
+        if checkpoint is not None:
+            t = result.template
+            checkpoint(Checkpoint(result.level, result.homographies, list(stats),
+                                  None if t is None else (t.flux, t.frames, t.homographies)))
 
     timings: dict[str, float] = {}
     with make_executor(spec.executor, spec.workers) as executor:
@@ -233,7 +274,8 @@ def reconstruct(spec: BaseModel, source, *, on_level=None, progress=None):
             source, spec.resampler.build(), spec.merger.build(), locator, spec.interpolator.build(),
             levels=spec.levels, group_size=spec.group_size, pair_offsets=tuple(spec.pair_offsets),
             executor=executor, refine_locator=spec.refine_locator.build if spec.refine_locator else None,
-            keep_merged=spec.outputs.merged_frames, on_level=level_done, progress=progress)
+            keep_merged=spec.outputs.merged_frames, on_level=level_done, progress=progress,
+            **({} if resume is None else _start_state(resume)))
         timings["levels"] = time.perf_counter() - t0
         t0 = time.perf_counter()
         advance = progress("panorama", source.n_frames) if progress else None
@@ -241,6 +283,13 @@ def reconstruct(spec: BaseModel, source, *, on_level=None, progress=None):
                                  progress=advance, executor=executor)
         timings["panorama"] = time.perf_counter() - t0
     return homographies, stats, pano, timings
+
+
+def _start_state(resume) -> dict[str, Any]:
+    from .reconstruct import Panorama
+
+    template = None if resume.template is None else Panorama(*resume.template)
+    return {"start_level": resume.level + 1, "initial": resume.homographies, "template": template}
 
 
 def _trajectory_error(homographies: np.ndarray, source):
@@ -354,13 +403,3 @@ def _plot_trajectory(path: Path, homographies: np.ndarray, to_canvas: np.ndarray
     fig.tight_layout()
     fig.savefig(path, dpi=100)
     plt.close(fig)
-
-
-def _json_default(value: Any) -> Any:
-    if isinstance(value, (np.integer, np.floating)):
-        return value.item()
-    if isinstance(value, np.ndarray):
-        return value.tolist()
-    if isinstance(value, Path):
-        return str(value)
-    raise TypeError(f"not JSON serialisable: {type(value).__name__}")

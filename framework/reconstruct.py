@@ -39,6 +39,8 @@ class LevelResult:
         timings_s: wall time of each stage in seconds.
         rejected_keyframes: keyframes whose solved update was implausible and was
             bridged from their neighbours instead.
+        template: the panorama the next level registers against, when already built
+            (what a checkpoint keeps for ``estimate_motion(template=...)``), else None.
     """
 
     level: int
@@ -51,6 +53,7 @@ class LevelResult:
     timings_s: dict[str, float] = field(default_factory=dict)
     rejected_keyframes: int = 0
     locator_cache: dict[str, int] | None = None
+    template: Panorama | None = None
 
     def statistics(self) -> dict[str, Any]:
         """Return JSON-ready per-level statistics.
@@ -699,6 +702,9 @@ def estimate_motion(
     keep_merged: bool = False,
     on_level: Callable[[LevelResult], None] | None = None,
     progress: Callable[[str, int], Callable[[int], None]] | None = None,
+    start_level: int = 1,
+    initial: NDArray[np.float64] | None = None,
+    template: Panorama | None = None,
 ) -> tuple[NDArray[np.float64], list[LevelResult]]:
     """Estimate a homography for every binary frame by stratified re-sampling.
 
@@ -730,6 +736,10 @@ def estimate_motion(
         keep_merged: keep each level's merged frames in its result (pairwise levels only).
         on_level: called with each finished level.
         progress: ``progress(description, total)`` returns an ``advance(n)`` callable.
+        start_level: resume with this level (the result equals that of an uninterrupted run).
+        initial: (T, 3, 3) float64 homographies after level ``start_level - 1`` (its
+            :class:`LevelResult`'s, before the final gauge); None: identities.
+        template: that level's :attr:`LevelResult.template`.
 
     Returns:
         ``(homographies, levels)``: (T, 3, 3) float64 frame-to-panorama homographies,
@@ -742,10 +752,10 @@ def estimate_motion(
         ValueError: if the capture is too short for ``group_size``.
     """
     n = source.n_frames
-    homographies = np.repeat(np.eye(3)[None], n, axis=0)
+    homographies = np.repeat(np.eye(3)[None], n, axis=0) if initial is None else np.array(initial, np.float64)
     results: list[LevelResult] = []
-    template: Panorama | None = None  # of the next level against the panorama, when already known
-    for level in range(1, levels + 1):
+    # template: of the next level against the panorama, when already known
+    for level in range(start_level, levels + 1):
         timings: dict[str, float] = {}
         t0 = time.perf_counter()
         try:
@@ -804,7 +814,8 @@ def estimate_motion(
         t4 = time.perf_counter()
         timings.update(resample=t1 - t0, merge=t2 - t1, locate=t3 - t2, interpolate=t4 - t3)
         result = LevelResult(level, groups, merged if keep_merged else None, pairs, pair_index, keyframes,
-                             homographies, timings, rejected_keyframes=rejected, locator_cache=cache)
+                             homographies, timings, rejected_keyframes=rejected, locator_cache=cache,
+                             template=template)
         results.append(result)
         if on_level is not None:
             on_level(result)
@@ -903,6 +914,7 @@ def assemble_panorama(source: PhotonSource, homographies: NDArray[np.float64], *
     def accumulate(run: NDArray[np.int64]) -> WarpAccumulator:
         acc = WarpAccumulator(ch, cw)
         for c in run:
+            executor.raise_if_cancelled()  # Ctrl-C: stop within a chunk
             chunk = edges[starts[c]:starts[c] + chunk_batches + 1]
             counts = source.sum_ranges(chunk)
             acc.add_many(counts, np.diff(chunk), to_canvas[(chunk[:-1] + chunk[1:]) // 2])

@@ -390,10 +390,9 @@ def _load_2d(path: Path, what: str) -> NDArray:
     if not path.is_file():
         raise SourceError(f"source: {what} {path} does not exist")
     if path.suffix.lower() == ".npy":
-        try:
-            return np.load(path, allow_pickle=False)
-        except (ValueError, OSError, EOFError) as exc:
-            raise SourceError(f"source: {what} {path} is not a readable .npy file ({exc})") from None
+        from .npy_header import load_npy
+
+        return load_npy(path, f"source: {what}")
     import cv2
 
     image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)

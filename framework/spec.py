@@ -26,11 +26,13 @@ import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, create_model, field_validator
 
 from .errors import PluginError, SpecError
+from .faults import short_repr
 from .host import PluginHost
 from .stages import STAGES
+from .yaml_guard import load_yaml
 
 __all__ = ["DEFAULT_PLUGINS", "OutputsConfig", "spec_model", "load_spec", "validate_spec", "resolve_relative_paths",
-           "apply_overrides", "dump_spec"]
+           "apply_overrides", "dump_spec", "read_spec_file"]
 
 DEFAULT_PLUGINS: dict[str, str] = {
     "resampler": "midpoint",
@@ -148,17 +150,7 @@ def load_spec(path: Path, host: PluginHost, overrides: list[str] = ()) -> BaseMo
         SpecError: missing or unreadable file, bad YAML, unknown plugin or invalid
             field; the message lists every problem with its line.
     """
-    try:
-        text = path.read_text()
-    except OSError as exc:
-        raise SpecError(f"{path}: cannot read spec: {exc.strerror or exc}") from None
-    try:
-        node = yaml.compose(text)
-        data = yaml.safe_load(text)
-    except yaml.YAMLError as exc:
-        mark = getattr(exc, "problem_mark", None)
-        where = f" line {mark.line + 1}" if mark else ""
-        raise SpecError(f"{path}:{where} not valid YAML: {getattr(exc, 'problem', exc)}") from None
+    data, node = read_spec_file(path)
     if data is None:
         data = {}
     if not isinstance(data, dict):
@@ -222,6 +214,28 @@ def resolve_relative_paths(data: dict[str, Any], host: PluginHost, base_dir: Pat
     return out
 
 
+def read_spec_file(path: Path) -> tuple[Any, Any]:
+    """Read a YAML spec file safely (see :func:`photonpano.yaml_guard.load_yaml`).
+
+    Returns:
+        ``(data, node)``: the parsed value and its composed node (line numbers).
+
+    Raises:
+        SpecError: unreadable file, invalid UTF-8, invalid or oversized YAML, duplicate keys.
+    """
+    try:
+        raw = path.read_bytes()
+    except OSError as exc:
+        raise SpecError(f"{path}: cannot read spec: {exc.strerror or exc}") from None
+    try:
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        line = raw[:exc.start].count(b"\n") + 1
+        raise SpecError(f"{path}: line {line}: not valid UTF-8 text (byte 0x{raw[exc.start]:02x} at "
+                        f"offset {exc.start})") from None
+    return load_yaml(text, str(path))
+
+
 def apply_overrides(data: dict[str, Any], overrides: list[str]) -> dict[str, Any]:
     """Return a copy of ``data`` with ``"a.b=value"`` overrides applied (value as YAML).
 
@@ -236,10 +250,12 @@ def apply_overrides(data: dict[str, Any], overrides: list[str]) -> dict[str, Any
     for item in overrides:
         dotted, sep, raw = item.partition("=")
         if not sep or not dotted.strip():
-            raise SpecError(f"--set {item!r}: expected stage.field=value")
+            raise SpecError(f"--set {short_repr(item)}: expected stage.field=value")
         try:
-            value = yaml.safe_load(raw) if raw.strip() else ""
-        except yaml.YAMLError:
+            value = load_yaml(raw, f"--set {short_repr(item)}")[0] if raw.strip() else ""
+        except SpecError as exc:
+            if "not valid YAML" not in str(exc):
+                raise
             value = raw
         keys = dotted.strip().split(".")
         target = out
@@ -283,7 +299,7 @@ def validate_spec(data: dict[str, Any], host: PluginHost, *, origin: str = "spec
         if not isinstance(key, str):
             continue
         registry = host.registry(stage)
-        where = _where(node, (stage,), origin)
+        where = _blame_set(overridden, (stage,), data) or _where(node, (stage,), origin)
         if key not in registry:
             problems.append(f"{where}{stage}: {_unknown_plugin(stage, key, host)}")
         else:
@@ -300,17 +316,33 @@ def validate_spec(data: dict[str, Any], host: PluginHost, *, origin: str = "spec
         lines = []
         for err in exc.errors():
             loc = tuple(err["loc"])
-            lines.append(f"{_where(node, loc, origin, data)}{_describe_loc(loc, data)}: {err['msg']}"
-                         + (f" (got {err['input']!r})" if err["type"] not in ("missing",) and
+            where = _blame_set(overridden, loc, data) or _where(node, loc, origin, data)
+            lines.append(f"{where}{_describe_loc(loc, data)}: {str(err['msg'])[:200]}"
+                         + (f" (got {short_repr(err['input'])})" if err["type"] not in ("missing",) and
                             not isinstance(err["input"], dict) else ""))
         raise SpecError(_listing(origin, lines)) from None
 
 
-def _listing(origin: str, problems: list[str]) -> str:
-    """One line for one problem, else a header line and one indented line per problem."""
+def _listing(origin: str, problems: list[str], most: int = 20) -> str:
+    """One line for one problem, else a header line and one indented line per problem (``most`` shown)."""
     if len(problems) == 1:
         return f"{origin}: {problems[0]}"
-    return f"{origin}: invalid pipeline spec ({len(problems)} problems)\n  " + "\n  ".join(problems)
+    more = [f"... and {len(problems) - most} more"] if len(problems) > most else []
+    return (f"{origin}: invalid pipeline spec ({len(problems)} problems)\n  "
+            + "\n  ".join(problems[:most] + more))
+
+
+def _blame_set(overrides: list[str], loc: tuple, data: dict[str, Any]) -> str:
+    """``"--set 'a.b=v': "`` for the last override that set the field at ``loc`` (or a parent), or ``""``."""
+    parts = [str(p) for p in loc]
+    if len(parts) > 1 and parts[0] in STAGES and _plugin_of(data.get(parts[0])) == parts[1]:
+        del parts[1]  # the discriminator tag pydantic inserts
+    dotted = ".".join(parts)
+    for item in reversed(list(overrides)):
+        key = item.partition("=")[0].strip()
+        if key and (dotted == key or dotted.startswith(key + ".") or key.startswith(dotted + ".")):
+            return f"--set {short_repr(item)}: "
+    return ""
 
 
 def _unknown_plugin(stage: str, key: str, host: PluginHost) -> str:
@@ -319,7 +351,7 @@ def _unknown_plugin(stage: str, key: str, host: PluginHost) -> str:
     hint = f"; did you mean {close[0]!r}?" if close else ""
     broken = [f"{n} is broken ({r})" for n, r in host.broken.items() if key in n]
     extra = f"; {broken[0]}" if broken else ""
-    return f"unknown plugin {key!r}{hint} (installed {stage}s: {', '.join(names) or 'none'}){extra}"
+    return f"unknown plugin {short_repr(key)}{hint} (installed {stage}s: {', '.join(names) or 'none'}){extra}"
 
 
 def _describe_loc(loc: tuple, data: dict[str, Any]) -> str:
@@ -329,7 +361,8 @@ def _describe_loc(loc: tuple, data: dict[str, Any]) -> str:
     head, rest = str(loc[0]), list(loc[1:])
     if head in STAGES and rest and isinstance(rest[0], str) and _plugin_of(data.get(head)) == rest[0]:
         head = f"{head} ({rest.pop(0)})"
-    return ".".join([head, *map(str, rest)])
+    text = ".".join([head, *map(str, rest)])
+    return text if len(text) <= 120 else f"{text[:117]}..."
 
 
 def _plugin_of(section: Any) -> str | None:

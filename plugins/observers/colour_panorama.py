@@ -98,8 +98,11 @@ def photonpano_run_finished(spec: Any, summary: dict[str, Any], out_dir: Path | 
     homographies = np.load(out_dir / "homographies.npy")
     shape = (int(summary["panorama"]["height"]), int(summary["panorama"]["width"]))
     rgb = colour_panorama(source, homographies, shape, subbatch_px=spec.panorama_subbatch_px)
-    np.save(out_dir / "panorama_rgb.npy", rgb)
+    from photonpano.outputs import atomic_path, save_npy
+
+    save_npy(out_dir / "panorama_rgb.npy", rgb)
     seen = np.isfinite(rgb)
     white = float(np.percentile(rgb[seen], 99.5)) if seen.any() else 1.0
     image = linear_to_srgb(np.where(seen, rgb, 0) / (white if white > 0 else 1.0))
-    cv2.imwrite(str(out_dir / "panorama_rgb.png"), np.rint(image[..., ::-1] * 65535).astype(np.uint16))
+    with atomic_path(out_dir / "panorama_rgb.png") as tmp:
+        cv2.imwrite(str(tmp), np.rint(image[..., ::-1] * 65535).astype(np.uint16))

@@ -22,9 +22,12 @@ def photonpano_level_finished(level: Any, spec: Any, out_dir: Path | None) -> No
         return
     import cv2
 
+    from photonpano.outputs import atomic_path, save_npy
+
     folder = out_dir / f"level_{level.level}"
     folder.mkdir(exist_ok=True)
-    np.save(folder / "merged.npy", level.merged.flux)
-    np.save(folder / "references.npy", level.groups.reference)
+    save_npy(folder / "merged.npy", level.merged.flux)
+    save_npy(folder / "references.npy", level.groups.reference)
     for i, image in enumerate(level.merged.images):
-        cv2.imwrite(str(folder / f"merged_{i:04d}_frame{int(level.groups.reference[i])}.png"), image)
+        with atomic_path(folder / f"merged_{i:04d}_frame{int(level.groups.reference[i])}.png") as tmp:
+            cv2.imwrite(str(tmp), image)

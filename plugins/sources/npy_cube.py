@@ -32,8 +32,9 @@ class NpyCubeConfig(SwissSpadCorrections):
     """The ``.npy`` file."""
     layout: Literal["auto", "packed", "unpacked"] = "auto"
     """``packed``: (T, H, W/8) uint8, MSB first; ``unpacked``: (T, H, W) bool/uint8 0/1;
-    ``auto``: bool is unpacked, uint8 is packed if any of the first frames holds a
-    byte above 1."""
+    ``auto``: bool is unpacked; uint8 is packed if frames sampled across the whole
+    capture hold a byte above 1, or, for all-dark samples, if the sensor ``fix``
+    expects 8 times the stored width."""
     start: Annotated[int, Field(ge=0)] = 0
     """First binary frame to use."""
     stop: Annotated[int, Field(ge=1)] | None = None
@@ -72,10 +73,9 @@ class NpyCube(PhotonSource):
         path = config.path
         if not path.is_file():
             raise SourceError(f"source (npy-cube): {path} does not exist")
-        try:
-            cube = np.load(path, mmap_mode="r", allow_pickle=False)
-        except (ValueError, OSError, EOFError) as exc:
-            raise SourceError(f"source (npy-cube): {path} is not a readable .npy file ({exc})") from None
+        from photonpano.npy_header import load_npy
+
+        cube = load_npy(path, "source (npy-cube)", mmap_mode="r")
         if cube.ndim != 3:
             raise SourceError(f"source (npy-cube): {path} has shape {cube.shape}; expected a photon cube "
                               "(T, H, W/8) bit-packed or (T, H, W) unpacked")
@@ -83,7 +83,7 @@ class NpyCube(PhotonSource):
             raise SourceError(f"source (npy-cube): {path} has dtype {cube.dtype}; expected uint8 "
                               "(bit-packed, or 0/1 unpacked) or bool")
         self.cube = cube
-        self.packed = _is_packed(cube, config.layout, path)
+        self.packed = _is_packed(cube, config.layout, path, _expected_width(config))
         total = len(cube)
         stop = total if config.stop is None else config.stop
         if not config.start < stop <= total:
@@ -133,7 +133,18 @@ class NpyCube(PhotonSource):
                 "start": self.offset, "fix": self.config.fix, "transforms": list(self.config.transforms)}
 
 
-def _is_packed(cube: np.ndarray, layout: str, path: Path) -> bool:
+def _expected_width(config: NpyCubeConfig) -> int | None:
+    """The raw frame width the sensor ``fix`` expects (SwissSPAD2: 512 pixels), or None."""
+    return 512 if config.fix != "none" else None
+
+
+def _is_packed(cube: np.ndarray, layout: str, path: Path, expected_width: int | None = None,
+               samples: int = 64) -> bool:
+    """Decide the layout from ``samples`` frames spread over the whole cube (not its first frames).
+
+    A byte above 1 anywhere means bit-packed; if every sampled byte is 0 or 1, the
+    stored width decides when the sensor width is known (W/8 stored: packed).
+    """
     if cube.dtype == np.bool_:
         if layout == "packed":
             raise SourceError(f"source (npy-cube): {path} holds bool frames, which cannot be bit-packed; "
@@ -141,11 +152,13 @@ def _is_packed(cube: np.ndarray, layout: str, path: Path) -> bool:
         return False
     if layout == "packed":
         return True
-    sample = np.asarray(cube[: min(len(cube), 64)])
-    above_one = bool(sample.max(initial=0) > 1)
+    picks = np.unique(np.linspace(0, len(cube) - 1, min(len(cube), samples)).astype(np.int64))
+    above_one = any(bool(np.asarray(cube[i]).max(initial=0) > 1) for i in picks)
     if layout == "unpacked" and above_one:
         raise SourceError(f"source (npy-cube): {path} holds bytes above 1, so it is not an unpacked "
                           "0/1 cube; use layout: packed or auto")
+    if not above_one and layout == "auto" and expected_width == cube.shape[2] * 8:
+        return True
     return above_one
 
 

@@ -151,6 +151,9 @@ class PhotronMraw(IntensitySource):
         except Exception as exc:  # pyMRAW raises bare Exceptions, KeyErrors, XML errors
             raise SourceError(f"source (photron-mraw): {header_path} is not a readable Photron header "
                               f"({type(exc).__name__}: {exc})") from None
+        if min(n, h, w) <= 0:
+            raise SourceError(f"source (photron-mraw): {header_path} declares {n} frames of {w}x{h} pixels; "
+                              "expected positive sizes (damaged header)")
         if str(cih.get("File Format", "mraw")).lower() != "mraw" or bits not in (8, 12, 16):
             raise SourceError(f"source (photron-mraw): {header_path} describes {cih.get('File Format')} data of "
                               f"{bits} bits; expected MRAW with 8, 12 or 16 bits per pixel")

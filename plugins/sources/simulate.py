@@ -8,6 +8,7 @@ it, and every binary frame is drawn from Eq. (2), ``P(1) = 1 - exp(-flux * I)``.
 from __future__ import annotations
 
 import os
+from contextlib import nullcontext
 from importlib import resources
 from pathlib import Path
 from typing import Annotated, Literal
@@ -18,6 +19,7 @@ from pydantic import Field
 
 from photonpano import hookimpl
 from photonpano.errors import SourceError
+from photonpano.outputs import atomic_path
 from photonpano.stages import PhotonSource, SourceConfig
 
 BUNDLED_PHOTO = "office_equirect.jpg"
@@ -184,11 +186,6 @@ class SimulatedCapture(PhotonSource):
             SourceError: if the photo is unreadable, the path leaves the scene or
                 ``cube_path`` already exists.
         """
-        import cv2
-
-        from photonpano.photons import simulate_packed_frames
-        from photonpano.progress import start_task
-
         self.config = config
         photo = config.photo or bundled_photo()
         scene = load_scene(photo, config.scene_width)
@@ -200,13 +197,23 @@ class SimulatedCapture(PhotonSource):
         self.name = f"simulate({photo.name}, {config.path}, flux {config.flux})"
 
         shape = (config.frames, config.height, config.width // 8)
-        if config.cube_path is not None:
-            if config.cube_path.exists():
-                raise SourceError(f"source (simulate): cube_path {config.cube_path} exists; "
-                                  "refusing to overwrite it")
-            self.cube = np.lib.format.open_memmap(config.cube_path, mode="w+", dtype=np.uint8, shape=shape)
-        else:
-            self.cube = np.empty(shape, dtype=np.uint8)
+        if config.cube_path is not None and config.cube_path.exists():
+            raise SourceError(f"source (simulate): cube_path {config.cube_path} exists; refusing to overwrite it")
+        # the cube file is written under a temporary name and renamed when complete
+        with atomic_path(config.cube_path) if config.cube_path is not None else nullcontext() as tmp:
+            if tmp is not None:
+                self.cube = np.lib.format.open_memmap(tmp, mode="w+", dtype=np.uint8, shape=shape)
+            else:
+                self.cube = np.empty(shape, dtype=np.uint8)
+            self._render(scene)
+
+    def _render(self, scene: NDArray[np.float32]) -> None:
+        import cv2
+
+        from photonpano.photons import simulate_packed_frames
+        from photonpano.progress import start_task
+
+        config = self.config
         size = (config.width, config.height)
         flags = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
 

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import re
 import threading
+import warnings
 from collections import OrderedDict
 from pathlib import Path
 from typing import Annotated, Any, ClassVar, Literal
@@ -76,6 +77,9 @@ class VideoConfig(SourceConfig):
     """Exposure time of one frame in seconds (default: 1 / frame rate)."""
     cache_mb: Annotated[float, Field(gt=0)] = 256.0
     """Memory for recently decoded frames, in MiB."""
+    strict: bool = False
+    """Refuse a video whose readable frames differ in number from what its container
+    announces (truncated or damaged file); default: a warning, also in ``run.json``."""
 
     def build(self) -> VideoSource:
         """Open the video (indexes its packets) or list the image folder."""
@@ -170,6 +174,7 @@ class _VideoFrames:
         self.keyframe = np.asarray(keys, bool)[order]
         self.index = {int(p): i for i, p in enumerate(self.pts)}
         self.n_frames = len(self.pts)
+        self.announced = int(self.stream.frames or 0)  # the container's frame count, 0 if unknown
         rate = self.stream.average_rate or self.stream.guessed_rate
         self.container_rate = float(rate) if rate else None
         self._decoder = None
@@ -273,6 +278,15 @@ class VideoSource(IntensitySource):
         if not path.exists():
             raise SourceError(f"source (video): {path} does not exist")
         self.frames = _ImageFrames(path) if path.is_dir() else _VideoFrames(path, config.cache_mb)
+        self.notes: list[str] = []
+        announced = getattr(self.frames, "announced", 0)
+        if announced and announced != self.frames.n_frames:
+            note = (f"source (video): {path}: the container announces {announced} frames but "
+                    f"{self.frames.n_frames} can be read (truncated or damaged file)")
+            if config.strict:
+                raise SourceError(note + "; strict: true refuses it")
+            warnings.warn(note, stacklevel=2)
+            self.notes.append(note)
         cih = config.cih if config.cih is not None else find_cih(path)
         self.cih = cih
         if config.frame_rate_hz is not None:
@@ -316,7 +330,7 @@ class VideoSource(IntensitySource):
         """Return the capture summary with the frame rate's origin and the response."""
         return {**super().describe(), "path": str(self.config.path), "start": self.offset,
                 "frame_rate_from": self.frame_rate_source, "cih": str(self.cih) if self.cih else None,
-                "response": self.config.response}
+                "response": self.config.response, "warnings": self.notes}
 
 
 

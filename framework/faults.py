@@ -1,0 +1,95 @@
+"""Blame a plugin for an unexpected exception: one line naming the plugin and stage.
+
+A bug in plugin code (a locator, an observer hook, ``source_for_input``) surfaces as
+an arbitrary exception from deep inside the pipeline. :func:`plugin_failure` walks its
+traceback from the innermost frame outwards to the first frame in a plugin's module,
+names that plugin and its stage (or hook), writes the full traceback to a log file and
+returns a :class:`~photonpano.errors.PluginError` whose message is one line.
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+import traceback
+from pathlib import Path
+from typing import Any
+
+from .errors import PluginError
+
+__all__ = ["plugin_failure", "short_repr"]
+
+
+def short_repr(value: Any, limit: int = 80) -> str:
+    """``repr(value)`` cut to ``limit`` characters (bad values can be huge)."""
+    text = repr(value) if not isinstance(value, (dict, list, tuple, set)) or len(value) < 50 else (
+        f"<{type(value).__name__} of {len(value)} items>")
+    return text if len(text) <= limit else f"{text[:limit - 3]}..."
+
+
+def _plugin_modules(host: Any) -> dict[str, tuple[str, str]]:
+    """Module name -> (stage or "hooks", plugin key or registered name)."""
+    from .stages import STAGES
+
+    owners: dict[str, tuple[str, str]] = {}
+    for name, plugin in host.pm.list_name_plugin():
+        module = getattr(plugin, "__name__", None) or type(plugin).__module__
+        owners.setdefault(module, ("hooks", name))
+    for stage in STAGES:
+        for key, cls in host.registry(stage).items():
+            owners[cls.__module__] = (stage, key)
+    return owners
+
+
+def _culprit(exc: BaseException, host: Any, spec: Any = None) -> tuple[str, str, str | None] | None:
+    """Return ``(stage, plugin, hook)`` of the innermost plugin frame of ``exc``, or None."""
+    owners = _plugin_modules(host)
+    packages: dict[str, list[tuple[str, str]]] = {}
+    for module, owner in owners.items():
+        packages.setdefault(module.rpartition(".")[0], []).append(owner)
+    frames = [(f.f_globals.get("__name__", ""), f.f_code.co_name)
+              for f, _ in traceback.walk_tb(exc.__traceback__)]
+    hook = next((name for _, name in reversed(frames) if name.startswith("photonpano_")), None)
+    for module, _ in reversed(frames):
+        if module in owners:
+            stage, key = owners[module]
+            return stage, key, hook
+    for module, _ in reversed(frames):  # a helper module next to plugins (e.g. locators/common.py)
+        candidates = packages.get(module.rpartition(".")[0], [])
+        chosen = [(s, k) for s, k in candidates if spec is not None and getattr(getattr(spec, s, None),
+                                                                                "plugin", None) == k]
+        if chosen or len(candidates) == 1:
+            stage, key = (chosen or candidates)[0]
+            return stage, key, hook
+    return None
+
+
+def plugin_failure(exc: BaseException, host: Any, spec: Any = None) -> PluginError:
+    """Describe an unexpected exception as one line; the traceback goes to a log file.
+
+    Args:
+        exc: the exception (with its traceback).
+        host: the :class:`~photonpano.host.PluginHost` whose plugins may be to blame.
+        spec: the validated spec (picks the plugin among helpers shared by several).
+
+    Returns:
+        A :class:`PluginError` (``"locator (my-locator): RuntimeError: ... (traceback in
+        /tmp/...)"``), or one reporting an internal error when no plugin frame is found.
+    """
+    log = Path(tempfile.gettempdir()) / f"photonpano-{os.getpid()}-traceback.log"
+    try:
+        log.write_text("".join(traceback.format_exception(type(exc), exc, exc.__traceback__)))
+        where = f"traceback in {log}; --debug shows it"
+    except OSError:
+        where = "run with --debug for the traceback"
+    message = " ".join(str(exc).split())
+    what = f"{type(exc).__name__}: {message[:197]}..." if len(message) > 200 else \
+        f"{type(exc).__name__}: {message}" if message else type(exc).__name__
+    found = _culprit(exc, host, spec)
+    if found is None:
+        return PluginError(f"internal error: {what} ({where})")
+    stage, key, hook = found
+    head = f"plugin {key!r} ({hook})" if stage == "hooks" else f"{stage} ({key})"
+    if stage != "hooks" and hook:
+        head += f" in {hook}"
+    return PluginError(f"{head}: plugin code raised {what} ({where})")

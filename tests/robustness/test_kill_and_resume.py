@@ -1,0 +1,112 @@
+"""Killed at any moment, a folder has no run.json or a complete run; --resume equals an uninterrupted run."""
+
+from __future__ import annotations
+
+import random
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+from photonpano import outputs
+from robust import SMALL_SPEC, assert_sound_folder, run_subprocess
+
+
+@pytest.fixture(scope="module")
+def reference(tmp_path_factory):
+    """The spec, the homographies of an uninterrupted run of it and its wall time in seconds."""
+    folder = tmp_path_factory.mktemp("reference")
+    spec = folder / "spec.yaml"
+    spec.write_text(SMALL_SPEC)
+    start = time.perf_counter()
+    result = run_subprocess("run", spec, "-o", folder / "out")
+    assert result.returncode == 0, result.stderr
+    return spec, np.load(folder / "out" / "homographies.npy"), time.perf_counter() - start
+
+
+def _start(spec, out):
+    return subprocess.Popen([sys.executable, "-m", "photonpano.cli", "run", str(spec), "-o", str(out)],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+
+
+@pytest.mark.slow
+def test_kill_9_at_random_moments_then_resume(reference, tmp_path):
+    spec, expected, duration = reference
+    rng = random.Random(13)
+    forced = False
+    for k in range(8):  # kills spread over the whole run (its length measured on this machine)
+        out = tmp_path / f"kill{k}"
+        process = _start(spec, out)
+        time.sleep(duration * (k + rng.random()) / 7)
+        process.send_signal(signal.SIGKILL)
+        process.wait()
+        if assert_sound_folder(out):  # no partial file under a final name; run.json means complete
+            assert np.array_equal(np.load(out / "homographies.npy"), expected)
+        elif out.exists() and not forced:  # a retry with --force starts anew (the stale lock is taken over)
+            result = run_subprocess("run", spec, "-o", out, "--force")
+            assert result.returncode == 0, result.stderr
+            assert np.array_equal(np.load(out / "homographies.npy"), expected)
+            forced = True
+    out = tmp_path / "between-levels"  # and one kill right after a checkpoint, then --resume
+    process = _start(spec, out)
+    while not list((out / outputs.CHECKPOINTS).glob("level_*.npz")) and process.poll() is None:
+        time.sleep(0.01)
+    process.send_signal(signal.SIGKILL)
+    process.wait()
+    assert not assert_sound_folder(out)
+    result = run_subprocess("run", spec, "-o", out, "--resume")
+    assert result.returncode == 0, result.stderr
+    assert assert_sound_folder(out)
+    assert np.array_equal(np.load(out / "homographies.npy"), expected)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("stop_after", [1, 2])
+def test_resume_after_an_interrupted_level_equals_an_uninterrupted_run(reference, tmp_path, monkeypatch,
+                                                                       stop_after):
+    from photonpano.host import PluginHost
+    from photonpano.pipeline import run_pipeline
+    from photonpano.spec import load_spec
+
+    spec_path, expected, _ = reference
+    host = PluginHost()
+    spec = load_spec(spec_path, host)
+    save = outputs.RunFolder.save_checkpoint
+
+    def interrupt(self, checkpoint):
+        save(self, checkpoint)
+        if checkpoint.level == stop_after:
+            raise KeyboardInterrupt
+
+    monkeypatch.setattr(outputs.RunFolder, "save_checkpoint", interrupt)
+    out = tmp_path / "out"
+    with pytest.raises(KeyboardInterrupt):
+        run_pipeline(spec, out, host)
+    assert not (out / "run.json").exists() and not (out / outputs.LOCK).exists()
+    assert sorted(p.name for p in (out / outputs.CHECKPOINTS).iterdir()) == [f"level_{stop_after}.npz"]
+    monkeypatch.setattr(outputs.RunFolder, "save_checkpoint", save)
+    summary = run_pipeline(spec, out, host, resume=True)
+    assert summary["resumed_after_level"] == stop_after and len(summary["levels"]) == 3
+    assert np.array_equal(np.load(out / "homographies.npy"), expected)
+    assert assert_sound_folder(out) and not (out / outputs.CHECKPOINTS).exists()
+
+
+@pytest.mark.slow
+def test_ctrl_c_exits_promptly_and_keeps_the_checkpoints(reference, tmp_path):
+    spec, expected, _ = reference
+    out = tmp_path / "out"
+    process = _start(spec, out)
+    while not list((out / outputs.CHECKPOINTS).glob("level_*.npz")) and process.poll() is None:
+        time.sleep(0.01)
+    time.sleep(0.2)
+    start = time.perf_counter()
+    process.send_signal(signal.SIGINT)
+    assert process.wait(timeout=30) == 130
+    assert time.perf_counter() - start < 3.0  # within a second or so on an idle machine
+    assert not assert_sound_folder(out) and not (out / outputs.LOCK).exists()
+    assert list((out / outputs.CHECKPOINTS).glob("level_*.npz"))
+    result = run_subprocess("run", spec, "-o", out, "--resume")
+    assert result.returncode == 0, result.stderr
+    assert np.array_equal(np.load(out / "homographies.npy"), expected)
