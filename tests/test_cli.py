@@ -100,3 +100,18 @@ def test_validate_plugins_schema(tmp_path):
     assert listing.exit_code == 0 and "opencv-sift" in listing.output and "cubic-lk" in listing.output
     schema = json.loads(runner.invoke(app, ["schema"]).output)
     assert "PipelineSpec" == schema["title"]
+
+
+def test_plugins_table_keeps_install_hints_with_extras(monkeypatch):
+    """Rich markup must not swallow ``[kornia]`` in ``pip install 'photonpano[kornia]'``."""
+    import types
+
+    import photonpano.cli as cli
+    from photonpano.host import PluginInfo
+
+    info = PluginInfo("kornia-sift", "locator", "photonpano.plugins.locators.kornia_sift", "photonpano", "0.1.0",
+                      "unavailable: needs torch, kornia: pip install 'photonpano[kornia]'")
+    monkeypatch.setattr(cli, "_host", lambda: types.SimpleNamespace(plugin_infos=lambda: [info], collisions=[]))
+    result = runner.invoke(app, ["plugins"])
+    assert result.exit_code == 0, result.output
+    assert "photonpano[kornia]" in result.output
