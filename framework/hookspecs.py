@@ -19,8 +19,15 @@ from . import hookspec
 
 if TYPE_CHECKING:
     from .reconstruct import LevelResult
-    from .stages import (InterpolatorConfig, LocatorConfig, MergerConfig, PhotonSource,
-                         ResamplerConfig, SourceConfig)
+    from .stages import (
+        CompositorConfig,
+        InterpolatorConfig,
+        LocatorConfig,
+        MergerConfig,
+        PhotonSource,
+        ResamplerConfig,
+        SourceConfig,
+    )
 
 
 # --- registration: one hook per stage kind ---------------------------------------
@@ -79,6 +86,17 @@ def photonpano_register_interpolators() -> list[type[InterpolatorConfig]]:
         :class:`~photonpano.stages.InterpolatorConfig` subclasses with unique keys.
 
     .. versionadded:: 0.1
+    """
+
+
+@hookspec
+def photonpano_register_compositors() -> list[type[CompositorConfig]]:
+    """Offer compositor plugins (the panorama from every binary frame and its homography).
+
+    Returns:
+        :class:`~photonpano.stages.CompositorConfig` subclasses with unique keys.
+
+    .. versionadded:: 0.2
     """
 
 

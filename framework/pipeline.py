@@ -68,9 +68,9 @@ def run_pipeline(spec: BaseModel, out_dir: Path, host: PluginHost, *, force: boo
         PhotonpanoError: bad output folder, unreadable source, failed stage.
     """
     from .photons import tone_map
+    from .spec import check_available
 
-    for stage in ("source", "resampler", "merger", "locator", "interpolator"):
-        type(getattr(spec, stage)).check_available()
+    check_available(spec)
     prepare_output(out_dir, force)
     (out_dir / "spec.yaml").write_text(dump_spec(spec))
     progress = _progress(host)
@@ -105,7 +105,8 @@ def run_pipeline(spec: BaseModel, out_dir: Path, host: PluginHost, *, force: boo
     }
     if source.ground_truth is not None:
         t0 = time.perf_counter()
-        summary["ground_truth"] = ground_truth_report(source, homographies, pano, spec.panorama_subbatch_px)
+        summary["ground_truth"] = ground_truth_report(source, homographies, pano, spec.panorama_subbatch_px,
+                                                      compositor=spec.compositor)
         timings["ground_truth_report"] = time.perf_counter() - t0
     if spec.outputs.trajectory_plot:
         _plot_trajectory(out_dir / "trajectory.png", homographies, source)
@@ -127,10 +128,12 @@ def reconstruct(spec: BaseModel, source, *, on_level=None, progress=None):
         ``(homographies, level_statistics, panorama, timings_s)``: (T, 3, 3) float64
         frame-to-canvas homographies, one statistics dict per level (with the
         trajectory RMSE when the source has ground truth), the
-        :class:`~photonpano.reconstruct.Panorama` and wall times in seconds.
+        :class:`~photonpano.compose.Panorama` (from the spec's compositor) and wall
+        times in seconds.
     """
+    from .compose import compose
     from .executor import make_executor
-    from .reconstruct import assemble_panorama, estimate_motion
+    from .reconstruct import estimate_motion
 
     stats: list[dict[str, Any]] = []
 
@@ -161,8 +164,8 @@ def reconstruct(spec: BaseModel, source, *, on_level=None, progress=None):
         timings["levels"] = time.perf_counter() - t0
         t0 = time.perf_counter()
         advance = progress("panorama", source.n_frames) if progress else None
-        pano = assemble_panorama(source, homographies, scale=spec.scale, subbatch_px=spec.panorama_subbatch_px,
-                                 progress=advance, executor=executor)
+        pano = compose(source, homographies, spec.compositor.build(), subbatch_px=spec.panorama_subbatch_px,
+                       progress=advance, executor=executor)
         timings["panorama"] = time.perf_counter() - t0
     return homographies, stats, pano, timings
 
@@ -173,20 +176,25 @@ def _rmse(homographies: np.ndarray, source) -> float:
     return trajectory_error(homographies, source.ground_truth, source.width, source.height).rmse_px
 
 
-def ground_truth_report(source, homographies: np.ndarray, pano, subbatch_px: float) -> dict[str, Any]:
+def ground_truth_report(source, homographies: np.ndarray, pano, subbatch_px: float, *,
+                        compositor: Any = None) -> dict[str, Any]:
     """Measure a reconstruction against a capture's ground truth.
 
     The trajectory error is taken after the best global alignment G (the panorama's
     coordinate frame is arbitrary). For the panorama, the true homographies are carried
-    into the estimated canvas through G and a second panorama is merged with them *on
-    the same canvas*; both are compared with the true scene flux resampled onto that
-    canvas, so the PSNR gap measures only what the estimated motion costs.
+    into the estimated canvas through G and a second panorama is composited with them
+    *on the same canvas* by the same compositor; both are compared with the true scene
+    flux resampled onto that canvas, so the PSNR gap measures only what the estimated
+    motion costs.
 
     Args:
-        source: a capture with ``ground_truth`` (and ``scene_flux`` for the PSNR).
+        source: a capture with ``ground_truth`` (and ``scene_flux`` for the PSNR;
+            ``scene_pitch`` scene pixels per ground-truth unit, default 1).
         homographies: (T, 3, 3) float64 estimated frame-to-panorama homographies.
-        pano: the estimated :class:`~photonpano.reconstruct.Panorama`.
+        pano: the estimated :class:`~photonpano.compose.Panorama`.
         subbatch_px: sub-batch tolerance used for the reference panorama.
+        compositor: the compositor config that made ``pano`` (built afresh for the
+            reference); None: the bilinear ``flux-canvas`` merge.
 
     Returns:
         ``{"trajectory_rmse_px", "trajectory_max_px"}`` and, with a scene, ``"psnr_db",
@@ -194,8 +202,8 @@ def ground_truth_report(source, homographies: np.ndarray, pano, subbatch_px: flo
     """
     import cv2
 
+    from .compose import BilinearCompositor, compose
     from .metrics import psnr, trajectory_error
-    from .reconstruct import assemble_panorama
 
     err = trajectory_error(homographies, source.ground_truth, source.width, source.height)
     report: dict[str, Any] = {"trajectory_rmse_px": err.rmse_px,
@@ -205,15 +213,37 @@ def ground_truth_report(source, homographies: np.ndarray, pano, subbatch_px: flo
     canvas_from_pano = pano.homographies[0] @ np.linalg.inv(homographies[0])
     canvas_from_scene = canvas_from_pano @ np.linalg.inv(err.alignment)
     shape = pano.flux.shape
-    truth = assemble_panorama(source, canvas_from_scene @ source.ground_truth, subbatch_px=subbatch_px,
-                              canvas_shape=shape)
-    scene = cv2.warpPerspective(source.scene_flux, canvas_from_scene, shape[::-1], flags=cv2.INTER_LINEAR,
-                                borderMode=cv2.BORDER_CONSTANT, borderValue=np.nan)
+    truth = compose(source, canvas_from_scene @ source.ground_truth,
+                    compositor.build() if compositor is not None else BilinearCompositor(),
+                    subbatch_px=subbatch_px, canvas_shape=shape)
+    scene = _scene_on_canvas(source, canvas_from_scene, shape)
     both = np.isfinite(pano.flux) & np.isfinite(truth.flux) & np.isfinite(scene)
     mask = cv2.erode(both.astype(np.uint8), np.ones((7, 7), np.uint8)).astype(bool)
     estimated_db, true_db = psnr(pano.flux, scene, mask), psnr(truth.flux, scene, mask)
     report.update(psnr_db=estimated_db, psnr_true_homographies_db=true_db, psnr_gap_db=true_db - estimated_db)
     return report
+
+
+def _scene_on_canvas(source, canvas_from_scene: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """The true scene flux resampled onto a canvas (area-averaged where the canvas is coarser).
+
+    ``canvas_from_scene`` maps ground-truth coordinates to canvas pixels; the scene flux
+    has ``source.scene_pitch`` pixels per ground-truth unit.
+    """
+    import cv2
+
+    from . import geometry
+
+    pitch = float(getattr(source, "scene_pitch", 1.0))
+    to_canvas = canvas_from_scene @ geometry.scale_matrix(1.0 / pitch)
+    scene = source.scene_flux
+    step = int(np.floor(np.sqrt(abs(np.linalg.det(np.linalg.inv(to_canvas)[:2, :2])))))
+    if step >= 2:  # the canvas is coarser than the scene: average the scene first (no aliasing)
+        size = (scene.shape[1] // step, scene.shape[0] // step)
+        scene = cv2.resize(scene, size, interpolation=cv2.INTER_AREA)
+        to_canvas = to_canvas @ geometry.scale_matrix(step)
+    return cv2.warpPerspective(scene, to_canvas, shape[::-1], flags=cv2.INTER_LINEAR,
+                               borderMode=cv2.BORDER_CONSTANT, borderValue=np.nan)
 
 
 def _write_png(path: Path, image: np.ndarray) -> None:

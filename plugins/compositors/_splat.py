@@ -1,0 +1,121 @@
+"""Numba kernels of the ``drizzle`` compositor: forward splats of frame pixel centres.
+
+Conventions: frame and canvas pixel centres at integers, canvas pixel ``(i, j)`` covers
+``[j - 0.5, j + 0.5) x [i - 0.5, i + 0.5)``; ``homographies`` map frame pixels to canvas
+pixels. Each frame pixel deposits its count ``c`` and its number of frames ``n`` with
+the kernel's weights ``w`` (summing to 1 over the canvas): ``sums += w c``,
+``frames += w n``. The kernels release the GIL, so threads fill separate canvases at
+once.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+__all__ = ["splat_point", "splat_square", "splat_gaussian"]
+
+
+@njit(cache=True, nogil=True)
+def _project(m, x, y):
+    den = m[2, 0] * x + m[2, 1] * y + m[2, 2]
+    return (m[0, 0] * x + m[0, 1] * y + m[0, 2]) / den, (m[1, 0] * x + m[1, 1] * y + m[1, 2]) / den
+
+
+@njit(cache=True, nogil=True)
+def _pixel_size(m):
+    """Side of a frame pixel on the canvas, in canvas pixels (the affine part's scale)."""
+    return math.sqrt(abs(m[0, 0] * m[1, 1] - m[0, 1] * m[1, 0])) / abs(m[2, 2])
+
+
+@njit(cache=True, nogil=True)
+def splat_point(counts, n_frames, homographies, sums, frames):
+    """Add each frame pixel to the canvas pixel its centre lands in.
+
+    Args:
+        counts: (B, H, W) uint16 or float32 summed frames.
+        n_frames: (B,) int64 frames behind each count image.
+        homographies: (B, 3, 3) float64 frame-to-canvas homographies.
+        sums: (Hc, Wc) float32 accumulated counts (updated in place).
+        frames: (Hc, Wc) float32 accumulated frames (updated in place).
+    """
+    nb, h, w = counts.shape
+    hc, wc = sums.shape
+    for b in range(nb):
+        m = homographies[b]
+        nf = np.float32(n_frames[b])
+        for y in range(h):
+            for x in range(w):
+                u, v = _project(m, x, y)
+                if u < -0.5 or v < -0.5:
+                    continue
+                j, i = int(u + 0.5), int(v + 0.5)
+                if i < hc and j < wc:
+                    sums[i, j] += counts[b, y, x]
+                    frames[i, j] += nf
+
+
+@njit(cache=True, nogil=True)
+def splat_square(counts, n_frames, homographies, sums, frames, pixfrac):
+    """Spread each frame pixel over the canvas pixels a square drop overlaps, by area.
+
+    The drop is an axis-aligned square of side ``pixfrac`` frame pixels centred on the
+    frame pixel's centre (a rotation of the frame is ignored for the drop's shape).
+    Arguments as :func:`splat_point`; ``pixfrac`` > 0.
+    """
+    nb, h, w = counts.shape
+    hc, wc = sums.shape
+    for b in range(nb):
+        m = homographies[b]
+        nf = np.float32(n_frames[b])
+        half = 0.5 * pixfrac * _pixel_size(m)
+        inv_area = 1.0 / (4.0 * half * half)
+        for y in range(h):
+            for x in range(w):
+                u, v = _project(m, x, y)
+                x0, x1, y0, y1 = u - half, u + half, v - half, v + half
+                i0, i1 = max(int(math.floor(y0 + 0.5)), 0), min(int(math.floor(y1 + 0.5)), hc - 1)
+                j0, j1 = max(int(math.floor(x0 + 0.5)), 0), min(int(math.floor(x1 + 0.5)), wc - 1)
+                c = counts[b, y, x]
+                for i in range(i0, i1 + 1):
+                    oy = min(y1, i + 0.5) - max(y0, i - 0.5)
+                    for j in range(j0, j1 + 1):
+                        weight = oy * (min(x1, j + 0.5) - max(x0, j - 0.5)) * inv_area
+                        if weight > 0:
+                            sums[i, j] += np.float32(c * weight)
+                            frames[i, j] += np.float32(nf * weight)
+
+
+@njit(cache=True, nogil=True)
+def splat_gaussian(counts, n_frames, homographies, sums, frames, pixfrac):
+    """Spread each frame pixel with a Gaussian of FWHM ``pixfrac`` frame pixels.
+
+    Weights are the Gaussian at the canvas pixel centres within 3 sigma (at least the
+    3x3 neighbourhood), normalised to sum to 1. Arguments as :func:`splat_square`.
+    """
+    nb, h, w = counts.shape
+    hc, wc = sums.shape
+    for b in range(nb):
+        m = homographies[b]
+        nf = np.float32(n_frames[b])
+        sigma = pixfrac * _pixel_size(m) / 2.3548
+        radius = max(1, int(math.ceil(3 * sigma)))
+        inv = 1.0 / (2 * sigma * sigma)
+        for y in range(h):
+            for x in range(w):
+                u, v = _project(m, x, y)
+                ci, cj = int(math.floor(v + 0.5)), int(math.floor(u + 0.5))
+                total = 0.0
+                for i in range(ci - radius, ci + radius + 1):
+                    for j in range(cj - radius, cj + radius + 1):
+                        total += math.exp(-((i - v) ** 2 + (j - u) ** 2) * inv)
+                if total <= 0:
+                    continue
+                c = counts[b, y, x] / total
+                for i in range(max(ci - radius, 0), min(ci + radius, hc - 1) + 1):
+                    for j in range(max(cj - radius, 0), min(cj + radius, wc - 1) + 1):
+                        weight = math.exp(-((i - v) ** 2 + (j - u) ** 2) * inv)
+                        sums[i, j] += np.float32(c * weight)
+                        frames[i, j] += np.float32(nf * weight / total)
