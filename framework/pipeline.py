@@ -242,7 +242,7 @@ def _scene_on_canvas(source, canvas_from_scene: np.ndarray, shape: tuple[int, in
         size = (scene.shape[1] // step, scene.shape[0] // step)
         scene = cv2.resize(scene, size, interpolation=cv2.INTER_AREA)
         to_canvas = to_canvas @ geometry.scale_matrix(step)
-    return cv2.warpPerspective(scene, to_canvas, shape[::-1], flags=cv2.INTER_LINEAR,
+    return cv2.warpPerspective(scene, to_canvas, shape[::-1], flags=cv2.INTER_LANCZOS4,
                                borderMode=cv2.BORDER_CONSTANT, borderValue=np.nan)
 
 

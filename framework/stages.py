@@ -105,8 +105,13 @@ class PhotonSource(abc.ABC):
         exposure_s: exposure time tau of one binary frame, in seconds.
         frame_rate_hz: binary frames per second.
         ground_truth: (T, 3, 3) float64 true frame-to-scene homographies, or None.
-        scene_flux: (Hs, Ws) float32 true flux of the scene in photons/s (in the
-            coordinates ``ground_truth`` maps to), or None.
+        scene_flux: (Hs, Ws) float32 true flux of the scene in photons/s, or None; its
+            pixel grid is ``scene_pitch`` times finer than the coordinates
+            ``ground_truth`` maps to (pixel centres at integers, see
+            :func:`~photonpano.geometry.scale_matrix`).
+        scene_pitch: scene pixels per ground-truth unit (1.0: ``scene_flux`` is in the
+            coordinates ``ground_truth`` maps to; 2.0 for a sensor whose pixels are
+            point samples 2 scene pixels apart).
         name: a short description for logs and ``run.json``.
         kind: ``"binary"`` (the default): frames are binary and :meth:`sum_ranges`
             returns (B, H, W) uint16 detection counts; ``"intensity"``: frames are
@@ -122,6 +127,7 @@ class PhotonSource(abc.ABC):
     frame_rate_hz: float
     ground_truth: NDArray[np.float64] | None = None
     scene_flux: NDArray[np.float32] | None = None
+    scene_pitch: float = 1.0
     name: str = ""
     kind: str = "binary"
 

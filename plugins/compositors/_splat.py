@@ -92,8 +92,9 @@ def splat_square(counts, n_frames, homographies, sums, frames, pixfrac):
 def splat_gaussian(counts, n_frames, homographies, sums, frames, pixfrac):
     """Spread each frame pixel with a Gaussian of FWHM ``pixfrac`` frame pixels.
 
-    Weights are the Gaussian at the canvas pixel centres within 3 sigma (at least the
-    3x3 neighbourhood), normalised to sum to 1. Arguments as :func:`splat_square`.
+    Weights are the (separable) Gaussian at the canvas pixel centres within 3 sigma (at
+    least the 3x3 neighbourhood), normalised to sum to 1. Arguments as
+    :func:`splat_square`.
     """
     nb, h, w = counts.shape
     hc, wc = sums.shape
@@ -103,19 +104,24 @@ def splat_gaussian(counts, n_frames, homographies, sums, frames, pixfrac):
         sigma = pixfrac * _pixel_size(m) / 2.3548
         radius = max(1, int(math.ceil(3 * sigma)))
         inv = 1.0 / (2 * sigma * sigma)
+        wx = np.empty(2 * radius + 1)
+        wy = np.empty(2 * radius + 1)
         for y in range(h):
             for x in range(w):
                 u, v = _project(m, x, y)
                 ci, cj = int(math.floor(v + 0.5)), int(math.floor(u + 0.5))
-                total = 0.0
-                for i in range(ci - radius, ci + radius + 1):
-                    for j in range(cj - radius, cj + radius + 1):
-                        total += math.exp(-((i - v) ** 2 + (j - u) ** 2) * inv)
-                if total <= 0:
-                    continue
-                c = counts[b, y, x] / total
+                sx = sy = 0.0
+                for k in range(2 * radius + 1):
+                    wx[k] = math.exp(-(cj - radius + k - u) ** 2 * inv)
+                    wy[k] = math.exp(-(ci - radius + k - v) ** 2 * inv)
+                    sx += wx[k]
+                    sy += wy[k]
+                norm = 1.0 / (sx * sy)
+                c = counts[b, y, x] * norm
+                n = nf * norm
                 for i in range(max(ci - radius, 0), min(ci + radius, hc - 1) + 1):
+                    a = wy[i - ci + radius]
                     for j in range(max(cj - radius, 0), min(cj + radius, wc - 1) + 1):
-                        weight = math.exp(-((i - v) ** 2 + (j - u) ** 2) * inv)
+                        weight = a * wx[j - cj + radius]
                         sums[i, j] += np.float32(c * weight)
-                        frames[i, j] += np.float32(nf * weight / total)
+                        frames[i, j] += np.float32(n * weight)

@@ -39,13 +39,14 @@ class DrizzleConfig(CompositorConfig):
     """Drop shape: the canvas pixel the centre lands in; an axis-aligned square of side
     ``pixfrac`` frame pixels spread by overlap area; or a Gaussian of FWHM ``pixfrac``
     frame pixels."""
-    pixfrac: Annotated[float, Field(gt=0, le=2)] = 0.5
-    """Drop size in frame pixels (square side or Gaussian FWHM; unused by ``point``).
-    Smaller is sharper and needs more sub-pixel dither to cover the canvas."""
+    pixfrac: Annotated[float, Field(gt=0, le=2)] | None = None
+    """Drop size in frame pixels (square side or Gaussian FWHM; unused by ``point``);
+    None: one canvas pixel, ``1 / scale``. Smaller is sharper and noisier and needs more
+    sub-pixel dither to cover the canvas."""
 
     def build(self) -> Drizzle:
         """Return the compositor."""
-        return Drizzle(self.scale, self.kernel, self.pixfrac)
+        return Drizzle(self.scale, self.kernel, self.pixfrac or 1.0 / self.scale)
 
 
 class Drizzle(Compositor):
@@ -57,7 +58,7 @@ class Drizzle(Compositor):
         pixfrac: drop size in frame pixels (square side or Gaussian FWHM).
     """
 
-    def __init__(self, scale: float = 1.0, kernel: str = "square", pixfrac: float = 0.5) -> None:
+    def __init__(self, scale: float = 1.0, kernel: str = "square", pixfrac: float = 1.0) -> None:
         """Create an unprepared compositor."""
         from . import _splat
 
