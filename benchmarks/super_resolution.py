@@ -53,7 +53,7 @@ def main() -> None:
                         help="extra spec settings, e.g. compositor.kernel=point")
     args = parser.parse_args()
     host = PluginHost()
-    print(f"{'capture':>12} {'scale':>5} {'RMSE (px)':>9} {'default':>8} {'drizzle true-H':>14} "
+    print(f"{'capture':>12} {'scale':>5} {'RMSE per level (px)':>20} {'default':>8} {'drizzle true-H':>14} "
           f"{'bilinear true-H':>15} {'flux-canvas est.':>16} {'gain':>6} {'need':>5} {'time':>6}")
     for name in args.captures.split(","):
         fields, scale, need = CAPTURES[name]
@@ -65,14 +65,16 @@ def main() -> None:
                              origin=name)
         source = spec.source.build()
         t0 = time.perf_counter()
-        homographies, _, pano, timings = reconstruct(spec, source)
+        homographies, stats, pano, timings = reconstruct(spec, source)
         seconds = time.perf_counter() - t0
-        report = ground_truth_report(source, homographies, pano, spec.panorama_subbatch_px, compositor=spec.compositor)
+        subbatch_px = spec.panorama_subbatch_px
+        report = ground_truth_report(source, homographies, pano, subbatch_px, compositor=spec.compositor)
         bilinear = ground_truth_report(source, homographies, pano, spec.panorama_subbatch_px)
         old = compose(source, homographies, BilinearCompositor(scale), subbatch_px=spec.panorama_subbatch_px)
         old_report = ground_truth_report(source, homographies, old, spec.panorama_subbatch_px)
+        levels = " ".join(f"{row['trajectory_rmse_px']:.3f}" for row in stats)
         gain = report["psnr_db"] - bilinear["psnr_true_homographies_db"]
-        print(f"{name:>12} {scale:>5.1f} {report['trajectory_rmse_px']:>9.3f} {report['psnr_db']:>8.2f} "
+        print(f"{name:>12} {scale:>5.1f} {levels:>20} {report['psnr_db']:>8.2f} "
               f"{report['psnr_true_homographies_db']:>14.2f} {bilinear['psnr_true_homographies_db']:>15.2f} "
               f"{old_report['psnr_db']:>16.2f} {gain:>+6.2f} {need:>+5.1f} {seconds:>5.0f}s"
               f"  (panorama stage {timings['panorama']:.1f} s)", flush=True)
