@@ -5,6 +5,7 @@ Outputs (the contract other tools read, see ``docs/outputs.md``):
 - ``homographies.npy``: (T, 3, 3) float64, frame pixel coordinates to panorama pixel
   coordinates (x right, y down, pixel centres at integers), one per binary frame.
 - ``panorama.npy``: (H, W) float32 linear flux in photons/s, NaN where unobserved.
+- ``panorama.tif``: the same flux as a float32 TIFF, page 2 its validity mask.
 - ``panorama.png``: the panorama tone-mapped to 16-bit sRGB.
 - ``run.json``: versions, spec, timings per stage and level, per-level statistics and,
   for simulated captures, the accuracy against ground truth.
@@ -25,6 +26,7 @@ from pydantic import BaseModel
 
 from . import __version__
 from .errors import PhotonpanoError
+from .hdr import write_flux_tiff
 from .host import PluginHost
 from .spec import dump_spec
 
@@ -89,6 +91,7 @@ def run_pipeline(spec: BaseModel, out_dir: Path, host: PluginHost, *, force: boo
 
     np.save(out_dir / "homographies.npy", pano.homographies)
     np.save(out_dir / "panorama.npy", pano.flux)
+    write_flux_tiff(out_dir / "panorama.tif", pano.flux)
     if spec.outputs.panorama_png:
         _write_png(out_dir / "panorama.png", tone_map(pano.flux, bits=16))
 

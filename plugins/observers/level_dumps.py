@@ -3,6 +3,10 @@
 With ``outputs: {merged_frames: true}`` every level gets a folder ``level_<k>/`` with
 ``merged.npy`` ((G, H, W) float32 flux in photons/s, NaN where unobserved),
 ``references.npy`` ((G,) int64 reference frames) and one tone-mapped PNG per group.
+
+Levels that register against the panorama stream their merged frames (they keep none);
+for those the dump merges the level's groups again with the spec's merger and the
+level's updated homographies (one extra merge pass, only when the dump is asked for).
 """
 
 from __future__ import annotations
@@ -16,15 +20,18 @@ from photonpano import hookimpl
 
 
 @hookimpl
-def photonpano_level_finished(level: Any, spec: Any, out_dir: Path) -> None:
-    """Dump ``level.merged`` into ``out_dir/level_<k>/`` if the spec enables it."""
-    if not spec.outputs.merged_frames or level.merged is None:
+def photonpano_level_finished(level: Any, spec: Any, source: Any, out_dir: Path) -> None:
+    """Dump the level's merged frames into ``out_dir/level_<k>/`` if the spec enables it."""
+    if not spec.outputs.merged_frames:
         return
     import cv2
 
+    merged = level.merged
+    if merged is None:  # streamed (registered against the panorama): merge again
+        merged = spec.merger.build().merge(source, level.homographies, level.groups)
     folder = out_dir / f"level_{level.level}"
     folder.mkdir(exist_ok=True)
-    np.save(folder / "merged.npy", level.merged.flux)
+    np.save(folder / "merged.npy", merged.flux)
     np.save(folder / "references.npy", level.groups.reference)
-    for i, image in enumerate(level.merged.images):
+    for i, image in enumerate(merged.images):
         cv2.imwrite(str(folder / f"merged_{i:04d}_frame{int(level.groups.reference[i])}.png"), image)
