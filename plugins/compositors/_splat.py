@@ -58,27 +58,62 @@ def splat_point(counts, n_frames, homographies, sums, frames):
 
 
 @njit(cache=True, nogil=True)
+def _add(sums, frames, i, j, c, n, weight):
+    """Add one weighted drop to canvas pixel ``(i, j)`` if it lies on the canvas."""
+    if 0 <= i < sums.shape[0] and 0 <= j < sums.shape[1] and weight > 0:
+        sums[i, j] += np.float32(c * weight)
+        frames[i, j] += np.float32(n * weight)
+
+
+@njit(cache=True, nogil=True)
 def splat_square(counts, n_frames, homographies, sums, frames, pixfrac):
     """Spread each frame pixel over the canvas pixels a square drop overlaps, by area.
 
     The drop is an axis-aligned square of side ``pixfrac`` frame pixels centred on the
     frame pixel's centre (a rotation of the frame is ignored for the drop's shape).
-    Arguments as :func:`splat_point`; ``pixfrac`` > 0.
+    Drops of at most one canvas pixel (``pixfrac * scale <= 1``, the default) touch at
+    most 2x2 canvas pixels and take a fast path. Arguments as :func:`splat_point`;
+    ``pixfrac`` > 0.
     """
     nb, h, w = counts.shape
     hc, wc = sums.shape
     for b in range(nb):
         m = homographies[b]
         nf = np.float32(n_frames[b])
-        half = 0.5 * pixfrac * _pixel_size(m)
-        inv_area = 1.0 / (4.0 * half * half)
+        side = pixfrac * _pixel_size(m)
+        half = 0.5 * side
+        inv_area = 1.0 / (side * side)
+        small = side <= 1.0
         for y in range(h):
             for x in range(w):
                 u, v = _project(m, x, y)
                 x0, x1, y0, y1 = u - half, u + half, v - half, v + half
+                c = counts[b, y, x]
+                if small:  # overlaps with (i0, j0) and the next pixel along each axis
+                    j0, i0 = int(math.floor(x0 + 0.5)), int(math.floor(y0 + 0.5))
+                    ox = min(x1, j0 + 0.5) - x0
+                    oy = min(y1, i0 + 0.5) - y0
+                    ox1, oy1 = side - ox, side - oy
+                    if 0 <= i0 and i0 + 1 < hc and 0 <= j0 and j0 + 1 < wc:  # inside: no checks
+                        w00, w01 = np.float32(ox * oy * inv_area), np.float32(ox1 * oy * inv_area)
+                        w10, w11 = np.float32(ox * oy1 * inv_area), np.float32(ox1 * oy1 * inv_area)
+                        cf = np.float32(c)
+                        sums[i0, j0] += cf * w00
+                        sums[i0, j0 + 1] += cf * w01
+                        sums[i0 + 1, j0] += cf * w10
+                        sums[i0 + 1, j0 + 1] += cf * w11
+                        frames[i0, j0] += nf * w00
+                        frames[i0, j0 + 1] += nf * w01
+                        frames[i0 + 1, j0] += nf * w10
+                        frames[i0 + 1, j0 + 1] += nf * w11
+                        continue
+                    _add(sums, frames, i0, j0, c, nf, ox * oy * inv_area)
+                    _add(sums, frames, i0, j0 + 1, c, nf, ox1 * oy * inv_area)
+                    _add(sums, frames, i0 + 1, j0, c, nf, ox * oy1 * inv_area)
+                    _add(sums, frames, i0 + 1, j0 + 1, c, nf, ox1 * oy1 * inv_area)
+                    continue
                 i0, i1 = max(int(math.floor(y0 + 0.5)), 0), min(int(math.floor(y1 + 0.5)), hc - 1)
                 j0, j1 = max(int(math.floor(x0 + 0.5)), 0), min(int(math.floor(x1 + 0.5)), wc - 1)
-                c = counts[b, y, x]
                 for i in range(i0, i1 + 1):
                     oy = min(y1, i + 0.5) - max(y0, i - 0.5)
                     for j in range(j0, j1 + 1):

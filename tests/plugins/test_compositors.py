@@ -3,7 +3,6 @@
 import cv2
 import numpy as np
 import pytest
-
 from photonpano.compose import BilinearCompositor, compose
 from photonpano.plugins.compositors.drizzle import Drizzle, DrizzleConfig
 from photonpano.plugins.compositors.flux_canvas import FluxCanvasConfig
@@ -12,21 +11,29 @@ from photonpano.testing import CompositorContract
 
 
 class TestFluxCanvas(CompositorContract):
+    """The bilinear compositor keeps the contract."""
+
     config_class = FluxCanvasConfig
     entry_point = "flux-canvas"
 
 
 class TestDrizzle(CompositorContract):
+    """Drizzle with its default square drop keeps the contract."""
+
     config_class = DrizzleConfig
     entry_point = "drizzle"
 
 
 class TestDrizzlePointKernel(CompositorContract):
+    """Drizzle with point drops keeps the contract."""
+
     config_class = DrizzleConfig
     config_kwargs = {"kernel": "point"}
 
 
 class TestDrizzleGaussianKernel(CompositorContract):
+    """Drizzle with Gaussian drops keeps the contract."""
+
     config_class = DrizzleConfig
     config_kwargs = {"kernel": "gaussian", "pixfrac": 0.8}
 
