@@ -36,14 +36,11 @@ class Panorama:
             (weighted by the compositor's kernel).
         homographies: (T, 3, 3) float64 frame-to-canvas homographies (canvas pixels,
             including the super-resolution scale).
-        rgb: (Hc, Wc, 3) float32 flux per colour channel (R, G, B) in photons/s, NaN
-            where a channel saw nothing, from compositors that produce colour; else None.
     """
 
     flux: NDArray[np.float32]
     frames: NDArray[np.float32]
     homographies: NDArray[np.float64]
-    rgb: NDArray[np.float32] | None = None
 
 
 @dataclass(frozen=True)

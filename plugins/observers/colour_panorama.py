@@ -8,7 +8,8 @@ only, with the final homographies, onto the panorama's canvas: the dense sub-pix
 motion fills each channel's sparse pixel grid in. Hot/dead pixels are left out.
 
 Outputs in the run folder: ``panorama_rgb.npy`` ((Hc, Wc, 3) float32 linear flux in
-photons/s per channel, R, G, B; NaN where a channel saw nothing) and
+photons/s per channel, R, G, B; NaN where a channel saw nothing), the same as a float32
+RGB TIFF with its validity mask ``panorama_rgb.tif`` (see :mod:`photonpano.hdr`) and
 ``panorama_rgb.png`` (16-bit sRGB, one white point for all channels).
 """
 
@@ -92,6 +93,7 @@ def photonpano_run_finished(spec: Any, summary: dict[str, Any], out_dir: Path) -
         return
     import cv2
 
+    from photonpano.hdr import write_flux_tiff
     from photonpano.photons import linear_to_srgb
 
     source = spec.source.build()
@@ -99,6 +101,7 @@ def photonpano_run_finished(spec: Any, summary: dict[str, Any], out_dir: Path) -
     shape = (int(summary["panorama"]["height"]), int(summary["panorama"]["width"]))
     rgb = colour_panorama(source, homographies, shape, subbatch_px=spec.panorama_subbatch_px)
     np.save(out_dir / "panorama_rgb.npy", rgb)
+    write_flux_tiff(out_dir / "panorama_rgb.tif", rgb)
     seen = np.isfinite(rgb)
     white = float(np.percentile(rgb[seen], 99.5)) if seen.any() else 1.0
     image = linear_to_srgb(np.where(seen, rgb, 0) / (white if white > 0 else 1.0))

@@ -53,6 +53,9 @@ def test_colour_panorama_recovers_each_channel(colour_cube, tmp_path):
     spec = SimpleNamespace(source=cfg, panorama_subbatch_px=0.25)
     photonpano_run_finished(spec=spec, summary={"panorama": {"height": 254, "width": 496}}, out_dir=tmp_path)
     np.testing.assert_array_equal(np.load(tmp_path / "panorama_rgb.npy"), rgb)
+    from photonpano.hdr import read_flux_tiff
+    tif, valid = read_flux_tiff(tmp_path / "panorama_rgb.tif")
+    assert np.array_equal(tif, rgb, equal_nan=True) and np.array_equal(valid, np.isfinite(rgb).all(axis=-1))
     import cv2
 
     png = cv2.imread(str(tmp_path / "panorama_rgb.png"), cv2.IMREAD_UNCHANGED)
