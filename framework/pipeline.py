@@ -180,7 +180,7 @@ def _rmse(homographies: np.ndarray, source) -> float:
 
 
 def ground_truth_report(source, homographies: np.ndarray, pano, subbatch_px: float, *,
-                        compositor: Any = None) -> dict[str, Any]:
+                        compositor: Any = None, references: tuple[Any, ...] = ()) -> dict[str, Any]:
     """Measure a reconstruction against a capture's ground truth.
 
     The trajectory error is taken after the best global alignment G (the panorama's
@@ -198,15 +198,19 @@ def ground_truth_report(source, homographies: np.ndarray, pano, subbatch_px: flo
         subbatch_px: sub-batch tolerance used for the reference panorama.
         compositor: the compositor config that made ``pano`` (built afresh for the
             reference); None: the bilinear ``flux-canvas`` merge.
+        references: more compositor configs to composite the true motion with on the
+            same canvas, scored on the same pixels (e.g. ``flux-canvas`` to measure
+            what drizzle gains).
 
     Returns:
         ``{"trajectory_rmse_px", "trajectory_max_px"}`` and, with a scene, ``"psnr_db",
-        "psnr_true_homographies_db", "psnr_gap_db"``.
+        "psnr_true_homographies_db", "psnr_gap_db"`` and, with ``references``,
+        ``"psnr_true_homographies_by"``: plugin key -> PSNR in dB.
     """
     import cv2
 
     from .compose import BilinearCompositor, compose
-    from .metrics import psnr, trajectory_error
+    from .metrics import psnr, scene_on_canvas, trajectory_error
 
     err = trajectory_error(homographies, source.ground_truth, source.width, source.height)
     report: dict[str, Any] = {"trajectory_rmse_px": err.rmse_px,
@@ -216,37 +220,20 @@ def ground_truth_report(source, homographies: np.ndarray, pano, subbatch_px: flo
     canvas_from_pano = pano.homographies[0] @ np.linalg.inv(homographies[0])
     canvas_from_scene = canvas_from_pano @ np.linalg.inv(err.alignment)
     shape = pano.flux.shape
-    truth = compose(source, canvas_from_scene @ source.ground_truth,
-                    compositor.build() if compositor is not None else BilinearCompositor(),
-                    subbatch_px=subbatch_px, canvas_shape=shape)
-    scene = _scene_on_canvas(source, canvas_from_scene, shape)
-    both = np.isfinite(pano.flux) & np.isfinite(truth.flux) & np.isfinite(scene)
+    truths = [compose(source, canvas_from_scene @ source.ground_truth,
+                      config.build() if config is not None else BilinearCompositor(),
+                      subbatch_px=subbatch_px, canvas_shape=shape) for config in (compositor, *references)]
+    scene = scene_on_canvas(source, canvas_from_scene, shape)
+    both = np.isfinite(pano.flux) & np.isfinite(scene)
+    for truth in truths:
+        both &= np.isfinite(truth.flux)
     mask = cv2.erode(both.astype(np.uint8), np.ones((7, 7), np.uint8)).astype(bool)
-    estimated_db, true_db = psnr(pano.flux, scene, mask), psnr(truth.flux, scene, mask)
+    estimated_db, true_db = psnr(pano.flux, scene, mask), psnr(truths[0].flux, scene, mask)
     report.update(psnr_db=estimated_db, psnr_true_homographies_db=true_db, psnr_gap_db=true_db - estimated_db)
+    if references:
+        report["psnr_true_homographies_by"] = {config.plugin: psnr(truth.flux, scene, mask)
+                                               for config, truth in zip(references, truths[1:])}
     return report
-
-
-def _scene_on_canvas(source, canvas_from_scene: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
-    """The true scene flux resampled onto a canvas (area-averaged where the canvas is coarser).
-
-    ``canvas_from_scene`` maps ground-truth coordinates to canvas pixels; the scene flux
-    has ``source.scene_pitch`` pixels per ground-truth unit.
-    """
-    import cv2
-
-    from . import geometry
-
-    pitch = float(getattr(source, "scene_pitch", 1.0))
-    to_canvas = canvas_from_scene @ geometry.scale_matrix(1.0 / pitch)
-    scene = source.scene_flux
-    step = int(np.floor(np.sqrt(abs(np.linalg.det(np.linalg.inv(to_canvas)[:2, :2])))))
-    if step >= 2:  # the canvas is coarser than the scene: average the scene first (no aliasing)
-        size = (scene.shape[1] // step, scene.shape[0] // step)
-        scene = cv2.resize(scene, size, interpolation=cv2.INTER_AREA)
-        to_canvas = to_canvas @ geometry.scale_matrix(step)
-    return cv2.warpPerspective(scene, to_canvas, shape[::-1], flags=cv2.INTER_LANCZOS4,
-                               borderMode=cv2.BORDER_CONSTANT, borderValue=np.nan)
 
 
 def _write_png(path: Path, image: np.ndarray) -> None:

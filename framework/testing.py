@@ -568,8 +568,7 @@ class CompositorContract(PluginContract):
 
     def test_panorama_has_documented_types_and_matches_the_scene(self, built: Any, capture: Any) -> None:
         """(Hc, Wc) float32 flux and frames on the canvas; PSNR vs the scene >= ``min_psnr_db``."""
-        from photonpano.metrics import psnr
-        from photonpano.pipeline import _scene_on_canvas
+        from photonpano.metrics import psnr, scene_on_canvas
 
         pano = self._compose(built, capture)
         shape = pano.flux.shape
@@ -579,7 +578,7 @@ class CompositorContract(PluginContract):
         assert seen.mean() > 0.9, f"only {seen.mean():.0%} of the canvas is observed"
         assert np.all(pano.flux[seen] >= 0) and np.all(pano.frames >= 0)
         canvas_from_scene = pano.homographies[0] @ np.linalg.inv(capture.ground_truth[0])
-        scene = _scene_on_canvas(capture, canvas_from_scene, shape)
+        scene = scene_on_canvas(capture, canvas_from_scene, shape)
         inner = np.zeros(shape, bool)
         inner[4:-4, 4:-4] = True
         value = psnr(pano.flux, scene, inner & seen)
