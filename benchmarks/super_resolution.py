@@ -13,8 +13,9 @@ on the panorama canvas (``ground_truth_report``):
 
 Columns: PSNR of the default pipeline (estimated motion, drizzle); of drizzle with
 the true motion; of the bilinear merge (``flux-canvas``) with the true motion on the
-same canvas (the reference), all on the same pixels; ``gain`` = default - reference. Acceptance: gain >= 2.0 dB undersampled at scale
-2, >= -0.3 dB standard at scale 1. Same as ``photonpano run spec.yaml --set scale=2``.
+same canvas (the reference), all on the same pixels; ``gain`` = default - reference.
+Acceptance: gain >= 2.0 dB undersampled at scale 2, >= -0.3 dB standard at scale 1.
+Same as ``photonpano run spec.yaml --set scale=2``.
 
 Usage::
 
