@@ -3,9 +3,9 @@
 Conventions: frame and canvas pixel centres at integers, canvas pixel ``(i, j)`` covers
 ``[j - 0.5, j + 0.5) x [i - 0.5, i + 0.5)``; ``homographies`` map frame pixels to canvas
 pixels. Each frame pixel deposits its count ``c`` and its number of frames ``n`` with
-the kernel's weights ``w`` (summing to 1 over the canvas): ``sums += w c``,
-``frames += w n``. The kernels release the GIL, so threads fill separate canvases at
-once.
+the kernel's weights ``w`` (summing to 1 over the canvas) into an interleaved
+accumulator: ``acc[..., 0] += w c``, ``acc[..., 1] += w n``. The kernels release the
+GIL, so threads fill separate canvases at once.
 """
 
 from __future__ import annotations
@@ -18,7 +18,7 @@ from numba import njit
 __all__ = ["splat_point", "splat_square", "splat_gaussian"]
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, fastmath=True)
 def _project(m, x, y):
     den = m[2, 0] * x + m[2, 1] * y + m[2, 2]
     return (m[0, 0] * x + m[0, 1] * y + m[0, 2]) / den, (m[1, 0] * x + m[1, 1] * y + m[1, 2]) / den
@@ -31,18 +31,18 @@ def _pixel_size(m):
 
 
 @njit(cache=True, nogil=True)
-def splat_point(counts, n_frames, homographies, sums, frames):
+def splat_point(counts, n_frames, homographies, acc):
     """Add each frame pixel to the canvas pixel its centre lands in.
 
     Args:
         counts: (B, H, W) uint16 or float32 summed frames.
         n_frames: (B,) int64 frames behind each count image.
         homographies: (B, 3, 3) float64 frame-to-canvas homographies.
-        sums: (Hc, Wc) float32 accumulated counts (updated in place).
-        frames: (Hc, Wc) float32 accumulated frames (updated in place).
+        acc: (Hc, Wc, 2) float32 accumulated counts (``[..., 0]``) and frames
+            (``[..., 1]``), updated in place (interleaved: one cache line for both).
     """
     nb, h, w = counts.shape
-    hc, wc = sums.shape
+    hc, wc = acc.shape[0], acc.shape[1]
     for b in range(nb):
         m = homographies[b]
         nf = np.float32(n_frames[b])
@@ -53,20 +53,20 @@ def splat_point(counts, n_frames, homographies, sums, frames):
                     continue
                 j, i = int(u + 0.5), int(v + 0.5)
                 if i < hc and j < wc:
-                    sums[i, j] += counts[b, y, x]
-                    frames[i, j] += nf
+                    acc[i, j, 0] += counts[b, y, x]
+                    acc[i, j, 1] += nf
 
 
 @njit(cache=True, nogil=True)
-def _add(sums, frames, i, j, c, n, weight):
+def _add(acc, i, j, c, n, weight):
     """Add one weighted drop to canvas pixel ``(i, j)`` if it lies on the canvas."""
-    if 0 <= i < sums.shape[0] and 0 <= j < sums.shape[1] and weight > 0:
-        sums[i, j] += np.float32(c * weight)
-        frames[i, j] += np.float32(n * weight)
+    if 0 <= i < acc.shape[0] and 0 <= j < acc.shape[1] and weight > 0:
+        acc[i, j, 0] += np.float32(c * weight)
+        acc[i, j, 1] += np.float32(n * weight)
 
 
-@njit(cache=True, nogil=True)
-def splat_square(counts, n_frames, homographies, sums, frames, pixfrac):
+@njit(cache=True, nogil=True, fastmath=True)
+def splat_square(counts, n_frames, homographies, acc, pixfrac):
     """Spread each frame pixel over the canvas pixels a square drop overlaps, by area.
 
     The drop is an axis-aligned square of side ``pixfrac`` frame pixels centred on the
@@ -76,7 +76,7 @@ def splat_square(counts, n_frames, homographies, sums, frames, pixfrac):
     ``pixfrac`` > 0.
     """
     nb, h, w = counts.shape
-    hc, wc = sums.shape
+    hc, wc = acc.shape[0], acc.shape[1]
     for b in range(nb):
         m = homographies[b]
         nf = np.float32(n_frames[b])
@@ -98,19 +98,19 @@ def splat_square(counts, n_frames, homographies, sums, frames, pixfrac):
                         w00, w01 = np.float32(ox * oy * inv_area), np.float32(ox1 * oy * inv_area)
                         w10, w11 = np.float32(ox * oy1 * inv_area), np.float32(ox1 * oy1 * inv_area)
                         cf = np.float32(c)
-                        sums[i0, j0] += cf * w00
-                        sums[i0, j0 + 1] += cf * w01
-                        sums[i0 + 1, j0] += cf * w10
-                        sums[i0 + 1, j0 + 1] += cf * w11
-                        frames[i0, j0] += nf * w00
-                        frames[i0, j0 + 1] += nf * w01
-                        frames[i0 + 1, j0] += nf * w10
-                        frames[i0 + 1, j0 + 1] += nf * w11
+                        acc[i0, j0, 0] += cf * w00
+                        acc[i0, j0 + 1, 0] += cf * w01
+                        acc[i0 + 1, j0, 0] += cf * w10
+                        acc[i0 + 1, j0 + 1, 0] += cf * w11
+                        acc[i0, j0, 1] += nf * w00
+                        acc[i0, j0 + 1, 1] += nf * w01
+                        acc[i0 + 1, j0, 1] += nf * w10
+                        acc[i0 + 1, j0 + 1, 1] += nf * w11
                         continue
-                    _add(sums, frames, i0, j0, c, nf, ox * oy * inv_area)
-                    _add(sums, frames, i0, j0 + 1, c, nf, ox1 * oy * inv_area)
-                    _add(sums, frames, i0 + 1, j0, c, nf, ox * oy1 * inv_area)
-                    _add(sums, frames, i0 + 1, j0 + 1, c, nf, ox1 * oy1 * inv_area)
+                    _add(acc, i0, j0, c, nf, ox * oy * inv_area)
+                    _add(acc, i0, j0 + 1, c, nf, ox1 * oy * inv_area)
+                    _add(acc, i0 + 1, j0, c, nf, ox * oy1 * inv_area)
+                    _add(acc, i0 + 1, j0 + 1, c, nf, ox1 * oy1 * inv_area)
                     continue
                 i0, i1 = max(int(math.floor(y0 + 0.5)), 0), min(int(math.floor(y1 + 0.5)), hc - 1)
                 j0, j1 = max(int(math.floor(x0 + 0.5)), 0), min(int(math.floor(x1 + 0.5)), wc - 1)
@@ -119,12 +119,12 @@ def splat_square(counts, n_frames, homographies, sums, frames, pixfrac):
                     for j in range(j0, j1 + 1):
                         weight = oy * (min(x1, j + 0.5) - max(x0, j - 0.5)) * inv_area
                         if weight > 0:
-                            sums[i, j] += np.float32(c * weight)
-                            frames[i, j] += np.float32(nf * weight)
+                            acc[i, j, 0] += np.float32(c * weight)
+                            acc[i, j, 1] += np.float32(nf * weight)
 
 
 @njit(cache=True, nogil=True)
-def splat_gaussian(counts, n_frames, homographies, sums, frames, pixfrac):
+def splat_gaussian(counts, n_frames, homographies, acc, pixfrac):
     """Spread each frame pixel with a Gaussian of FWHM ``pixfrac`` frame pixels.
 
     Weights are the (separable) Gaussian at the canvas pixel centres within 3 sigma (at
@@ -132,7 +132,7 @@ def splat_gaussian(counts, n_frames, homographies, sums, frames, pixfrac):
     :func:`splat_square`.
     """
     nb, h, w = counts.shape
-    hc, wc = sums.shape
+    hc, wc = acc.shape[0], acc.shape[1]
     for b in range(nb):
         m = homographies[b]
         nf = np.float32(n_frames[b])
@@ -158,5 +158,5 @@ def splat_gaussian(counts, n_frames, homographies, sums, frames, pixfrac):
                     a = wy[i - ci + radius]
                     for j in range(max(cj - radius, 0), min(cj + radius, wc - 1) + 1):
                         weight = a * wx[j - cj + radius]
-                        sums[i, j] += np.float32(c * weight)
-                        frames[i, j] += np.float32(n * weight)
+                        acc[i, j, 0] += np.float32(c * weight)
+                        acc[i, j, 1] += np.float32(n * weight)

@@ -69,8 +69,7 @@ class Drizzle(Compositor):
     def prepare(self, canvas: Canvas, source: PhotonSource) -> None:
         """Start empty sums on ``canvas`` (see :meth:`Compositor.prepare`)."""
         self._canvas, self._source = canvas, source
-        self._sums = np.zeros(canvas.shape, np.float32)
-        self._frames = np.zeros(canvas.shape, np.float32)
+        self._acc = np.zeros((*canvas.shape, 2), np.float32)  # sums and frames, interleaved
 
     def feed(self, counts: NDArray, n_frames: NDArray[np.int64], homographies: NDArray[np.float64]) -> None:
         """Splat a sub-batch (see :meth:`Compositor.feed`)."""
@@ -78,7 +77,7 @@ class Drizzle(Compositor):
         if counts.dtype not in (np.uint16, np.float32):
             counts = counts.astype(np.float32)
         args = (counts, np.asarray(n_frames, np.int64), np.ascontiguousarray(homographies, np.float64),
-                self._sums, self._frames)
+                self._acc)
         self._splat(*args) if self.kernel == "point" else self._splat(*args, float(self.pixfrac))
 
     def fork(self) -> Drizzle:
@@ -89,15 +88,15 @@ class Drizzle(Compositor):
 
     def join(self, other: Compositor) -> None:
         """Add a fork's sums (see :meth:`Compositor.join`)."""
-        self._sums += other._sums
-        self._frames += other._frames
+        self._acc += other._acc
 
     def finish(self) -> Panorama:
         """The flux MLE per canvas pixel (see :meth:`Compositor.finish`)."""
         from photonpano.intensity import estimate_radiance
 
-        flux = estimate_radiance(self._source, self._sums, self._frames)
-        return Panorama(flux=flux, frames=self._frames, homographies=self._canvas.homographies)
+        sums, frames = np.ascontiguousarray(self._acc[..., 0]), np.ascontiguousarray(self._acc[..., 1])
+        flux = estimate_radiance(self._source, sums, frames)
+        return Panorama(flux=flux, frames=frames, homographies=self._canvas.homographies)
 
 
 @hookimpl
