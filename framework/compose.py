@@ -31,9 +31,10 @@ class Panorama:
     """A panorama canvas.
 
     Attributes:
-        flux: (Hc, Wc) float32 linear flux in photons/s; NaN where no frame looked.
+        flux: (Hc, Wc) float32 linear flux in photons/s; NaN where no frame looked
+            ((Hc, Wc, C) from compositors of C channels, e.g. colour).
         frames: (Hc, Wc) float32 number of binary frames behind each canvas pixel
-            (weighted by the compositor's kernel).
+            (weighted by the compositor's kernel; (Hc, Wc, C) with channels).
         homographies: (T, 3, 3) float64 frame-to-canvas homographies (canvas pixels,
             including the super-resolution scale).
     """
@@ -180,9 +181,10 @@ class BilinearCompositor(Compositor):
         self._canvas, self._source = canvas, source
         self._acc = WarpAccumulator(canvas.height, canvas.width)
 
-    def feed(self, counts: NDArray, n_frames: NDArray[np.int64], homographies: NDArray[np.float64]) -> None:
+    def feed(self, counts: NDArray, n_frames: NDArray[np.int64], homographies: NDArray[np.float64],
+             weights: NDArray[np.float32] | None = None) -> None:
         """Warp and add a sub-batch (see :meth:`Compositor.feed`)."""
-        self._acc.add_many(counts, n_frames, homographies)
+        self._acc.add_many(counts, n_frames, homographies, weights=weights)
 
     def fork(self) -> BilinearCompositor:
         """An empty copy on the same canvas (see :meth:`Compositor.fork`)."""

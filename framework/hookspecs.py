@@ -18,6 +18,7 @@ from typing import TYPE_CHECKING, Any
 from . import hookspec
 
 if TYPE_CHECKING:
+    from .compose import Panorama
     from .reconstruct import LevelResult
     from .stages import (
         CompositorConfig,
@@ -161,6 +162,25 @@ def photonpano_level_finished(level: LevelResult, spec: Any, source: PhotonSourc
         out_dir: the output folder.
 
     .. versionadded:: 0.1
+    """
+
+
+@hookspec
+def photonpano_panorama_finished(panorama: Panorama, spec: Any, source: PhotonSource, out_dir: Path) -> None:
+    """Called once the panorama is composited and written, with the capture still open.
+
+    Observers that composite more from the same photons (a colour panorama, say) use
+    ``panorama.homographies`` and the canvas shape from here rather than re-opening
+    the source and reading ``homographies.npy``.
+
+    Args:
+        panorama: the run's :class:`~photonpano.compose.Panorama` (frame-to-canvas
+            homographies of every binary frame, flux on the canvas).
+        spec: the validated pipeline spec.
+        source: the opened capture.
+        out_dir: the output folder.
+
+    .. versionadded:: 0.2
     """
 
 

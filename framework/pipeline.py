@@ -94,6 +94,7 @@ def run_pipeline(spec: BaseModel, out_dir: Path, host: PluginHost, *, force: boo
     write_flux_tiff(out_dir / "panorama.tif", pano.flux)
     if spec.outputs.panorama_png:
         _write_png(out_dir / "panorama.png", tone_map(pano.flux, bits=16))
+    host.hook.photonpano_panorama_finished(panorama=pano, spec=spec, source=source, out_dir=out_dir)
 
     summary: dict[str, Any] = {
         "photonpano": __version__,

@@ -399,7 +399,8 @@ class Compositor(abc.ABC):
         return source.sum_ranges(edges)
 
     @abc.abstractmethod
-    def feed(self, counts: NDArray, n_frames: NDArray[np.int64], homographies: NDArray[np.float64]) -> None:
+    def feed(self, counts: NDArray, n_frames: NDArray[np.int64], homographies: NDArray[np.float64],
+             weights: NDArray[np.float32] | None = None) -> None:
         """Add a sub-batch of summed frames.
 
         Args:
@@ -408,6 +409,8 @@ class Compositor(abc.ABC):
             n_frames: (B,) int64 binary frames behind each count image.
             homographies: (B, 3, 3) float64 frame-to-canvas homographies (canvas
                 pixels, pixel centres at integers), one per count image.
+            weights: (H, W) float32 weight of each frame pixel in [0, 1] (0 leaves the
+                pixel out, e.g. pixels behind another colour filter); None: all 1.
         """
 
     def fork(self) -> Compositor | None:

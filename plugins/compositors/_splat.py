@@ -31,13 +31,14 @@ def _pixel_size(m):
 
 
 @njit(cache=True, nogil=True)
-def splat_point(counts, n_frames, homographies, acc):
+def splat_point(counts, n_frames, homographies, weights, acc):
     """Add each frame pixel to the canvas pixel its centre lands in.
 
     Args:
         counts: (B, H, W) uint16 or float32 summed frames.
         n_frames: (B,) int64 frames behind each count image.
         homographies: (B, 3, 3) float64 frame-to-canvas homographies.
+        weights: (H, W) float32 weight of each frame pixel (0 skips it).
         acc: (Hc, Wc, 2) float32 accumulated counts (``[..., 0]``) and frames
             (``[..., 1]``), updated in place (interleaved: one cache line for both).
     """
@@ -48,13 +49,14 @@ def splat_point(counts, n_frames, homographies, acc):
         nf = np.float32(n_frames[b])
         for y in range(h):
             for x in range(w):
+                wt = weights[y, x]
                 u, v = _project(m, x, y)
-                if u < -0.5 or v < -0.5:
+                if wt == 0 or u < -0.5 or v < -0.5:
                     continue
                 j, i = int(u + 0.5), int(v + 0.5)
                 if i < hc and j < wc:
-                    acc[i, j, 0] += counts[b, y, x]
-                    acc[i, j, 1] += nf
+                    acc[i, j, 0] += counts[b, y, x] * wt
+                    acc[i, j, 1] += nf * wt
 
 
 @njit(cache=True, nogil=True)
@@ -66,7 +68,7 @@ def _add(acc, i, j, c, n, weight):
 
 
 @njit(cache=True, nogil=True, fastmath=True)
-def splat_square(counts, n_frames, homographies, acc, pixfrac):
+def splat_square(counts, n_frames, homographies, weights, acc, pixfrac):
     """Spread each frame pixel over the canvas pixels a square drop overlaps, by area.
 
     The drop is an axis-aligned square of side ``pixfrac`` frame pixels centred on the
@@ -86,9 +88,13 @@ def splat_square(counts, n_frames, homographies, acc, pixfrac):
         small = side <= 1.0
         for y in range(h):
             for x in range(w):
+                wt = weights[y, x]
+                if wt == 0:
+                    continue
                 u, v = _project(m, x, y)
                 x0, x1, y0, y1 = u - half, u + half, v - half, v + half
-                c = counts[b, y, x]
+                c = counts[b, y, x] * wt
+                n = nf * wt
                 if small:  # overlaps with (i0, j0) and the next pixel along each axis
                     j0, i0 = int(math.floor(x0 + 0.5)), int(math.floor(y0 + 0.5))
                     ox = min(x1, j0 + 0.5) - x0
@@ -97,20 +103,20 @@ def splat_square(counts, n_frames, homographies, acc, pixfrac):
                     if 0 <= i0 and i0 + 1 < hc and 0 <= j0 and j0 + 1 < wc:  # inside: no checks
                         w00, w01 = np.float32(ox * oy * inv_area), np.float32(ox1 * oy * inv_area)
                         w10, w11 = np.float32(ox * oy1 * inv_area), np.float32(ox1 * oy1 * inv_area)
-                        cf = np.float32(c)
+                        cf, nn = np.float32(c), np.float32(n)
                         acc[i0, j0, 0] += cf * w00
                         acc[i0, j0 + 1, 0] += cf * w01
                         acc[i0 + 1, j0, 0] += cf * w10
                         acc[i0 + 1, j0 + 1, 0] += cf * w11
-                        acc[i0, j0, 1] += nf * w00
-                        acc[i0, j0 + 1, 1] += nf * w01
-                        acc[i0 + 1, j0, 1] += nf * w10
-                        acc[i0 + 1, j0 + 1, 1] += nf * w11
+                        acc[i0, j0, 1] += nn * w00
+                        acc[i0, j0 + 1, 1] += nn * w01
+                        acc[i0 + 1, j0, 1] += nn * w10
+                        acc[i0 + 1, j0 + 1, 1] += nn * w11
                         continue
-                    _add(acc, i0, j0, c, nf, ox * oy * inv_area)
-                    _add(acc, i0, j0 + 1, c, nf, ox1 * oy * inv_area)
-                    _add(acc, i0 + 1, j0, c, nf, ox * oy1 * inv_area)
-                    _add(acc, i0 + 1, j0 + 1, c, nf, ox1 * oy1 * inv_area)
+                    _add(acc, i0, j0, c, n, ox * oy * inv_area)
+                    _add(acc, i0, j0 + 1, c, n, ox1 * oy * inv_area)
+                    _add(acc, i0 + 1, j0, c, n, ox * oy1 * inv_area)
+                    _add(acc, i0 + 1, j0 + 1, c, n, ox1 * oy1 * inv_area)
                     continue
                 i0, i1 = max(int(math.floor(y0 + 0.5)), 0), min(int(math.floor(y1 + 0.5)), hc - 1)
                 j0, j1 = max(int(math.floor(x0 + 0.5)), 0), min(int(math.floor(x1 + 0.5)), wc - 1)
@@ -120,11 +126,11 @@ def splat_square(counts, n_frames, homographies, acc, pixfrac):
                         weight = oy * (min(x1, j + 0.5) - max(x0, j - 0.5)) * inv_area
                         if weight > 0:
                             acc[i, j, 0] += np.float32(c * weight)
-                            acc[i, j, 1] += np.float32(nf * weight)
+                            acc[i, j, 1] += np.float32(n * weight)
 
 
 @njit(cache=True, nogil=True)
-def splat_gaussian(counts, n_frames, homographies, acc, pixfrac):
+def splat_gaussian(counts, n_frames, homographies, weights, acc, pixfrac):
     """Spread each frame pixel with a Gaussian of FWHM ``pixfrac`` frame pixels.
 
     Weights are the (separable) Gaussian at the canvas pixel centres within 3 sigma (at
@@ -143,6 +149,9 @@ def splat_gaussian(counts, n_frames, homographies, acc, pixfrac):
         wy = np.empty(2 * radius + 1)
         for y in range(h):
             for x in range(w):
+                wt = weights[y, x]
+                if wt == 0:
+                    continue
                 u, v = _project(m, x, y)
                 ci, cj = int(math.floor(v + 0.5)), int(math.floor(u + 0.5))
                 sx = sy = 0.0
@@ -151,7 +160,7 @@ def splat_gaussian(counts, n_frames, homographies, acc, pixfrac):
                     wy[k] = math.exp(-(ci - radius + k - v) ** 2 * inv)
                     sx += wx[k]
                     sy += wy[k]
-                norm = 1.0 / (sx * sy)
+                norm = wt / (sx * sy)
                 c = counts[b, y, x] * norm
                 n = nf * norm
                 for i in range(max(ci - radius, 0), min(ci + radius, hc - 1) + 1):

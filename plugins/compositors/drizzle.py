@@ -71,13 +71,16 @@ class Drizzle(Compositor):
         self._canvas, self._source = canvas, source
         self._acc = np.zeros((*canvas.shape, 2), np.float32)  # sums and frames, interleaved
 
-    def feed(self, counts: NDArray, n_frames: NDArray[np.int64], homographies: NDArray[np.float64]) -> None:
+    def feed(self, counts: NDArray, n_frames: NDArray[np.int64], homographies: NDArray[np.float64],
+             weights: NDArray[np.float32] | None = None) -> None:
         """Splat a sub-batch (see :meth:`Compositor.feed`)."""
         counts = np.ascontiguousarray(counts)
         if counts.dtype not in (np.uint16, np.float32):
             counts = counts.astype(np.float32)
+        if weights is None:
+            weights = np.ones(counts.shape[1:], np.float32)
         args = (counts, np.asarray(n_frames, np.int64), np.ascontiguousarray(homographies, np.float64),
-                self._acc)
+                np.ascontiguousarray(weights, np.float32), self._acc)
         self._splat(*args) if self.kernel == "point" else self._splat(*args, float(self.pixfrac))
 
     def fork(self) -> Drizzle:
