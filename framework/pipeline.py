@@ -5,7 +5,7 @@ Outputs (the contract other tools read, see ``docs/outputs.md``):
 - ``homographies.npy``: (T, 3, 3) float64, frame pixel coordinates to panorama pixel
   coordinates (x right, y down, pixel centres at integers), one per binary frame.
 - ``panorama.npy``: (H, W) float32 linear flux in photons/s, NaN where unobserved.
-- ``panorama.tif``: the same flux as a float32 TIFF, page 2 its validity mask.
+- ``panorama.tif``: the same flux as a float32 TIFF, its second page the validity mask.
 - ``panorama.png``: the panorama tone-mapped to 16-bit sRGB.
 - ``run.json``: versions, spec, timings per stage and level, per-level statistics and,
   for simulated captures, the accuracy against ground truth.
