@@ -53,7 +53,8 @@ def main() -> None:
             t0 = time.perf_counter()
             homographies, stats, pano, _ = reconstruct(spec, source)
             seconds = time.perf_counter() - t0
-            report = ground_truth_report(source, homographies, pano, spec.panorama_subbatch_px)
+            report = ground_truth_report(source, homographies, pano, spec.panorama_subbatch_px,
+                                         compositor=spec.compositor)
             levels = " ".join(f"{row['trajectory_rmse_px']:.3f}" for row in stats)
             print(f"{flux:>6} {name:>8} {levels:>28} {report['psnr_db']:>7.2f} "
                   f"{report['psnr_true_homographies_db']:>11.2f} {report['psnr_gap_db']:>6.2f} {seconds:>6.1f}s",

@@ -326,13 +326,11 @@ def plugins() -> None:
 @app.command()
 def validate(spec: Annotated[Path, typer.Argument(help="Pipeline spec (YAML).")], set_: SetOption = None) -> None:
     """Validate a spec without reading any data."""
-    from .spec import dump_spec, load_spec
+    from .spec import check_available, dump_spec, load_spec
 
     try:
         parsed = load_spec(spec, _host(), set_ or [])
-        for stage in ("source", "resampler", "merger", "locator", "interpolator", "refine_locator"):
-            if getattr(parsed, stage) is not None:
-                type(getattr(parsed, stage)).check_available()
+        check_available(parsed)
     except PhotonpanoError as exc:
         _fail(str(exc))
     typer.echo(f"{spec}: valid")

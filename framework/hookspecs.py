@@ -18,9 +18,17 @@ from typing import TYPE_CHECKING, Any
 from . import hookspec
 
 if TYPE_CHECKING:
+    from .compose import Panorama
     from .reconstruct import LevelResult
-    from .stages import (InterpolatorConfig, LocatorConfig, MergerConfig, PhotonSource,
-                         ResamplerConfig, SourceConfig)
+    from .stages import (
+        CompositorConfig,
+        InterpolatorConfig,
+        LocatorConfig,
+        MergerConfig,
+        PhotonSource,
+        ResamplerConfig,
+        SourceConfig,
+    )
 
 
 # --- registration: one hook per stage kind ---------------------------------------
@@ -79,6 +87,17 @@ def photonpano_register_interpolators() -> list[type[InterpolatorConfig]]:
         :class:`~photonpano.stages.InterpolatorConfig` subclasses with unique keys.
 
     .. versionadded:: 0.1
+    """
+
+
+@hookspec
+def photonpano_register_compositors() -> list[type[CompositorConfig]]:
+    """Offer compositor plugins (the panorama from every binary frame and its homography).
+
+    Returns:
+        :class:`~photonpano.stages.CompositorConfig` subclasses with unique keys.
+
+    .. versionadded:: 0.2
     """
 
 
@@ -150,6 +169,24 @@ def photonpano_level_finished(level: LevelResult, spec: Any, source: PhotonSourc
 
 
 @hookspec
+def photonpano_panorama_finished(panorama: Panorama, spec: Any, source: PhotonSource, out_dir: Path | None) -> None:
+    """Called once the panorama is composited and written, with the capture still open.
+
+    Observers that composite more from the same photons (a colour panorama, say) use
+    ``panorama.homographies`` and the canvas shape from here rather than re-opening
+    the source and reading ``homographies.npy``.
+
+    Args:
+        panorama: the run's :class:`~photonpano.compose.Panorama` (frame-to-canvas
+            homographies of every binary frame, flux on the canvas).
+        spec: the validated pipeline spec.
+        source: the opened capture.
+        out_dir: the output folder.
+
+    .. versionadded:: 0.2
+    """
+
+
 def photonpano_run_finished(spec: Any, summary: dict[str, Any], out_dir: Path | None) -> None:
     """Called after all other outputs are written, just before ``run.json`` (written last).
 

@@ -36,6 +36,7 @@ _REGISTER_HOOKS = {
     "merger": "photonpano_register_mergers",
     "locator": "photonpano_register_locators",
     "interpolator": "photonpano_register_interpolators",
+    "compositor": "photonpano_register_compositors",
 }
 
 
@@ -185,7 +186,7 @@ class PluginHost:
 
         Args:
             stage: one of ``source``, ``resampler``, ``merger``, ``locator``,
-                ``interpolator``.
+                ``interpolator``, ``compositor``.
 
         Raises:
             KeyError: for an unknown stage kind.

@@ -9,7 +9,7 @@ from numpy.typing import NDArray
 
 from . import geometry
 
-__all__ = ["TrajectoryError", "trajectory_error", "psnr"]
+__all__ = ["TrajectoryError", "trajectory_error", "psnr", "scene_on_canvas"]
 
 
 @dataclass(frozen=True)
@@ -96,3 +96,35 @@ def psnr(estimate: NDArray, truth: NDArray, mask: NDArray[np.bool_] | None = Non
         e = e * (np.dot(e, t) / max(np.dot(e, e), 1e-300))
     mse = np.mean((e - t) ** 2)
     return float(10 * np.log10(t.max() ** 2 / max(mse, 1e-300)))
+
+
+def scene_on_canvas(source, canvas_from_scene: NDArray[np.float64],
+                    shape: tuple[int, int]) -> NDArray[np.float32]:
+    """Resample a capture's true scene flux onto a panorama canvas.
+
+    Lanczos resampling (a bilinear one would blur the reference and favour blurred
+    panoramas); where the canvas is coarser than the scene, the scene is area-averaged
+    first (no aliasing).
+
+    Args:
+        source: a capture with ``scene_flux`` ((Hs, Ws) float32 photons/s) and
+            ``scene_pitch`` (scene pixels per ground-truth unit, default 1).
+        canvas_from_scene: (3, 3) float64 map from ground-truth coordinates (those
+            ``source.ground_truth`` maps frames to) to canvas pixels.
+        shape: ``(Hc, Wc)`` of the canvas.
+
+    Returns:
+        (Hc, Wc) float32 flux in photons/s; NaN outside the scene.
+    """
+    import cv2
+
+    pitch = float(getattr(source, "scene_pitch", 1.0))
+    to_canvas = canvas_from_scene @ geometry.scale_matrix(1.0 / pitch)
+    scene = source.scene_flux
+    step = int(np.floor(np.sqrt(abs(np.linalg.det(np.linalg.inv(to_canvas)[:2, :2])))))
+    if step >= 2:  # the canvas is coarser than the scene: average the scene first (no aliasing)
+        size = (scene.shape[1] // step, scene.shape[0] // step)
+        scene = cv2.resize(scene, size, interpolation=cv2.INTER_AREA)
+        to_canvas = to_canvas @ geometry.scale_matrix(step)
+    return cv2.warpPerspective(scene, to_canvas, shape[::-1], flags=cv2.INTER_LANCZOS4,
+                               borderMode=cv2.BORDER_CONSTANT, borderValue=np.nan)

@@ -5,6 +5,7 @@ Outputs (the contract other tools read, see ``docs/outputs.md``):
 - ``homographies.npy``: (T, 3, 3) float64, frame pixel coordinates to panorama pixel
   coordinates (x right, y down, pixel centres at integers), one per binary frame.
 - ``panorama.npy``: (H, W) float32 linear flux in photons/s, NaN where unobserved.
+- ``panorama.tif``: the same flux as a float32 TIFF, its second page the validity mask.
 - ``panorama.png``: the panorama tone-mapped to 16-bit sRGB.
 - ``run.json``: versions, spec, timings per stage and level, per-level statistics and,
   for simulated captures, the accuracy against ground truth.
@@ -27,6 +28,7 @@ from pydantic import BaseModel
 
 from . import __version__
 from .errors import PhotonpanoError
+from .hdr import write_flux_tiff
 from .host import PluginHost
 from .outputs import json_default
 from .progress import reporting, start_task
@@ -98,10 +100,9 @@ def run_pipeline(spec: BaseModel, out_dir: Path | None, host: PluginHost, *, for
     """
     from .outputs import RunFolder
 
-    for stage in ("source", "resampler", "merger", "locator", "interpolator"):
-        type(getattr(spec, stage)).check_available()
-    if spec.refine_locator is not None:
-        type(spec.refine_locator).check_available()
+    from .spec import check_available
+
+    check_available(spec)
     with reporting(host):
         if out_dir is None:
             return _run_into(spec, None, host)
@@ -155,8 +156,12 @@ def _run_into(spec: BaseModel, folder, host: PluginHost) -> RunResult:
     if folder is not None:
         folder.save_npy("homographies.npy", pano.homographies)
         folder.save_npy("panorama.npy", pano.flux)
+        folder.write_with("panorama.tif", lambda path: write_flux_tiff(path, pano.flux))
         if spec.outputs.panorama_png:
             folder.write_with("panorama.png", lambda path: _write_png(path, tone_map(pano.flux, bits=16)))
+    host.hook.photonpano_panorama_finished(panorama=pano, spec=spec, source=source, out_dir=out_dir)
+    if folder is not None:
+        folder.adopt_new_files()  # what observers wrote
 
     summary: dict[str, Any] = {
         "photonpano": __version__,
@@ -177,7 +182,7 @@ def _run_into(spec: BaseModel, folder, host: PluginHost) -> RunResult:
         t0 = time.perf_counter()
         advance = progress("ground truth report", source.n_frames) if source.scene_flux is not None else None
         summary["ground_truth"] = ground_truth_report(source, homographies, pano, spec.panorama_subbatch_px,
-                                                      progress=advance)
+                                                      compositor=spec.compositor, progress=advance)
         timings["ground_truth_report"] = time.perf_counter() - t0
         error = _trajectory_error(homographies, source)
     if folder is not None and spec.outputs.trajectory_plot:
@@ -208,10 +213,12 @@ def library_versions(spec: BaseModel | None = None) -> dict[str, str]:
     import importlib
     from importlib import metadata
 
+    from .stages import STAGES
+
     names = list(CORE_LIBRARIES)
     if spec is not None:
-        for stage in ("source", "resampler", "merger", "locator", "interpolator", "refine_locator"):
-            config = getattr(spec, stage, None)
+        for slot in (*STAGES, "refine_locator"):
+            config = getattr(spec, slot, None)
             names += [name for name in getattr(type(config), "requires", ()) if name not in names]
     versions: dict[str, str] = {}
     for name in names:
@@ -240,11 +247,13 @@ def reconstruct(spec: BaseModel, source, *, on_level=None, progress=None, checkp
         ``(homographies, level_statistics, panorama, timings_s)``: (T, 3, 3) float64
         frame-to-canvas homographies, one statistics dict per level (with the
         trajectory RMSE when the source has ground truth), the
-        :class:`~photonpano.reconstruct.Panorama` and wall times in seconds.
+        :class:`~photonpano.compose.Panorama` (from the spec's compositor) and wall
+        times in seconds.
     """
+    from .compose import compose
     from .executor import make_executor
     from .outputs import Checkpoint
-    from .reconstruct import assemble_panorama, estimate_motion
+    from .reconstruct import estimate_motion
 
     stats: list[dict[str, Any]] = list(resume.statistics) if resume is not None else []
     locator = spec.locator.build()
@@ -279,14 +288,14 @@ def reconstruct(spec: BaseModel, source, *, on_level=None, progress=None, checkp
         timings["levels"] = time.perf_counter() - t0
         t0 = time.perf_counter()
         advance = progress("panorama", source.n_frames) if progress else None
-        pano = assemble_panorama(source, homographies, scale=spec.scale, subbatch_px=spec.panorama_subbatch_px,
-                                 progress=advance, executor=executor)
+        pano = compose(source, homographies, spec.compositor.build(), subbatch_px=spec.panorama_subbatch_px,
+                       progress=advance, executor=executor)
         timings["panorama"] = time.perf_counter() - t0
     return homographies, stats, pano, timings
 
 
 def _start_state(resume) -> dict[str, Any]:
-    from .reconstruct import Panorama
+    from .compose import Panorama
 
     template = None if resume.template is None else Panorama(*resume.template)
     return {"start_level": resume.level + 1, "initial": resume.homographies, "template": template}
@@ -303,30 +312,40 @@ def _rmse(homographies: np.ndarray, source) -> float:
 
 
 def ground_truth_report(source, homographies: np.ndarray, pano, subbatch_px: float, *,
-                        progress=None) -> dict[str, Any]:
+                        compositor: Any = None, references: tuple[Any, ...] = (),
+                        progress: Any = None) -> dict[str, Any]:
     """Measure a reconstruction against a capture's ground truth.
 
     The trajectory error is taken after the best global alignment G (the panorama's
     coordinate frame is arbitrary). For the panorama, the true homographies are carried
-    into the estimated canvas through G and a second panorama is merged with them *on
-    the same canvas*; both are compared with the true scene flux resampled onto that
-    canvas, so the PSNR gap measures only what the estimated motion costs.
+    into the estimated canvas through G and a second panorama is composited with them
+    *on the same canvas* by the same compositor; both are compared with the true scene
+    flux resampled onto that canvas, so the PSNR gap measures only what the estimated
+    motion costs.
 
     Args:
-        source: a capture with ``ground_truth`` (and ``scene_flux`` for the PSNR).
+        source: a capture with ``ground_truth`` (and ``scene_flux`` for the PSNR;
+            ``scene_pitch`` scene pixels per ground-truth unit, default 1).
         homographies: (T, 3, 3) float64 estimated frame-to-panorama homographies.
-        pano: the estimated :class:`~photonpano.reconstruct.Panorama`.
+        pano: the estimated :class:`~photonpano.compose.Panorama`.
         subbatch_px: sub-batch tolerance used for the reference panorama.
-        progress: called with the number of binary frames merged into the reference.
+        compositor: the compositor config that made ``pano`` (built afresh for the
+            reference); None: the bilinear ``flux-canvas`` merge.
+        references: more compositor configs to composite the true motion with on the
+            same canvas, scored on the same pixels (e.g. ``flux-canvas`` to measure
+            what drizzle gains).
+        progress: called with the number of binary frames composited into the true-motion
+            reference.
 
     Returns:
         ``{"trajectory_rmse_px", "trajectory_max_px"}`` and, with a scene, ``"psnr_db",
-        "psnr_true_homographies_db", "psnr_gap_db"``.
+        "psnr_true_homographies_db", "psnr_gap_db"`` and, with ``references``,
+        ``"psnr_true_homographies_by"``: plugin key -> PSNR in dB.
     """
     import cv2
 
-    from .metrics import psnr
-    from .reconstruct import assemble_panorama
+    from .compose import BilinearCompositor, compose
+    from .metrics import psnr, scene_on_canvas
 
     err = _trajectory_error(homographies, source)
     report: dict[str, Any] = {"trajectory_rmse_px": err.rmse_px,
@@ -335,14 +354,20 @@ def ground_truth_report(source, homographies: np.ndarray, pano, subbatch_px: flo
         return report
     canvas_from_scene = _canvas_from_scene(homographies, pano.homographies, err)
     shape = pano.flux.shape
-    truth = assemble_panorama(source, canvas_from_scene @ source.ground_truth, subbatch_px=subbatch_px,
-                              canvas_shape=shape, progress=progress)
-    scene = cv2.warpPerspective(source.scene_flux, canvas_from_scene, shape[::-1], flags=cv2.INTER_LINEAR,
-                                borderMode=cv2.BORDER_CONSTANT, borderValue=np.nan)
-    both = np.isfinite(pano.flux) & np.isfinite(truth.flux) & np.isfinite(scene)
+    truths = [compose(source, canvas_from_scene @ source.ground_truth,
+                      config.build() if config is not None else BilinearCompositor(),
+                      subbatch_px=subbatch_px, canvas_shape=shape, progress=progress if config is compositor else None)
+              for config in (compositor, *references)]
+    scene = scene_on_canvas(source, canvas_from_scene, shape)
+    both = np.isfinite(pano.flux) & np.isfinite(scene)
+    for truth in truths:
+        both &= np.isfinite(truth.flux)
     mask = cv2.erode(both.astype(np.uint8), np.ones((7, 7), np.uint8)).astype(bool)
-    estimated_db, true_db = psnr(pano.flux, scene, mask), psnr(truth.flux, scene, mask)
+    estimated_db, true_db = psnr(pano.flux, scene, mask), psnr(truths[0].flux, scene, mask)
     report.update(psnr_db=estimated_db, psnr_true_homographies_db=true_db, psnr_gap_db=true_db - estimated_db)
+    if references:
+        report["psnr_true_homographies_by"] = {config.plugin: psnr(truth.flux, scene, mask)
+                                               for config, truth in zip(references, truths[1:])}
     return report
 
 

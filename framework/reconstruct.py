@@ -15,6 +15,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from . import geometry
+from .compose import Panorama, assemble_panorama, canvas_homographies, panorama_views  # noqa: F401 (moved there)
 from .errors import StageError
 from .executor import Executor, SerialExecutor
 from .stages import Groups, Interpolator, Locator, MergedFrames, Merger, PairRegistrations, PhotonSource, Resampler
@@ -502,44 +503,6 @@ def locate_keyframes(locator: Locator, merge: Callable[[NDArray[np.int64]], Merg
     return solved, pair_index, pairs
 
 
-def panorama_views(panorama: Panorama, to_canvas: NDArray[np.float64], height: int, width: int,
-                   min_frames: float) -> MergedFrames:
-    """Resample a panorama into the pixel grids of some frames, as merged frames.
-
-    Args:
-        panorama: a :class:`Panorama` (flux in photons/s, NaN where unseen).
-        to_canvas: (G, 3, 3) float64 frame-to-canvas homographies of the G frames.
-        height: frame height in pixels.
-        width: frame width in pixels.
-        min_frames: canvas pixels observed by fewer binary frames are not trusted.
-
-    Returns:
-        G :class:`~photonpano.stages.MergedFrames`: bilinear flux (0 where unseen),
-        nearest frame counts, tone-mapped images, and masks of pixels whose bilinear
-        neighbourhood is trusted on the canvas.
-    """
-    import cv2
-
-    from .photons import tone_map
-
-    trusted = (panorama.frames >= min_frames) & np.isfinite(panorama.flux)
-    trusted = cv2.erode(trusted.astype(np.uint8), np.ones((3, 3), np.uint8))
-    flux = np.where(trusted > 0, panorama.flux, 0).astype(np.float32)
-    g = len(to_canvas)
-    out = MergedFrames(flux=np.empty((g, height, width), np.float32), frames=np.empty((g, height, width), np.float32),
-                       images=np.empty((g, height, width), np.uint8), masks=np.empty((g, height, width), bool))
-    inverse = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
-    for i, h in enumerate(to_canvas):
-        out.flux[i] = cv2.warpPerspective(flux, h, (width, height), flags=inverse, borderValue=0)
-        out.frames[i] = cv2.warpPerspective(panorama.frames, h, (width, height),
-                                            flags=cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP, borderValue=0)
-        out.masks[i] = cv2.warpPerspective(trusted, h, (width, height),
-                                           flags=cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP, borderValue=0) > 0
-        out.flux[i][~out.masks[i]] = np.nan
-        out.images[i] = tone_map(out.flux[i])
-    return out
-
-
 def _stack(*parts: MergedFrames) -> MergedFrames:
     return MergedFrames(*(np.concatenate([getattr(p, f) for p in parts]) for f in ("flux", "frames", "images", "masks")))
 
@@ -826,105 +789,3 @@ def estimate_motion(
     for result in results:
         result.homographies = geometry.normalize(middle @ result.homographies)
     return geometry.normalize(middle @ homographies), results
-
-
-@dataclass(frozen=True)
-class Panorama:
-    """A panorama canvas.
-
-    Attributes:
-        flux: (Hc, Wc) float32 linear flux in photons/s; NaN where no frame looked.
-        frames: (Hc, Wc) float32 number of binary frames behind each canvas pixel.
-        homographies: (T, 3, 3) float64 frame-to-canvas homographies (canvas pixels,
-            including the super-resolution scale).
-    """
-
-    flux: NDArray[np.float32]
-    frames: NDArray[np.float32]
-    homographies: NDArray[np.float64]
-
-
-def canvas_homographies(homographies: NDArray[np.float64], width: int, height: int,
-                        scale: float, max_pixels: int = 200_000_000) -> tuple[NDArray[np.float64], tuple[int, int]]:
-    """Shift (and scale) frame-to-panorama homographies onto a canvas that holds all frames.
-
-    Args:
-        homographies: (T, 3, 3) float64 frame-to-panorama homographies.
-        width: frame width in pixels.
-        height: frame height in pixels.
-        scale: super-resolution scale (canvas pixels per panorama pixel).
-        max_pixels: refuse canvases larger than this.
-
-    Returns:
-        ``(canvas_homographies, (canvas_height, canvas_width))``.
-
-    Raises:
-        StageError: if the canvas would exceed ``max_pixels`` (the motion estimate
-            diverged).
-    """
-    x0, y0, x1, y1 = geometry.footprint_bounds(homographies, width, height)
-    shift = geometry.translation(-x0 - 0.5, -y0 - 0.5)
-    out = geometry.normalize(geometry.scale_matrix(scale) @ shift @ homographies)
-    cw, ch = int(np.ceil((x1 - x0) * scale)), int(np.ceil((y1 - y0) * scale))
-    if cw * ch > max_pixels:
-        raise StageError("panorama", "canvas", f"canvas of {cw}x{ch} pixels is too large: "
-                         "the motion estimate diverged")
-    return out, (ch, cw)
-
-
-def assemble_panorama(source: PhotonSource, homographies: NDArray[np.float64], *, scale: float = 1.0,
-                      subbatch_px: float = 0.25, chunk_batches: int = 128,
-                      progress: Callable[[int], None] | None = None,
-                      canvas_shape: tuple[int, int] | None = None,
-                      executor: Executor | None = None) -> Panorama:
-    """Warp every binary frame onto one canvas and estimate the flux per canvas pixel.
-
-    Frames are summed in sub-batches whose canvas warps differ by < ``subbatch_px``
-    canvas pixels, warped inside their footprint only, and the flux is the MLE of
-    paper Eq. (3) per canvas pixel (for intensity sources, the mean linear intensity).
-
-    Args:
-        source: the capture.
-        homographies: (T, 3, 3) float64 frame-to-panorama homographies.
-        scale: super-resolution scale (e.g. 2.0 for a canvas twice as fine).
-        subbatch_px: sub-batch tolerance in canvas pixels.
-        chunk_batches: sub-batches counted per call to the source (bounds memory).
-        progress: called with the number of binary frames done.
-        canvas_shape: ``(height, width)`` to render onto a given canvas; then
-            ``homographies`` already map frames to canvas pixels and ``scale`` is unused.
-        executor: runs contiguous runs of chunks in parallel, each on its own canvas
-            (memory: one canvas per worker).
-
-    Returns:
-        The panorama (see :class:`Panorama`).
-    """
-    from .intensity import estimate_radiance
-    from .warping import WarpAccumulator, subbatch_edges
-
-    if canvas_shape is None:
-        to_canvas, (ch, cw) = canvas_homographies(homographies, source.width, source.height, scale)
-    else:
-        to_canvas, (ch, cw) = geometry.normalize(homographies), canvas_shape
-    edges = subbatch_edges(to_canvas, source.width, source.height, subbatch_px)
-    executor = executor or SerialExecutor()
-    starts = list(range(0, len(edges) - 1, chunk_batches))
-    # Each worker fills its own canvas; contiguous runs of chunks keep memory bounded.
-    runs = np.array_split(np.arange(len(starts)), max(1, min(executor.workers, len(starts))))
-
-    def accumulate(run: NDArray[np.int64]) -> WarpAccumulator:
-        acc = WarpAccumulator(ch, cw)
-        for c in run:
-            executor.raise_if_cancelled()  # Ctrl-C: stop within a chunk
-            chunk = edges[starts[c]:starts[c] + chunk_batches + 1]
-            counts = source.sum_ranges(chunk)
-            acc.add_many(counts, np.diff(chunk), to_canvas[(chunk[:-1] + chunk[1:]) // 2])
-            if progress is not None:
-                progress(int(chunk[-1] - chunk[0]))
-        return acc
-
-    parts = executor.map(accumulate, runs)
-    acc = parts[0]
-    for part in parts[1:]:
-        acc.merge(part)
-    flux = estimate_radiance(source, acc.counts, acc.frames)
-    return Panorama(flux=flux, frames=acc.frames, homographies=to_canvas)

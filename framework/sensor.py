@@ -313,7 +313,7 @@ class SwissSpadCorrections(SourceConfig):
     """Rotations and flips applied in order after the other corrections, e.g.
     ``[rot90, flip-ud]`` for the paper's panorama captures."""
     colour_panorama: bool = False
-    """Also write ``panorama_rgb.npy`` / ``panorama_rgb.png``: each colour channel merged
+    """Also write ``panorama_rgb.npy`` / ``.tif`` / ``.png``: each colour channel merged
     from the pixels behind that filter only (needs ``cfa``)."""
 
     @model_validator(mode="after")

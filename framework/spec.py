@@ -1,8 +1,9 @@
 """Pipeline specs: YAML in, one validated pydantic model out, errors with line numbers.
 
 A spec names one plugin per stage (a mapping with a ``plugin`` key and that plugin's
-own fields, or just the key as a string), plus the number of levels, the group size m,
-the super-resolution scale and the outputs::
+own fields, or just the key as a string), plus the number of levels, the group size m
+and the outputs; the super-resolution scale is the compositor's (``compositor: {plugin:
+drizzle, scale: 2}``; a top-level ``scale: 2`` is moved there)::
 
     version: 1
     source: {plugin: npy-cube, path: capture.npy}
@@ -11,8 +12,8 @@ the super-resolution scale and the outputs::
     group_size: 500
 
 Omitted stages use the paper's defaults (``midpoint``, ``flux-mle``, ``opencv-sift``,
-``cubic-lk``). The stage slots are discriminated unions built at run time from the
-plugins installed, so third-party plugins validate exactly like built-ins.
+``cubic-lk``) and the ``drizzle`` compositor. The stage slots are discriminated unions
+built at run time from the plugins installed, so third-party plugins validate exactly like built-ins.
 """
 
 from __future__ import annotations
@@ -23,7 +24,15 @@ from pathlib import Path
 from typing import Annotated, Any, Literal, Union
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, create_model, field_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    ValidationError,
+    create_model,
+    field_validator,
+    model_validator,
+)
 
 from .errors import PluginError, SpecError
 from .faults import short_repr
@@ -32,13 +41,14 @@ from .stages import STAGES
 from .yaml_guard import load_yaml
 
 __all__ = ["DEFAULT_PLUGINS", "OutputsConfig", "spec_model", "load_spec", "validate_spec", "resolve_relative_paths",
-           "apply_overrides", "dump_spec", "read_spec_file"]
+           "apply_overrides", "dump_spec", "read_spec_file", "check_available"]
 
 DEFAULT_PLUGINS: dict[str, str] = {
     "resampler": "midpoint",
     "merger": "flux-mle",
     "locator": "opencv-sift",
     "interpolator": "cubic-lk",
+    "compositor": "drizzle",
 }
 """The paper's choice for each stage, used when a spec omits the stage."""
 
@@ -58,15 +68,36 @@ class OutputsConfig(BaseModel):
     panorama_png: bool = True
     """Write ``panorama.png``, the tone-mapped 16-bit sRGB panorama."""
     merged_frames: bool = False
-    """Write each level's merged frames as ``level_<k>/merged.npy`` (float32 flux) and PNGs
-    (levels registered against the panorama stream their merged frames and have none to
-    write; set ``refine_locator: null`` to dump every level)."""
+    """Write each level's merged frames as ``level_<k>/merged.npy`` (float32 flux) and PNGs,
+    at every level."""
     trajectory_plot: bool = True
     """Write ``trajectory.png``, the estimated (and true, if known) frame centres."""
 
 
 class _SpecBase(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True, use_attribute_docstrings=True)
+
+    @model_validator(mode="before")
+    @classmethod
+    def _scale_to_compositor(cls, data: Any) -> Any:
+        # the super-resolution scale belongs to the compositor; keep top-level ``scale:`` working
+        if not isinstance(data, dict) or "scale" not in data:
+            return data
+        data = dict(data)
+        scale = data.pop("scale")
+        section = data.get("compositor", DEFAULT_PLUGINS["compositor"])
+        section = {"plugin": section} if isinstance(section, str) else dict(section or {})
+        if "scale" in section and section["scale"] != scale:
+            raise ValueError(f"scale is given twice ({scale!r} and compositor.scale {section['scale']!r}); "
+                             "write it once, as compositor.scale")
+        section.setdefault("plugin", DEFAULT_PLUGINS["compositor"])
+        data["compositor"] = {**section, "scale": scale}
+        return data
+
+    @property
+    def scale(self) -> float:
+        """The compositor's super-resolution scale (canvas pixels per frame pixel)."""
+        return self.compositor.scale
 
     @field_validator(*STAGES, "refine_locator", mode="before", check_fields=False)
     @classmethod
@@ -125,8 +156,6 @@ def spec_model(host: PluginHost) -> type[BaseModel]:
         pair_offsets=(Annotated[list[Annotated[int, Field(ge=1)]], Field(
             min_length=1, description="Register merged frames g and g+k for each k; [1] is the "
             "paper's chain, more offsets are solved jointly against chaining drift.")], [1, 2, 4, 8, 16, 32, 64]),
-        scale=(Annotated[float, Field(gt=0, le=8, description="Super-resolution scale of the "
-                                      "panorama canvas (canvas pixels per frame pixel).")], 1.0),
         panorama_subbatch_px=(Annotated[float, Field(gt=0, le=2, description="Frames whose canvas "
                               "warps differ by less than this (canvas pixels) are warped together.")], 0.25),
         executor=(Literal["serial", "threads"], Field("threads", description="Where independent work "
@@ -293,19 +322,19 @@ def validate_spec(data: dict[str, Any], host: PluginHost, *, origin: str = "spec
         SpecError: listing every problem.
     """
     problems: list[str] = []
-    for stage in STAGES:
-        section = data.get(stage)
-        key = section if isinstance(section, str) else section.get("plugin") if isinstance(section, dict) else None
+    for slot in (*STAGES, "refine_locator"):
+        stage = "locator" if slot == "refine_locator" else slot
+        key = _plugin_of(data.get(slot))
         if not isinstance(key, str):
             continue
         registry = host.registry(stage)
-        where = _blame_set(overridden, (stage,), data) or _where(node, (stage,), origin)
+        where = _blame_set(overridden, (slot,), data) or _where(node, (slot,), origin)
         if key not in registry:
-            problems.append(f"{where}{stage}: {_unknown_plugin(stage, key, host)}")
+            problems.append(f"{where}{slot}: {_unknown_plugin(stage, key, host)}")
         else:
             missing = registry[key].missing_requirements()
             if missing:
-                problems.append(f"{where}{stage} ({key}): needs {', '.join(missing)}: "
+                problems.append(f"{where}{slot} ({key}): needs {', '.join(missing)}: "
                                 f"{registry[key].install_hint}")
     if problems:
         raise SpecError(_listing(origin, problems))
@@ -321,6 +350,19 @@ def validate_spec(data: dict[str, Any], host: PluginHost, *, origin: str = "spec
                          + (f" (got {short_repr(err['input'])})" if err["type"] not in ("missing",) and
                             not isinstance(err["input"], dict) else ""))
         raise SpecError(_listing(origin, lines)) from None
+
+
+def check_available(spec: BaseModel) -> None:
+    """Check that every plugin ``spec`` selects, ``refine_locator`` included, is usable.
+
+    Raises:
+        MissingDependency: naming the first plugin whose optional requirement is missing
+            and the command that installs it.
+    """
+    for slot in (*STAGES, "refine_locator"):
+        config = getattr(spec, slot, None)
+        if config is not None:
+            type(config).check_available()
 
 
 def _listing(origin: str, problems: list[str], most: int = 20) -> str:

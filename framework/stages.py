@@ -4,7 +4,8 @@ A plugin registers *config classes* (cheap pydantic models, importable without h
 dependencies). The pipeline validates a spec into those configs and calls ``build()`` on
 each to get the working stage object. Stages exchange the frozen records defined here.
 
-Stage kinds, in pipeline order: source, resampler, merger, locator, interpolator.
+Stage kinds, in pipeline order: source, resampler, merger, locator, interpolator,
+compositor.
 """
 
 from __future__ import annotations
@@ -13,14 +14,17 @@ import abc
 import importlib.util
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, ClassVar
+from typing import TYPE_CHECKING, Annotated, Any, ClassVar
 
 import numpy as np
 from numpy.typing import NDArray
-from pydantic import BaseModel, ConfigDict, ValidationInfo, field_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator
 
 from .errors import MissingDependency
 from .types import check_shape
+
+if TYPE_CHECKING:
+    from .compose import Canvas, Panorama
 
 __all__ = [
     "StageConfig",
@@ -37,6 +41,8 @@ __all__ = [
     "PairRegistrations",
     "Locator",
     "Interpolator",
+    "CompositorConfig",
+    "Compositor",
     "STAGES",
 ]
 
@@ -116,8 +122,13 @@ class PhotonSource(abc.ABC):
         exposure_s: exposure time tau of one binary frame, in seconds.
         frame_rate_hz: binary frames per second.
         ground_truth: (T, 3, 3) float64 true frame-to-scene homographies, or None.
-        scene_flux: (Hs, Ws) float32 true flux of the scene in photons/s (in the
-            coordinates ``ground_truth`` maps to), or None.
+        scene_flux: (Hs, Ws) float32 true flux of the scene in photons/s, or None; its
+            pixel grid is ``scene_pitch`` times finer than the coordinates
+            ``ground_truth`` maps to (pixel centres at integers, see
+            :func:`~photonpano.geometry.scale_matrix`).
+        scene_pitch: scene pixels per ground-truth unit (1.0: ``scene_flux`` is in the
+            coordinates ``ground_truth`` maps to; 2.0 for a sensor whose pixels are
+            point samples 2 scene pixels apart).
         name: a short description for logs and ``run.json``.
         kind: ``"binary"`` (the default): frames are binary and :meth:`sum_ranges`
             returns (B, H, W) uint16 detection counts; ``"intensity"``: frames are
@@ -133,6 +144,7 @@ class PhotonSource(abc.ABC):
     frame_rate_hz: float
     ground_truth: NDArray[np.float64] | None = None
     scene_flux: NDArray[np.float32] | None = None
+    scene_pitch: float = 1.0
     name: str = ""
     kind: str = "binary"
 
@@ -358,11 +370,92 @@ class Interpolator(abc.ABC):
         """
 
 
+# --- compositor: the panorama from every binary frame --------------------------------
+
+
+class CompositorConfig(StageConfig):
+    """Config base of compositors; ``build()`` returns a :class:`Compositor`."""
+
+    stage: ClassVar[str] = "compositor"
+    scale: Annotated[float, Field(gt=0, le=8)] = 1.0
+    """Super-resolution scale of the panorama canvas (canvas pixels per frame pixel)."""
+
+
+class Compositor(abc.ABC):
+    """Turns binary frames and their homographies into a panorama, a sub-batch at a time.
+
+    The framework (:func:`photonpano.compose.compose`) calls :meth:`prepare` once, then
+    :meth:`feed` with sub-batches of frames in any order (each frame exactly once), then
+    :meth:`finish`; memory is bounded by the canvas, not by the capture (as OpenCV's
+    ``detail::Blender``: prepare / feed / blend). To use several threads, the framework
+    feeds :meth:`fork` copies from other threads and :meth:`join` s them before
+    :meth:`finish`.
+
+    Attributes:
+        scale: super-resolution scale (canvas pixels per frame pixel), from the config.
+    """
+
+    scale: float = 1.0
+
+    @abc.abstractmethod
+    def prepare(self, canvas: Canvas, source: PhotonSource) -> None:
+        """Start a panorama on ``canvas`` (empty accumulators) for frames of ``source``.
+
+        Args:
+            canvas: the canvas: its shape and the (T, 3, 3) frame-to-canvas homographies.
+            source: the capture (``kind``, ``exposure_s``, frame shape; compositors that
+                read the source their own way use it in :meth:`read`).
+        """
+
+    def read(self, source: PhotonSource, edges: NDArray[np.int64]) -> NDArray:
+        """Return the (B, H, W) sums of frame ranges ``edges`` that :meth:`feed` takes.
+
+        The default is ``source.sum_ranges(edges)``; a compositor that needs other
+        per-pixel sums (raw colour-filtered pixels, say) overrides it.
+        """
+        return source.sum_ranges(edges)
+
+    @abc.abstractmethod
+    def feed(self, counts: NDArray, n_frames: NDArray[np.int64], homographies: NDArray[np.float64],
+             weights: NDArray[np.float32] | None = None) -> None:
+        """Add a sub-batch of summed frames.
+
+        Args:
+            counts: (B, H, W) detections (uint16, or float32 linear intensity sums for
+                intensity sources), each the sum of ``n_frames[b]`` binary frames.
+            n_frames: (B,) int64 binary frames behind each count image.
+            homographies: (B, 3, 3) float64 frame-to-canvas homographies (canvas
+                pixels, pixel centres at integers), one per count image.
+            weights: (H, W) float32 weight of each frame pixel in [0, 1] (0 leaves the
+                pixel out, e.g. pixels behind another colour filter); None: all 1.
+        """
+
+    def fork(self) -> Compositor | None:
+        """Return an empty compositor on the same canvas to feed from another thread.
+
+        None (the default) means the compositor is fed from one thread only.
+        """
+        return None
+
+    def join(self, other: Compositor) -> None:
+        """Add what a :meth:`fork` copy accumulated (called before :meth:`finish`)."""
+        raise NotImplementedError(f"{type(self).__name__}.join")
+
+    @abc.abstractmethod
+    def finish(self) -> Panorama:
+        """Return the panorama: flux per canvas pixel (NaN where unobserved).
+
+        Returns:
+            A :class:`~photonpano.compose.Panorama` on the prepared canvas.
+        """
+
+
 STAGES: dict[str, type[StageConfig]] = {
     "source": SourceConfig,
     "resampler": ResamplerConfig,
     "merger": MergerConfig,
     "locator": LocatorConfig,
     "interpolator": InterpolatorConfig,
+    "compositor": CompositorConfig,
 }
 """Stage kind -> config base class, in pipeline order."""

@@ -98,14 +98,23 @@ class WarpAccumulator:
         """
         self.add_many(np.asarray(counts)[None], np.array([n_frames]), np.asarray(homography)[None])
 
-    def add_many(self, counts: NDArray, n_frames: NDArray[np.int64], homographies: NDArray[np.float64]) -> None:
+    def add_many(self, counts: NDArray, n_frames: NDArray[np.int64], homographies: NDArray[np.float64],
+                 weights: NDArray[np.float32] | None = None) -> None:
         """Warp and accumulate B count images at once (see :meth:`add`).
 
         Args:
             counts: (B, H, W) detection counts (any real dtype) in source-frame pixels.
             n_frames: (B,) number of binary frames summed into each count image.
             homographies: (B, 3, 3) float64 maps from source-frame to target pixels.
+            weights: (H, W) float32 weight of each source pixel in [0, 1]; None: all 1.
+                With weights, counts and frames are both warped bilinearly as
+                ``weights * counts`` and ``weights * n`` (a weighted mean per target
+                pixel; sparse weights such as one colour filter in four leave no
+                nearest-neighbour coverage to speak of).
         """
+        if weights is not None:
+            self._add_weighted(counts, n_frames, homographies, np.asarray(weights, np.float32))
+            return
         if not len(counts):
             return
         _, h, w = counts.shape
@@ -145,6 +154,23 @@ class WarpAccumulator:
             self.counts[y0[b]:y1[b], x0[b]:x1[b]] += warped
             coverage *= np.float32(n_frames[b])
             self.frames[y0[b]:y1[b], x0[b]:x1[b]] += coverage
+
+    def _add_weighted(self, counts: NDArray, n_frames: NDArray[np.int64], homographies: NDArray[np.float64],
+                      weights: NDArray[np.float32]) -> None:
+        """:meth:`add_many` with per-pixel weights: bilinear warps of weighted counts and frames."""
+        _, h, w = counts.shape
+        th, tw = self.counts.shape
+        for b, hom in enumerate(geometry.normalize(np.asarray(homographies, np.float64))):
+            x0, y0, x1, y1 = geometry.footprint_bounds(hom[None], w, h)
+            x0, y0 = max(int(np.floor(x0)), 0), max(int(np.floor(y0)), 0)
+            x1, y1 = min(int(np.ceil(x1)) + 1, tw), min(int(np.ceil(y1)) + 1, th)
+            if x1 <= x0 or y1 <= y0:
+                continue
+            shifted, size = geometry.translation(-x0, -y0) @ hom, (x1 - x0, y1 - y0)
+            planes = ((self.counts, counts[b] * weights), (self.frames, weights * np.float32(n_frames[b])))
+            for target, image in planes:
+                target[y0:y1, x0:x1] += cv2.warpPerspective(np.asarray(image, np.float32), shifted, size,
+                                                            flags=cv2.INTER_LINEAR, borderValue=0)
 
     def merge(self, other: WarpAccumulator) -> None:
         """Add another accumulator of the same grid (e.g. one filled by another thread)."""

@@ -25,7 +25,8 @@ def _cli(*args):
 
 def test_demo_writes_the_output_contract(tmp_path):
     out = tmp_path / "out"
-    result = runner.invoke(app, ["demo", "-o", str(out), "--frames", "2400", *TINY])
+    result = runner.invoke(app, ["demo", "-o", str(out), "--frames", "2400", *TINY,
+                                 "--set", "outputs.merged_frames=true"])
     assert result.exit_code == 0, result.output
     assert "trajectory RMSE vs ground truth" in result.output and "PSNR" in result.output
     h = np.load(out / "homographies.npy")
@@ -35,6 +36,13 @@ def test_demo_writes_the_output_contract(tmp_path):
     assert pano.dtype == np.float32 and np.isnan(pano).any() and np.isfinite(pano).mean() > 0.8
     png = cv2.imread(str(out / "panorama.png"), cv2.IMREAD_UNCHANGED)
     assert png.dtype == np.uint16 and png.shape == pano.shape
+    from photonpano.hdr import read_flux_tiff
+    tif, valid = read_flux_tiff(out / "panorama.tif")  # the float32 HDR file, with its mask
+    assert tif.dtype == np.float32 and np.array_equal(tif, pano, equal_nan=True)
+    assert np.array_equal(valid, np.isfinite(pano))
+    for level in (1, 2):  # merged frames at every level (level 2 registers against the panorama)
+        merged = np.load(out / f"level_{level}" / "merged.npy")
+        assert merged.shape[1:] == (128, 248) and np.isfinite(merged).mean() > 0.8
     # every frame's footprint lies on the canvas
     from photonpano.geometry import footprint_bounds
     x0, y0, x1, y1 = footprint_bounds(h, 248, 128)

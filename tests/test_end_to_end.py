@@ -65,3 +65,26 @@ def test_super_resolution_canvas(host):
                                                   np.ones((5, 5), np.uint8)).astype(bool)
     rel = np.abs(down[inner] - pano1.flux[inner]).mean() / pano1.flux[inner].mean()
     assert rel < 0.1
+
+
+def test_observers_get_the_panorama_with_the_capture_open(host, tmp_path):
+    """``photonpano_panorama_finished`` hands observers the composited panorama and the open source."""
+    import types
+
+    import numpy as np
+
+    from photonpano import hookimpl
+    from photonpano.pipeline import run_pipeline
+
+    seen = {}
+    observer = types.SimpleNamespace(photonpano_panorama_finished=hookimpl(
+        lambda panorama, source, out_dir: seen.update(panorama=panorama, frames=source.n_frames)))
+    host.register(observer, name="recorder")
+    spec = validate_spec({"source": {"plugin": "simulate", "frames": 2400, "height": 128, "width": 248},
+                          "group_size": 300, "levels": 2, "outputs": {"trajectory_plot": False}}, host)
+    try:
+        run_pipeline(spec, tmp_path / "out", host)
+    finally:
+        host.unregister("recorder")
+    assert seen["frames"] == 2400 and seen["panorama"].homographies.shape == (2400, 3, 3)
+    np.testing.assert_array_equal(np.load(tmp_path / "out" / "panorama.npy"), seen["panorama"].flux)

@@ -3,32 +3,98 @@
 The SwissSPAD2 colour half array has red, green or blue filters on one pixel in four
 (``cfa``). For registration and the main panorama those pixels are treated as missing
 (inpainted, see :mod:`photonpano.sensor`). With ``source: {colour_panorama: true}``
-this observer then merges each colour channel from the pixels behind that filter
-only, with the final homographies, onto the panorama's canvas: the dense sub-pixel
-motion fills each channel's sparse pixel grid in. Hot/dead pixels are left out.
+this observer then composites each colour channel from the pixels behind that filter
+only, with the spec's compositor (:class:`CfaChannels`), the run's homographies and
+canvas, from the capture still open (``photonpano_panorama_finished``): the dense
+sub-pixel motion fills each channel's sparse pixel grid in. Hot/dead pixels are left
+out.
 
 Outputs in the run folder: ``panorama_rgb.npy`` ((Hc, Wc, 3) float32 linear flux in
-photons/s per channel, R, G, B; NaN where a channel saw nothing) and
+photons/s per channel, R, G, B; NaN where a channel saw nothing), the same as a float32
+RGB TIFF with its validity mask ``panorama_rgb.tif`` (see :mod:`photonpano.hdr`) and
 ``panorama_rgb.png`` (16-bit sRGB, one white point for all channels).
 """
 
 from __future__ import annotations
 
+import copy
 from pathlib import Path
 from typing import Any, Callable
 
 import numpy as np
 from numpy.typing import NDArray
-
 from photonpano import hookimpl
+from photonpano.stages import Compositor
 
-__all__ = ["colour_panorama"]
+__all__ = ["CfaChannels", "colour_panorama"]
+
+
+class CfaChannels(Compositor):
+    """The R, G and B channels of a colour-filtered capture, each by its own compositor.
+
+    Reads the raw counts (geometry fixed, filtered pixels not inpainted) and feeds
+    channel c's compositor with the pixels behind filter c only (per-pixel weights, see
+    :meth:`~photonpano.stages.Compositor.feed`); :meth:`finish` stacks the channels.
+
+    Args:
+        make: builds one (unprepared) compositor per channel, e.g. a compositor
+            config's ``build``.
+        corrector: the source's :class:`~photonpano.sensor.SensorCorrector`, whose
+            ``cfa`` holds colour codes (0 R, 1 G, 2 B) and ``hot`` the pixels to drop.
+    """
+
+    def __init__(self, make: Callable[[], Compositor], corrector: Any) -> None:
+        """Build the three channel compositors."""
+        self._make, self._corrector = make, corrector
+        self._parts = [make() for _ in range(3)]
+        self.scale = self._parts[0].scale
+        self._weights = np.stack([(corrector.cfa == c) & ~corrector.hot for c in range(3)]).astype(np.float32)
+
+    def prepare(self, canvas: Any, source: Any) -> None:
+        """Prepare each channel's compositor on ``canvas``."""
+        self._canvas, self._source = canvas, source
+        for part in self._parts:
+            part.prepare(canvas, source)
+
+    def read(self, source: Any, edges: NDArray[np.int64]) -> NDArray:
+        """Raw counts with the sensor geometry fixed and filtered pixels kept."""
+        return self._corrector.geometry(source.raw_sums(edges))
+
+    def feed(self, counts: NDArray, n_frames: NDArray[np.int64], homographies: NDArray[np.float64],
+             weights: NDArray[np.float32] | None = None) -> None:
+        """Feed each channel the pixels behind its filter (times ``weights`` if given)."""
+        for part, channel in zip(self._parts, self._weights):
+            part.feed(counts, n_frames, homographies, channel if weights is None else channel * weights)
+
+    def fork(self) -> CfaChannels | None:
+        """An empty copy on the same canvas, if the channel compositors fork."""
+        parts = [part.fork() for part in self._parts]
+        if any(part is None for part in parts):
+            return None
+        other = copy.copy(self)
+        other._parts = parts
+        return other
+
+    def join(self, other: Compositor) -> None:
+        """Add a fork's channels."""
+        for part, theirs in zip(self._parts, other._parts):
+            part.join(theirs)
+
+    def finish(self) -> Any:
+        """The :class:`~photonpano.compose.Panorama` with (Hc, Wc, 3) flux and frames."""
+        from photonpano.compose import Panorama
+
+        panos = [part.finish() for part in self._parts]
+        return Panorama(flux=np.stack([p.flux for p in panos], axis=-1),
+                        frames=np.stack([p.frames for p in panos], axis=-1),
+                        homographies=panos[0].homographies)
 
 
 def colour_panorama(source: Any, homographies: NDArray[np.float64], canvas_shape: tuple[int, int], *,
-                    subbatch_px: float = 0.25, chunk_batches: int = 128,
-                    progress: Callable[[int], None] | None = None) -> NDArray[np.float32]:
-    """Merge each colour channel of a colour-filtered capture onto a canvas.
+                    make: Callable[[], Compositor] | None = None, subbatch_px: float = 0.25,
+                    chunk_batches: int = 128, progress: Callable[[int], None] | None = None,
+                    executor: Any = None) -> NDArray[np.float32]:
+    """Composite each colour channel of a colour-filtered capture onto a canvas.
 
     Args:
         source: a SwissSPAD source (``npy-cube`` or ``swissspad-bin``) whose
@@ -36,10 +102,12 @@ def colour_panorama(source: Any, homographies: NDArray[np.float64], canvas_shape
         homographies: (T, 3, 3) float64 frame-to-canvas homographies (the run's
             ``homographies.npy``).
         canvas_shape: ``(Hc, Wc)`` of the canvas.
+        make: builds each channel's compositor (default: the bilinear ``flux-canvas``).
         subbatch_px: frames whose warps differ by less than this (canvas pixels) are
-            warped together.
+            composited together.
         chunk_batches: sub-batches counted per read of the source.
         progress: called with the number of binary frames done.
+        executor: runs chunks in parallel (None: serially).
 
     Returns:
         (Hc, Wc, 3) float32 flux in photons/s (R, G, B); NaN where unobserved.
@@ -47,60 +115,33 @@ def colour_panorama(source: Any, homographies: NDArray[np.float64], canvas_shape
     Raises:
         ValueError: if the source has no colour filter codes.
     """
-    import cv2
+    from photonpano.compose import BilinearCompositor, compose
 
-    from photonpano import geometry
-    from photonpano.photons import flux_mle
-    from photonpano.warping import subbatch_edges
-
-    corrector = source.corrector
-    if corrector.cfa is None or not np.isin(corrector.cfa, [0, 1, 2]).any():
+    corrector = getattr(source, "corrector", None)
+    cfa = getattr(corrector, "cfa", None)
+    if cfa is None or not np.isin(cfa, [0, 1, 2]).any():
         raise ValueError("colour_panorama: the source has no colour filter layout (set cfa)")
-    weights = np.stack([(corrector.cfa == c) & ~corrector.hot for c in range(3)]).astype(np.float32)
-    ch, cw = canvas_shape
-    sums = np.zeros((3, ch, cw, 2), np.float32)
-    h, w = source.height, source.width
-    edges = subbatch_edges(homographies, w, h, subbatch_px)
-    for c0 in range(0, len(edges) - 1, chunk_batches):
-        chunk = edges[c0:c0 + chunk_batches + 1]
-        counts = corrector.geometry(source.raw_sums(chunk)).astype(np.float32)
-        for b in range(len(chunk) - 1):
-            hom = homographies[(chunk[b] + chunk[b + 1]) // 2]
-            x0, y0, x1, y1 = geometry.footprint_bounds(hom[None], w, h)
-            x0, y0 = max(int(np.floor(x0)), 0), max(int(np.floor(y0)), 0)
-            x1, y1 = min(int(np.ceil(x1)) + 1, cw), min(int(np.ceil(y1)) + 1, ch)
-            if x1 <= x0 or y1 <= y0:
-                continue
-            shifted = geometry.translation(-x0, -y0) @ hom
-            n = float(chunk[b + 1] - chunk[b])
-            for c in range(3):
-                planes = np.stack([counts[b] * weights[c], n * weights[c]], axis=-1)
-                sums[c, y0:y1, x0:x1] += cv2.warpPerspective(planes, shifted, (x1 - x0, y1 - y0),
-                                                             flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
-                                                             borderValue=0)
-        if progress is not None:
-            progress(int(chunk[-1] - chunk[0]))
-    # a channel sees a canvas pixel through a fraction of the frames only: trust it from
-    # half a frame on, as the main panorama does
-    return np.stack([flux_mle(sums[c, ..., 0], sums[c, ..., 1], source.exposure_s) for c in range(3)], axis=-1)
+    channels = CfaChannels(make or BilinearCompositor, corrector)
+    return compose(source, homographies, channels, subbatch_px=subbatch_px, chunk_batches=chunk_batches,
+                   progress=progress, canvas_shape=canvas_shape, executor=executor).flux
 
 
 @hookimpl
-def photonpano_run_finished(spec: Any, summary: dict[str, Any], out_dir: Path | None) -> None:
-    """Write ``panorama_rgb.npy``/``.png`` when the source asks for a colour panorama (runs with an output folder)."""
+def photonpano_panorama_finished(panorama: Any, spec: Any, source: Any, out_dir: Path | None) -> None:
+    """Write ``panorama_rgb.npy``/``.tif``/``.png`` when the source asks for a colour panorama (runs with a folder)."""
     if out_dir is None or not getattr(spec.source, "colour_panorama", False):
         return
     import cv2
-
+    from photonpano.hdr import write_flux_tiff
     from photonpano.photons import linear_to_srgb
 
-    source = spec.source.build()
-    homographies = np.load(out_dir / "homographies.npy")
-    shape = (int(summary["panorama"]["height"]), int(summary["panorama"]["width"]))
-    rgb = colour_panorama(source, homographies, shape, subbatch_px=spec.panorama_subbatch_px)
     from photonpano.outputs import atomic_path, save_npy
 
+    rgb = colour_panorama(source, panorama.homographies, panorama.flux.shape[:2], make=spec.compositor.build,
+                          subbatch_px=spec.panorama_subbatch_px)
     save_npy(out_dir / "panorama_rgb.npy", rgb)
+    with atomic_path(out_dir / "panorama_rgb.tif") as tmp:
+        write_flux_tiff(tmp, rgb)
     seen = np.isfinite(rgb)
     white = float(np.percentile(rgb[seen], 99.5)) if seen.any() else 1.0
     image = linear_to_srgb(np.where(seen, rgb, 0) / (white if white > 0 else 1.0))

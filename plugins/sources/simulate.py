@@ -76,6 +76,13 @@ class SimulateConfig(SourceConfig):
     """Random seed of the photon draws and of the shake path."""
     cube_path: Path | None = None
     """Also write the binary frames to this bit-packed ``.npy`` cube (must not exist)."""
+    pixel_pitch: Annotated[int, Field(ge=1, le=8)] = 1
+    """Distance between frame pixels in scene pixels. Frame pixels are point samples of
+    the scene (a sensor with a small fill factor, as SwissSPAD2's 10.5 %): at 2 a frame
+    of ``height x width`` pixels covers ``2 height x 2 width`` scene pixels and
+    undersamples the scene 2x (the test of super-resolution). The camera path and its
+    speeds stay in scene pixels; ``ground_truth`` is in frame pixels (scene coordinates
+    divided by the pitch) and ``scene_flux`` at scene resolution (``scene_pitch``)."""
 
     def build(self) -> SimulatedCapture:
         """Simulate the capture (takes about 0.5 ms per binary frame)."""
@@ -86,7 +93,9 @@ def camera_path(config: SimulateConfig, scene_shape: tuple[int, int]) -> NDArray
     """Return the true frame-to-scene homographies of the simulated camera.
 
     ``H[t] = T(centre + offset(t)) R(theta(t)) S(zoom(t)) T(-frame_centre)``: a frame
-    pixel ``(x, y)`` of binary frame t sees scene pixel ``H[t] @ (x, y, 1)``.
+    pixel ``(x, y)`` of binary frame t sees scene pixel ``H[t] @ (x, y, 1)``, frame
+    pixels measured in scene pixels (a frame spans ``pixel_pitch`` times its size in
+    pixels).
 
     Args:
         config: the simulation settings.
@@ -121,7 +130,8 @@ def camera_path(config: SimulateConfig, scene_shape: tuple[int, int]) -> NDArray
     zoom = 1.0 + config.zoom * np.sin(2 * np.pi * config.zoom_hz * s)
 
     hs, ws = scene_shape
-    cx, cy = (config.width - 1) / 2, (config.height - 1) / 2
+    width, height = config.width * config.pixel_pitch, config.height * config.pixel_pitch
+    cx, cy = (width - 1) / 2, (height - 1) / 2
     c, si = np.cos(theta) * zoom, np.sin(theta) * zoom
     h = np.zeros((n, 3, 3))
     h[:, 0, 0], h[:, 0, 1] = c, -si
@@ -132,7 +142,7 @@ def camera_path(config: SimulateConfig, scene_shape: tuple[int, int]) -> NDArray
 
     from photonpano.geometry import footprint_bounds
 
-    x0, y0, x1, y1 = footprint_bounds(h, config.width, config.height)
+    x0, y0, x1, y1 = footprint_bounds(h, width, height)
     if x0 < 0 or y0 < 0 or x1 > ws - 1 or y1 > hs - 1:
         raise SourceError(
             f"source (simulate): the camera path leaves the {ws}x{hs} scene "
@@ -186,14 +196,20 @@ class SimulatedCapture(PhotonSource):
             SourceError: if the photo is unreadable, the path leaves the scene or
                 ``cube_path`` already exists.
         """
+        from photonpano import geometry
+        from photonpano.geometry import scale_matrix
+
         self.config = config
         photo = config.photo or bundled_photo()
         scene = load_scene(photo, config.scene_width)
         self.n_frames, self.height, self.width = config.frames, config.height, config.width
         self.frame_rate_hz = config.frame_rate_hz
         self.exposure_s = 1.0 / config.frame_rate_hz
-        self.ground_truth = camera_path(config, scene.shape)
+        pitch = config.pixel_pitch
+        to_scene = camera_path(config, scene.shape) @ scale_matrix(pitch)  # frame pixels -> scene pixels
+        self.ground_truth = geometry.normalize(scale_matrix(1.0 / pitch) @ to_scene)
         self.scene_flux = (config.flux * scene / self.exposure_s).astype(np.float32)
+        self.scene_pitch = float(pitch)
         self.name = f"simulate({photo.name}, {config.path}, flux {config.flux})"
 
         shape = (config.frames, config.height, config.width // 8)
@@ -205,9 +221,10 @@ class SimulatedCapture(PhotonSource):
                 self.cube = np.lib.format.open_memmap(tmp, mode="w+", dtype=np.uint8, shape=shape)
             else:
                 self.cube = np.empty(shape, dtype=np.uint8)
-            self._render(scene)
+            self._render(scene, to_scene)
 
-    def _render(self, scene: NDArray[np.float32]) -> None:
+    def _render(self, scene: NDArray[np.float32], to_scene: NDArray[np.float64]) -> None:
+        """Draw every binary frame: ``to_scene`` (T, 3, 3) maps frame pixels to scene pixels."""
         import cv2
 
         from photonpano.photons import simulate_packed_frames
@@ -221,7 +238,7 @@ class SimulatedCapture(PhotonSource):
 
         def render(start: int, stop: int) -> None:
             for t in range(start, stop):
-                intensity = cv2.warpPerspective(scene, self.ground_truth[t], size, flags=flags)
+                intensity = cv2.warpPerspective(scene, to_scene[t], size, flags=flags)
                 probability = -np.expm1(-config.flux * intensity)
                 self.cube[t] = simulate_packed_frames(probability, config.seed, t)
                 if (t - start) % 256 == 255 or t == stop - 1:

@@ -78,3 +78,20 @@ def test_schema_documents_fields(host):
     for name, model in schema["$defs"].items():
         for field, info in model.get("properties", {}).items():
             assert info.get("description") or field == "plugin", f"{name}.{field} has no description"
+
+
+def test_scale_belongs_to_the_compositor(tmp_path, host):
+    source = {"plugin": "npy-cube", "path": "x.npy"}
+    spec = validate_spec({"source": source}, host)
+    assert (spec.compositor.plugin, spec.compositor.scale) == ("drizzle", 1.0)
+    # the top-level key of photonpano 0.1 (and --set scale=2) moves into the compositor
+    spec = load_spec(_write(tmp_path, "source: {plugin: npy-cube, path: x.npy}\n"), host, ["scale=2"])
+    assert (spec.compositor.plugin, spec.compositor.scale, spec.scale) == ("drizzle", 2.0, 2.0)
+    spec = validate_spec({"source": source, "scale": 2, "compositor": "flux-canvas"}, host)
+    assert (spec.compositor.plugin, spec.compositor.scale) == ("flux-canvas", 2.0)
+    import yaml
+
+    dumped = yaml.safe_load(dump_spec(spec))
+    assert "scale" not in dumped and dumped["compositor"]["scale"] == 2.0
+    with pytest.raises(SpecError, match="scale is given twice .* write it once, as compositor.scale"):
+        validate_spec({"source": source, "scale": 2, "compositor": {"plugin": "drizzle", "scale": 3}}, host)

@@ -6,7 +6,9 @@ import numpy as np
 import pytest
 
 from capture_helpers import embed_colorspad
-from photonpano.plugins.observers.colour_panorama import colour_panorama, photonpano_run_finished
+from photonpano.compose import Panorama
+from photonpano.plugins.compositors.drizzle import DrizzleConfig
+from photonpano.plugins.observers.colour_panorama import colour_panorama, photonpano_panorama_finished
 from photonpano.plugins.sources.npy_cube import NpyCubeConfig
 from photonpano.sensor import bundled_sensor_file, load_cfa
 
@@ -48,11 +50,17 @@ def test_colour_panorama_recovers_each_channel(colour_cube, tmp_path):
         assert seen.size > 0.9 * (cfa == c).sum()  # a static camera sees each channel at its own pixels only
         want = -np.log1p(-pc) * 100_000  # photons/s at 100 kHz
         assert abs(np.median(seen) / want - 1) < 0.05
-    # the observer writes both outputs when the spec asks for them
-    np.save(tmp_path / "homographies.npy", homographies)
-    spec = SimpleNamespace(source=cfg, panorama_subbatch_px=0.25)
-    photonpano_run_finished(spec=spec, summary={"panorama": {"height": 254, "width": 496}}, out_dir=tmp_path)
-    np.testing.assert_array_equal(np.load(tmp_path / "panorama_rgb.npy"), rgb)
+    # the observer writes the outputs when the spec asks for them, through the spec's compositor
+    spec = SimpleNamespace(source=cfg, panorama_subbatch_px=0.25, compositor=DrizzleConfig())
+    pano = Panorama(flux=np.zeros((254, 496), np.float32), frames=np.zeros((254, 496), np.float32),
+                    homographies=homographies)
+    photonpano_panorama_finished(panorama=pano, spec=spec, source=source, out_dir=tmp_path)
+    # a static camera: drizzle drops each pixel onto its own canvas pixel, as the bilinear warp does
+    np.testing.assert_allclose(np.load(tmp_path / "panorama_rgb.npy"), rgb, rtol=1e-5)
+    from photonpano.hdr import read_flux_tiff
+    tif, valid = read_flux_tiff(tmp_path / "panorama_rgb.tif")
+    assert np.array_equal(tif, np.load(tmp_path / "panorama_rgb.npy"), equal_nan=True)
+    assert np.array_equal(valid, np.isfinite(tif).all(axis=-1))
     import cv2
 
     png = cv2.imread(str(tmp_path / "panorama_rgb.png"), cv2.IMREAD_UNCHANGED)

@@ -58,3 +58,15 @@ def test_validating_a_kornia_spec_imports_no_torch(tmp_path):
             "print(r.exit_code, sorted(m for m in ('torch', 'kornia', 'pycolmap') if m in sys.modules))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.strip().endswith("[]"), out
+
+
+def test_refine_locator_with_a_missing_extra_fails_at_validation(tmp_path, without_backends):
+    """Issue 12: a refine_locator whose extra is missing passed `validate` and failed at level 2."""
+    from photonpano.cli import app
+
+    spec = tmp_path / "spec.yaml"
+    spec.write_text("source: {plugin: npy-cube, path: x.npy}\nrefine_locator: {plugin: kornia-direct}\n")
+    result = CliRunner().invoke(app, ["validate", str(spec)])
+    assert result.exit_code == 1
+    assert "line 2: refine_locator (kornia-direct): needs torch, kornia: pip install 'photonpano[kornia]'" \
+        in result.output

@@ -1,0 +1,1 @@
+"""Built-in compositors: the panorama from every binary frame and its homography."""

@@ -1,0 +1,108 @@
+"""Compositor ``drizzle``: forward splats of frame pixel centres, flux MLE per canvas pixel.
+
+Every binary frame is a fresh set of point samples of the scene at a new sub-pixel
+phase. Drizzle (Fruchter and Hook, "Drizzle: a method for the linear reconstruction of
+undersampled images", PASP 114, 2002) keeps that phase: each frame pixel's centre is
+mapped forward onto the canvas by its homography and its detections are dropped there
+with a small kernel (a point, a square of side ``pixfrac`` frame pixels, or a Gaussian
+of that FWHM); the number of frames behind each drop is dropped with the same weights
+(exposure weighting), and the flux per canvas pixel is the MLE of paper Eq. (3),
+``phi = -ln(1 - S / N) / tau`` (the mean for intensity sources). Bilinear backward warps
+(``flux-canvas``) blur by about a frame pixel instead, so at ``scale: 2`` drizzle
+resolves detail finer than the frame pixels where ``flux-canvas`` cannot.
+
+Canvas pixels no drop reached are NaN: at ``scale > 1`` with a ``point`` kernel the
+motion must dither the frames over the finer grid (as the sub-pixel jitter of a
+hand-held or vibrating camera does); a larger ``pixfrac`` fills gaps at the cost of
+resolution.
+"""
+
+from __future__ import annotations
+
+from typing import Annotated, Literal
+
+import numpy as np
+from numpy.typing import NDArray
+from photonpano import hookimpl
+from photonpano.compose import Canvas, Panorama
+from photonpano.stages import Compositor, CompositorConfig, PhotonSource
+from pydantic import Field
+
+__all__ = ["DrizzleConfig", "Drizzle"]
+
+
+class DrizzleConfig(CompositorConfig):
+    """Forward splats of frame pixel centres (drizzle), exposure-weighted flux MLE per canvas pixel."""
+
+    plugin: Literal["drizzle"] = "drizzle"
+    kernel: Literal["point", "square", "gaussian"] = "square"
+    """Drop shape: the canvas pixel the centre lands in; an axis-aligned square of side
+    ``pixfrac`` frame pixels spread by overlap area; or a Gaussian of FWHM ``pixfrac``
+    frame pixels."""
+    pixfrac: Annotated[float, Field(gt=0, le=2)] | None = None
+    """Drop size in frame pixels (square side or Gaussian FWHM; unused by ``point``);
+    None: one canvas pixel, ``1 / scale``. Smaller is sharper and noisier and needs more
+    sub-pixel dither to cover the canvas."""
+
+    def build(self) -> Drizzle:
+        """Return the compositor."""
+        return Drizzle(self.scale, self.kernel, self.pixfrac or 1.0 / self.scale)
+
+
+class Drizzle(Compositor):
+    """The ``drizzle`` compositor (see the module docstring).
+
+    Args:
+        scale: super-resolution scale (canvas pixels per frame pixel).
+        kernel: ``"point"``, ``"square"`` or ``"gaussian"``.
+        pixfrac: drop size in frame pixels (square side or Gaussian FWHM).
+    """
+
+    def __init__(self, scale: float = 1.0, kernel: str = "square", pixfrac: float = 1.0) -> None:
+        """Create an unprepared compositor."""
+        from . import _splat
+
+        self.scale, self.kernel, self.pixfrac = scale, kernel, pixfrac
+        self._splat = {"point": _splat.splat_point, "square": _splat.splat_square,
+                       "gaussian": _splat.splat_gaussian}[kernel]
+
+    def prepare(self, canvas: Canvas, source: PhotonSource) -> None:
+        """Start empty sums on ``canvas`` (see :meth:`Compositor.prepare`)."""
+        self._canvas, self._source = canvas, source
+        self._acc = np.zeros((*canvas.shape, 2), np.float32)  # sums and frames, interleaved
+
+    def feed(self, counts: NDArray, n_frames: NDArray[np.int64], homographies: NDArray[np.float64],
+             weights: NDArray[np.float32] | None = None) -> None:
+        """Splat a sub-batch (see :meth:`Compositor.feed`)."""
+        counts = np.ascontiguousarray(counts)
+        if counts.dtype not in (np.uint16, np.float32):
+            counts = counts.astype(np.float32)
+        if weights is None:
+            weights = np.ones(counts.shape[1:], np.float32)
+        args = (counts, np.asarray(n_frames, np.int64), np.ascontiguousarray(homographies, np.float64),
+                np.ascontiguousarray(weights, np.float32), self._acc)
+        self._splat(*args) if self.kernel == "point" else self._splat(*args, float(self.pixfrac))
+
+    def fork(self) -> Drizzle:
+        """An empty copy on the same canvas (see :meth:`Compositor.fork`)."""
+        other = Drizzle(self.scale, self.kernel, self.pixfrac)
+        other.prepare(self._canvas, self._source)
+        return other
+
+    def join(self, other: Compositor) -> None:
+        """Add a fork's sums (see :meth:`Compositor.join`)."""
+        self._acc += other._acc
+
+    def finish(self) -> Panorama:
+        """The flux MLE per canvas pixel (see :meth:`Compositor.finish`)."""
+        from photonpano.intensity import estimate_radiance
+
+        sums, frames = np.ascontiguousarray(self._acc[..., 0]), np.ascontiguousarray(self._acc[..., 1])
+        flux = estimate_radiance(self._source, sums, frames)
+        return Panorama(flux=flux, frames=frames, homographies=self._canvas.homographies)
+
+
+@hookimpl
+def photonpano_register_compositors() -> list[type[CompositorConfig]]:
+    """Register the ``drizzle`` compositor."""
+    return [DrizzleConfig]
