@@ -181,12 +181,13 @@ def photonpano_panorama_finished(panorama: Panorama, spec: Any, source: PhotonSo
             homographies of every binary frame, flux on the canvas).
         spec: the validated pipeline spec.
         source: the opened capture.
-        out_dir: the output folder.
+        out_dir: the output folder, or None for a run kept in memory.
 
     .. versionadded:: 0.2
     """
 
 
+@hookspec
 def photonpano_run_finished(spec: Any, summary: dict[str, Any], out_dir: Path | None) -> None:
     """Called after all other outputs are written, just before ``run.json`` (written last).
 

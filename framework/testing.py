@@ -559,7 +559,8 @@ class CompositorContract(PluginContract):
     min_psnr_db: ClassVar[float] = 22.0
 
     @pytest.fixture(scope="class")
-    def capture(self) -> Any:
+    @classmethod
+    def capture(cls) -> Any:
         """The tiny simulated capture (with ground truth)."""
         return tiny_capture()
 
