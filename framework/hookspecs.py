@@ -20,7 +20,7 @@ from . import hookspec
 if TYPE_CHECKING:
     from .reconstruct import LevelResult
     from .stages import (InterpolatorConfig, LocatorConfig, MergerConfig, PhotonSource,
-                         ResamplerConfig, SourceConfig)
+                         PoseEstimatorConfig, ResamplerConfig, SourceConfig)
 
 
 # --- registration: one hook per stage kind ---------------------------------------
@@ -77,6 +77,17 @@ def photonpano_register_interpolators() -> list[type[InterpolatorConfig]]:
 
     Returns:
         :class:`~photonpano.stages.InterpolatorConfig` subclasses with unique keys.
+
+    .. versionadded:: 0.1
+    """
+
+
+@hookspec
+def photonpano_register_pose_estimators() -> list[type[PoseEstimatorConfig]]:
+    """Offer pose estimator plugins (experimental: 6-DoF camera poses, ``photonpano pose``).
+
+    Returns:
+        :class:`~photonpano.stages.PoseEstimatorConfig` subclasses with unique keys.
 
     .. versionadded:: 0.1
     """

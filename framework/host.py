@@ -36,6 +36,7 @@ _REGISTER_HOOKS = {
     "merger": "photonpano_register_mergers",
     "locator": "photonpano_register_locators",
     "interpolator": "photonpano_register_interpolators",
+    "pose_estimator": "photonpano_register_pose_estimators",
 }
 
 

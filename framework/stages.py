@@ -4,7 +4,8 @@ A plugin registers *config classes* (cheap pydantic models, importable without h
 dependencies). The pipeline validates a spec into those configs and calls ``build()`` on
 each to get the working stage object. Stages exchange the frozen records defined here.
 
-Stage kinds, in pipeline order: source, resampler, merger, locator, interpolator.
+Stage kinds, in pipeline order: source, resampler, merger, locator, interpolator; and the
+experimental pose_estimator (6-DoF camera poses instead of homographies, see :mod:`photonpano.pose`).
 """
 
 from __future__ import annotations
@@ -37,6 +38,8 @@ __all__ = [
     "PairRegistrations",
     "Locator",
     "Interpolator",
+    "PoseEstimatorConfig",
+    "PoseEstimator",
     "STAGES",
 ]
 
@@ -358,11 +361,43 @@ class Interpolator(abc.ABC):
         """
 
 
+# --- pose estimator (experimental): 6-DoF camera poses ------------------------------
+
+
+class PoseEstimatorConfig(StageConfig):
+    """Config base of pose estimators; ``build()`` returns a :class:`PoseEstimator`."""
+
+    stage: ClassVar[str] = "pose_estimator"
+
+
+class PoseEstimator(abc.ABC):
+    """Estimates a camera-to-world pose for binary frames of a capture (experimental)."""
+
+    @abc.abstractmethod
+    def estimate(self, source: PhotonSource, intrinsics: Any, work_dir: Path, progress: Any = None) -> Any:
+        """Estimate poses of the capture.
+
+        Args:
+            source: the capture.
+            intrinsics: a :class:`photonpano.pose.Intrinsics` (pixels, OpenCV convention),
+                or None to self-calibrate.
+            work_dir: an existing folder for intermediate files (images, databases, models).
+            progress: optional ``start_task``-like callable (see :mod:`photonpano.progress`).
+
+        Returns:
+            A :class:`photonpano.pose.PoseResult`.
+
+        Raises:
+            StageError: if the capture is too short or too dark to register.
+        """
+
+
 STAGES: dict[str, type[StageConfig]] = {
     "source": SourceConfig,
     "resampler": ResamplerConfig,
     "merger": MergerConfig,
     "locator": LocatorConfig,
     "interpolator": InterpolatorConfig,
+    "pose_estimator": PoseEstimatorConfig,
 }
 """Stage kind -> config base class, in pipeline order."""
