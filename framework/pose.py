@@ -455,7 +455,7 @@ def run_pose(spec: Any, out_dir: Path | None, host: Any, *, intrinsics: Intrinsi
             source = spec.source.build()
             timings["source"] = time.perf_counter() - t0
             if getattr(source, "kind", "binary") != "binary":
-                raise StageError(f"pose_estimator: source {source.name!r} is not a binary capture")
+                raise StageError("pose_estimator", type(spec.pose_estimator).__name__, f"source {source.name!r} is not a binary capture")
             work.mkdir(parents=True, exist_ok=True)
             t0 = time.perf_counter()
             result = spec.pose_estimator.build().estimate(source, intrinsics, work, progress=start_task)

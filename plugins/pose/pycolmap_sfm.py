@@ -1,0 +1,218 @@
+"""Pose estimator ``pycolmap-sfm`` (experimental): stratified structure from motion on virtual exposures.
+
+Level 1 is the plain baseline: the capture is cut into groups of m binary frames, each
+merged without motion compensation into a flux image (``flux-mle``), tone-mapped to
+8 bits and given to COLMAP (SIFT, sequential or exhaustive matching, incremental
+mapping with the known intrinsics, or self-calibration without them). Each later level
+re-samples with ``midpoint`` (groups between the previous ones, so twice as many
+exposures) and re-merges every group with the plane-induced homographies of the
+current pose estimate (a fronto-parallel plane at the median depth of the sparse
+points), so the new virtual exposures are sharp at their centre frame; they are mapped
+again and the poses interpolated to every binary frame (SE(3): slerp + cubic).
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+from typing import Annotated, Any, Literal
+
+import numpy as np
+from numpy.typing import NDArray
+from pydantic import Field
+
+from photonpano import hookimpl
+from photonpano.errors import StageError
+from photonpano.stages import PhotonSource, PoseEstimator, PoseEstimatorConfig
+
+
+class PycolmapSfMConfig(PoseEstimatorConfig):
+    """Camera poses by COLMAP structure from motion on stratified, motion-compensated virtual exposures."""
+
+    plugin: Literal["pycolmap-sfm"] = "pycolmap-sfm"
+    requires = ("pycolmap",)
+    install_hint = "pip install 'photonpano[colmap]'"
+    group_size: Annotated[int, Field(ge=2)] = 1000
+    """Binary frames per virtual exposure m."""
+    levels: Annotated[int, Field(ge=1, le=6)] = 4
+    """Number of levels; level 1 is naive averaging, each later level doubles the exposures
+    and merges them with the previous level's poses."""
+    matching: Literal["auto", "sequential", "exhaustive"] = "auto"
+    """COLMAP matching: each exposure with its ``overlap`` neighbours in time (and 2^k
+    further ones), every pair, or ``auto``: every pair up to ``exhaustive_max`` exposures."""
+    exhaustive_max: Annotated[int, Field(ge=2)] = 100
+    """auto matching: the most exposures matched exhaustively."""
+    overlap: Annotated[int, Field(ge=1)] = 12
+    """sequential matching: neighbours matched on each side (and 2^k further ones)."""
+    max_features: Annotated[int, Field(ge=100)] = 4096
+    """SIFT features per exposure."""
+    min_photons: Annotated[float, Field(gt=0)] = 2.0
+    """Refuse captures whose level-1 exposures collect fewer photons per pixel on average
+    (too dark to register)."""
+    min_registered: Annotated[float, Field(gt=0, le=1)] = 0.5
+    """Fail when less than this fraction of the level-1 exposures registers."""
+    max_error_px: Annotated[float, Field(gt=0)] = 1.5
+    """Levels >= 2: RANSAC threshold of the two-view geometry in pixels (COLMAP's 4 px lets a homography
+    explain a few pixels of parallax, so pairs are taken for planar and cannot start a model)."""
+    min_angle_deg: Annotated[float, Field(gt=0)] = 1.0
+    """Smallest triangulation angle of COLMAP's initial image pair in degrees (COLMAP's
+    default 16 suits orbits, not a camera travelling a fraction of the scene depth)."""
+    seed: Annotated[int, Field(ge=0)] = 0
+    """Random seed of COLMAP's RANSAC and mapper."""
+
+    def build(self) -> PycolmapSfM:
+        """Return the estimator."""
+        self.check_available()
+        return PycolmapSfM(self)
+
+
+class PycolmapSfM(PoseEstimator):
+    """Stratified structure from motion with pycolmap (see the module doc)."""
+
+    def __init__(self, config: PycolmapSfMConfig) -> None:
+        self.config = config
+
+    def estimate(self, source: PhotonSource, intrinsics: Any, work_dir: Path, progress: Any = None) -> Any:
+        """Estimate poses level by level (see :meth:`PoseEstimator.estimate`).
+
+        Raises:
+            StageError: capture too short (fewer than 3 m frames) or too dark, or too few
+                exposures registered at level 1.
+        """
+        from photonpano.executor import make_executor
+        from photonpano.plugins.mergers.flux_mle import FluxMLEConfig
+        from photonpano.plugins.resamplers.midpoint import MidpointConfig
+        from photonpano.pose import PoseResult, dominant_plane, interpolate_poses, plane_homographies
+
+        cfg, n = self.config, source.n_frames
+        if n < 3 * cfg.group_size:
+            raise StageError("pose_estimator", "pycolmap-sfm", f"the capture has {n} binary frames; at least "
+                             f"3 x group_size = {3 * cfg.group_size} are needed (lower group_size)")
+        resampler, merger = MidpointConfig().build(), FluxMLEConfig().build()
+        executor = make_executor("threads")
+        homographies = np.repeat(np.eye(3)[None], n, axis=0)
+        levels: list[dict[str, Any]] = []
+        exposures: list[tuple[NDArray[np.int64], NDArray[np.float64]]] = []
+        used = intrinsics
+        for level in range(1, cfg.levels + 1):
+            t0 = time.perf_counter()
+            groups = resampler.groups(n, cfg.group_size, level)
+            advance = progress(f"level {level}: merge", len(groups)) if progress else None
+            merged = merger.merge(source, homographies, groups, progress=advance, executor=executor)
+            if level == 1:
+                self._check_light(source, merged)
+            t_merge = time.perf_counter() - t0
+            t0 = time.perf_counter()
+            rec, used = self._map(merged.images, groups.reference, work_dir / f"level_{level}", intrinsics, progress,
+                                  level)
+            poses = np.full((len(groups), 4, 4), np.nan)
+            for image in rec.images.values() if rec is not None else ():
+                if image.has_pose:
+                    index = np.searchsorted(groups.reference, int(Path(image.name).stem))
+                    poses[index] = np.vstack([image.cam_from_world().inverse().matrix(), [0, 0, 0, 1]])
+            registered = int(np.isfinite(poses[:, 0, 0]).sum())
+            row = {"level": level, "exposures": len(groups), "registered": registered,
+                   "points": int(rec.num_points3D()) if rec is not None else 0,
+                   "reprojection_error_px": float(rec.compute_mean_reprojection_error()) if rec else None,
+                   "timings_s": {"merge": t_merge, "sfm": time.perf_counter() - t0}}
+            if level == 1 and registered < max(3, cfg.min_registered * len(groups)):
+                raise StageError("pose_estimator", "pycolmap-sfm", f"only {registered} of {len(groups)} level-1 "
+                                 "virtual exposures registered (too dark, too little texture or motion, "
+                                 "or wrong intrinsics)")
+            if registered < 3:  # a later level that fails keeps the previous level's result
+                row["note"] = "too few exposures registered; the previous level's poses are kept"
+                levels.append(row)
+                break
+            levels.append(row)
+            exposures.append((groups.reference.copy(), poses))
+            best = (rec, used, poses, groups.reference)
+            every = interpolate_poses(groups.reference, poses, n)
+            points = np.array([p.xyz for p in rec.points3D.values()])
+            reference = poses[np.flatnonzero(np.isfinite(poses[:, 0, 0]))[registered // 2]]
+            normal, distance = dominant_plane(points, reference)
+            homographies = plane_homographies(every, used.matrix(), reference, normal, distance)
+        rec, used, poses, frames = best
+        model_dir = work_dir / "model"
+        model_dir.mkdir(exist_ok=True)
+        rec.write(str(model_dir))
+        xyz = np.array([p.xyz for p in rec.points3D.values()], np.float64).reshape(-1, 3)
+        rgb = np.array([p.color for p in rec.points3D.values()], np.uint8).reshape(-1, 3)
+        return PoseResult(poses=interpolate_poses(frames, poses, n), exposure_frames=frames, exposure_poses=poses,
+                          points=xyz, colors=rgb, intrinsics=used, levels=levels, level_exposures=exposures,
+                          model_dir=model_dir)
+
+    def _check_light(self, source: PhotonSource, merged: Any) -> None:
+        """Raise StageError if the level-1 exposures hold too few photons to register."""
+        photons = float(np.nanmean(merged.flux)) * source.exposure_s * self.config.group_size
+        if not np.isfinite(photons) or photons < self.config.min_photons:
+            raise StageError("pose_estimator", "pycolmap-sfm", f"the capture is too dark: {photons:.2f} photons per "
+                             f"pixel per virtual exposure of {self.config.group_size} frames (at least "
+                             f"{self.config.min_photons} needed; raise group_size)")
+
+    def _map(self, images: NDArray[np.uint8], references: NDArray[np.int64], folder: Path, intrinsics: Any,
+             progress: Any, level: int) -> tuple[Any, Any]:
+        """Run COLMAP on one level's exposures; return (largest reconstruction or None, intrinsics)."""
+        import cv2
+        import pycolmap
+
+        from photonpano.pose import Intrinsics
+
+        cfg = self.config
+        image_dir = folder / "images"
+        image_dir.mkdir(parents=True, exist_ok=True)
+        names = []
+        for image, ref in zip(images, references):
+            names.append(f"{int(ref):08d}.png")
+            cv2.imwrite(str(image_dir / names[-1]), image)
+        database = folder / "database.db"
+        database.unlink(missing_ok=True)
+        pycolmap.logging.minloglevel = 2
+        pycolmap.set_random_seed(cfg.seed)
+        reader = pycolmap.ImageReaderOptions()
+        if intrinsics is not None:
+            reader.camera_model = "PINHOLE"
+            reader.camera_params = ",".join(f"{v:.10g}" for v in intrinsics.colmap_params())
+        else:
+            reader.camera_model = "SIMPLE_RADIAL"
+        extraction = pycolmap.FeatureExtractionOptions()
+        extraction.sift.max_num_features = cfg.max_features
+        advance = progress(f"level {level}: structure from motion", 3) if progress else (lambda k: None)
+        pycolmap.extract_features(database, image_dir, image_names=names, camera_mode=pycolmap.CameraMode.SINGLE,
+                                  reader_options=reader, extraction_options=extraction, device=pycolmap.Device.cpu)
+        advance(1)
+        verification = pycolmap.TwoViewGeometryOptions()
+        if level > 1:  # level 1 is the naive baseline: COLMAP's defaults for blurred images
+            verification.ransac.max_error = cfg.max_error_px
+        if cfg.matching == "exhaustive" or (cfg.matching == "auto" and len(names) <= cfg.exhaustive_max):
+            pycolmap.match_exhaustive(database, verification_options=verification, device=pycolmap.Device.cpu)
+        else:
+            pairing = pycolmap.SequentialPairingOptions()
+            pairing.overlap = cfg.overlap
+            pycolmap.match_sequential(database, pairing_options=pairing, verification_options=verification,
+                                      device=pycolmap.Device.cpu)
+        advance(1)
+        options = pycolmap.IncrementalPipelineOptions()
+        options.random_seed = cfg.seed
+        options.multiple_models = False
+        # a sideways path of a few decimetres at metres' depth: small triangulation angles
+        options.mapper.init_min_tri_angle = cfg.min_angle_deg if level > 1 else 2 * cfg.min_angle_deg
+        if intrinsics is not None:
+            options.ba_refine_focal_length = False
+            options.ba_refine_principal_point = False
+            options.ba_refine_extra_params = False
+        models = pycolmap.incremental_mapping(database, image_dir, folder / "sparse", options)
+        advance(1)
+        if not models:
+            return None, intrinsics
+        rec = max(models.values(), key=lambda r: r.num_reg_images())
+        if intrinsics is None:
+            camera = next(iter(rec.cameras.values()))
+            f, cx, cy = camera.params[:3]
+            intrinsics = Intrinsics(float(f), float(f), float(cx) - 0.5, float(cy) - 0.5)
+        return rec, intrinsics
+
+
+@hookimpl
+def photonpano_register_pose_estimators() -> list[type[PoseEstimatorConfig]]:
+    """Register the ``pycolmap-sfm`` pose estimator."""
+    return [PycolmapSfMConfig]
