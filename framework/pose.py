@@ -124,10 +124,10 @@ class PoseResult:
 def interpolate_poses(frames: NDArray[np.int64], poses: NDArray[np.float64], n_frames: int) -> NDArray[np.float64]:
     """Interpolate camera-to-world poses known at some frames to every binary frame.
 
-    Rotations are interpolated by piecewise slerp, camera centres by a natural cubic
-    spline. Before the first and after the last known frame, the rotation continues at
-    the angular velocity of the nearest segment and the centre at the spline's end
-    slope (linear extrapolation), so the ends neither freeze nor swing.
+    Rotations are interpolated by piecewise slerp, camera centres by a cubic spline
+    (not-a-knot ends). Before the first and after the last known frame the rotation
+    continues at the angular velocity of the nearest segment and the centre follows the
+    spline's end cubic, so the ends neither freeze nor jump.
 
     Args:
         frames: (K,) int64 frame indices of the known poses (any order; rows with NaN
@@ -142,8 +142,8 @@ def interpolate_poses(frames: NDArray[np.int64], poses: NDArray[np.float64], n_f
     from scipy.spatial.transform import Rotation, Slerp
 
     frames = np.asarray(frames, np.int64)
-    poses = np.asarray(poses, np.float64)
-    ok = np.all(np.isfinite(poses.reshape(len(poses), -1)), axis=1)
+    poses = np.asarray(poses, np.float64).reshape(-1, 4, 4)
+    ok = np.all(np.isfinite(poses), axis=(1, 2))
     frames, poses = frames[ok], poses[ok]
     order = np.argsort(frames)
     frames, poses = frames[order], poses[order]
@@ -166,12 +166,10 @@ def interpolate_poses(frames: NDArray[np.int64], poses: NDArray[np.float64], n_f
             anchor = rots[0] if a == 0 else rots[-1]
             base = frames[0] if a == 0 else frames[-1]
             r[end] = (anchor * Rotation.from_rotvec(np.outer(t[end] - base, rate))).as_matrix()
-    kind = "natural" if len(frames) > 2 else "not-a-knot"
-    spline = CubicSpline(frames.astype(np.float64), poses[:, :3, 3], bc_type=kind)
-    c = spline(np.clip(t, frames[0], frames[-1]))
-    for end, x0 in ((t < frames[0], frames[0]), (t > frames[-1], frames[-1])):
-        c[end] += (t[end] - x0)[:, None] * spline(float(x0), 1)[None]
-    out[:, :3, :3], out[:, :3, 3] = r, c
+    # not-a-knot: the end pieces are the cubics through the last four keyframes, which also
+    # extrapolate the (half-group) ends
+    spline = CubicSpline(frames.astype(np.float64), poses[:, :3, 3], bc_type="not-a-knot")
+    out[:, :3, :3], out[:, :3, 3] = r, spline(t)
     out[:, 3] = (0, 0, 0, 1)
     return out
 
@@ -421,7 +419,8 @@ def run_pose(spec: Any, out_dir: Path | None, host: Any, *, intrinsics: Intrinsi
         out_dir: output folder (must be empty unless ``force``), or None for a run in a
             temporary folder whose files are discarded.
         host: the plugin host (progress goes to its hooks).
-        intrinsics: known intrinsics, or None to self-calibrate.
+        intrinsics: known intrinsics; None: those in the file ``pose_estimator.intrinsics``,
+            or self-calibration if it names none.
         force: allow writing into a non-empty folder.
         rpe_gap: frame gap of the relative pose error (default: the group size m).
 
@@ -444,6 +443,8 @@ def run_pose(spec: Any, out_dir: Path | None, host: Any, *, intrinsics: Intrinsi
         raise SpecError("spec: no pose_estimator section (e.g. pose_estimator: pycolmap-sfm)")
     type(spec.source).check_available()
     type(spec.pose_estimator).check_available()
+    if intrinsics is None and spec.pose_estimator.intrinsics is not None:
+        intrinsics = Intrinsics.load(spec.pose_estimator.intrinsics)
     if out_dir is not None:
         prepare_output(out_dir, force)
         (out_dir / "spec.yaml").write_text(dump_spec(spec))

@@ -368,6 +368,9 @@ class PoseEstimatorConfig(StageConfig):
     """Config base of pose estimators; ``build()`` returns a :class:`PoseEstimator`."""
 
     stage: ClassVar[str] = "pose_estimator"
+    intrinsics: Path | None = None
+    """JSON file with the camera's ``fx``, ``fy``, ``cx``, ``cy`` in pixels (OpenCV convention:
+    pixel centres at integers; other keys ignored); none: self-calibration."""
 
 
 class PoseEstimator(abc.ABC):
