@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import time
 from pathlib import Path
-from typing import Annotated, Any, Literal
+from typing import Annotated, Any, Literal, NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
@@ -24,6 +24,14 @@ from pydantic import Field
 from photonpano import hookimpl
 from photonpano.errors import StageError
 from photonpano.stages import PhotonSource, PoseEstimator, PoseEstimatorConfig
+
+
+class _Landmarks(NamedTuple):
+    """Observations of the level-1 model: (K,) int64 frames, (K, 128) float32 unit descriptors, (K, 3) points."""
+
+    frames: NDArray[np.int64]
+    descriptors: NDArray[np.float32]
+    xyz: NDArray[np.float64]
 
 
 class PycolmapSfMConfig(PoseEstimatorConfig):
@@ -51,10 +59,14 @@ class PycolmapSfMConfig(PoseEstimatorConfig):
     (too dark to register)."""
     min_registered: Annotated[float, Field(gt=0, le=1)] = 0.5
     """Fail when less than this fraction of the level-1 exposures registers."""
-    max_error_px: Annotated[float, Field(gt=0)] = 1.5
-    """Levels >= 2: RANSAC threshold of the two-view geometry in pixels (COLMAP's 4 px lets a homography
-    explain a few pixels of parallax, so pairs are taken for planar and cannot start a model)."""
-    min_angle_deg: Annotated[float, Field(gt=0)] = 1.0
+    max_error_px: Annotated[float, Field(gt=0)] = 2.0
+    """Levels >= 2: RANSAC threshold of the absolute pose (reprojection error, pixels)."""
+    localise_neighbours: Annotated[int, Field(ge=1)] = 3
+    """Levels >= 2: an exposure is matched against the model images of this many level-1
+    exposures nearest in time."""
+    min_inliers: Annotated[int, Field(ge=6)] = 30
+    """Levels >= 2: fewest 2D-3D inliers that register an exposure."""
+    min_angle_deg: Annotated[float, Field(gt=0)] = 2.0
     """Smallest triangulation angle of COLMAP's initial image pair in degrees (COLMAP's
     default 16 suits orbits, not a camera travelling a fraction of the scene depth)."""
     seed: Annotated[int, Field(ge=0)] = 0
@@ -93,7 +105,7 @@ class PycolmapSfM(PoseEstimator):
         homographies = np.repeat(np.eye(3)[None], n, axis=0)
         levels: list[dict[str, Any]] = []
         exposures: list[tuple[NDArray[np.int64], NDArray[np.float64]]] = []
-        used = intrinsics
+        rec = landmarks = None
         for level in range(1, cfg.levels + 1):
             t0 = time.perf_counter()
             groups = resampler.groups(n, cfg.group_size, level)
@@ -103,35 +115,32 @@ class PycolmapSfM(PoseEstimator):
                 self._check_light(source, merged)
             t_merge = time.perf_counter() - t0
             t0 = time.perf_counter()
-            rec, used = self._map(merged.images, groups.reference, work_dir / f"level_{level}", intrinsics, progress,
-                                  level)
-            poses = np.full((len(groups), 4, 4), np.nan)
-            for image in rec.images.values() if rec is not None else ():
-                if image.has_pose:
-                    index = np.searchsorted(groups.reference, int(Path(image.name).stem))
-                    poses[index] = np.vstack([image.cam_from_world().inverse().matrix(), [0, 0, 0, 1]])
+            if level == 1:
+                rec, used = self._map(merged.images, groups.reference, work_dir / "level_1", intrinsics, progress)
+                poses, inliers = self._model_poses(rec, groups.reference), None
+            else:
+                poses, inliers = self._localise(merged.images, groups.reference, rec, landmarks, progress, level)
             registered = int(np.isfinite(poses[:, 0, 0]).sum())
             row = {"level": level, "exposures": len(groups), "registered": registered,
-                   "points": int(rec.num_points3D()) if rec is not None else 0,
-                   "reprojection_error_px": float(rec.compute_mean_reprojection_error()) if rec else None,
-                   "timings_s": {"merge": t_merge, "sfm": time.perf_counter() - t0}}
-            if level == 1 and registered < max(3, cfg.min_registered * len(groups)):
-                raise StageError("pose_estimator", "pycolmap-sfm", f"only {registered} of {len(groups)} level-1 "
-                                 "virtual exposures registered (too dark, too little texture or motion, "
-                                 "or wrong intrinsics)")
-            if registered < 3:  # a later level that fails keeps the previous level's result
-                row["note"] = "too few exposures registered; the previous level's poses are kept"
-                levels.append(row)
-                break
+                   "timings_s": {"merge": t_merge, "register": time.perf_counter() - t0}}
+            if level == 1:
+                row.update(points=int(rec.num_points3D()) if rec is not None else 0,
+                           reprojection_error_px=float(rec.compute_mean_reprojection_error()) if rec else None)
+                if registered < max(3, cfg.min_registered * len(groups)):
+                    raise StageError("pose_estimator", "pycolmap-sfm", f"only {registered} of {len(groups)} "
+                                     "level-1 virtual exposures registered (too dark, too little texture or "
+                                     "motion, or wrong intrinsics)")
+                landmarks = self._landmarks(rec, work_dir / "level_1" / "database.db")
+            else:
+                found = inliers[np.isfinite(inliers)]
+                row.update(median_inliers=float(np.median(found)) if len(found) else 0.0)
             levels.append(row)
             exposures.append((groups.reference.copy(), poses))
-            best = (rec, used, poses, groups.reference)
             every = interpolate_poses(groups.reference, poses, n)
-            points = np.array([p.xyz for p in rec.points3D.values()])
             reference = poses[np.flatnonzero(np.isfinite(poses[:, 0, 0]))[registered // 2]]
-            normal, distance = dominant_plane(points, reference)
+            normal, distance = dominant_plane(landmarks.xyz, reference)
             homographies = plane_homographies(every, used.matrix(), reference, normal, distance)
-        rec, used, poses, frames = best
+        frames, poses = exposures[-1]
         model_dir = work_dir / "model"
         model_dir.mkdir(exist_ok=True)
         rec.write(str(model_dir))
@@ -140,6 +149,84 @@ class PycolmapSfM(PoseEstimator):
         return PoseResult(poses=interpolate_poses(frames, poses, n), exposure_frames=frames, exposure_poses=poses,
                           points=xyz, colors=rgb, intrinsics=used, levels=levels, level_exposures=exposures,
                           model_dir=model_dir)
+
+    @staticmethod
+    def _model_poses(rec: Any, references: NDArray[np.int64]) -> NDArray[np.float64]:
+        """(G, 4, 4) camera-to-world poses of the images of ``rec`` named by their reference frame (NaN if absent)."""
+        poses = np.full((len(references), 4, 4), np.nan)
+        for image in rec.images.values() if rec is not None else ():
+            if image.has_pose:
+                index = np.searchsorted(references, int(Path(image.name).stem))
+                poses[index] = np.vstack([image.cam_from_world().inverse().matrix(), [0, 0, 0, 1]])
+        return poses
+
+    @staticmethod
+    def _landmarks(rec: Any, database: Path) -> _Landmarks:
+        """The level-1 model's 2D-3D observations: per registered image, descriptors and 3D points."""
+        import pycolmap
+
+        frames, descriptors, xyz = [], [], []
+        db = pycolmap.Database.open(str(database))
+        try:
+            for image_id, image in rec.images.items():
+                if not image.has_pose:
+                    continue
+                data = db.read_descriptors(image_id).data
+                for idx, point in enumerate(image.points2D):
+                    if point.has_point3D():
+                        frames.append(int(Path(image.name).stem))
+                        descriptors.append(data[idx])
+                        xyz.append(rec.points3D[point.point3D_id].xyz)
+        finally:
+            db.close()
+        desc = np.asarray(descriptors, np.float32)
+        desc /= np.maximum(np.linalg.norm(desc, axis=1, keepdims=True), 1e-12)
+        return _Landmarks(np.asarray(frames, np.int64), desc, np.asarray(xyz, np.float64))
+
+    def _localise(self, images: NDArray[np.uint8], references: NDArray[np.int64], rec: Any, landmarks: Any,
+                  progress: Any, level: int) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """Register each exposure against the level-1 model (SIFT, ratio test, LO-RANSAC P3P + refinement).
+
+        Returns:
+            ``(poses, inliers)``: (G, 4, 4) camera-to-world poses (NaN where it failed) and
+            (G,) float inlier counts (NaN where it failed).
+        """
+        import cv2
+        import pycolmap
+
+        cfg = self.config
+        camera = next(iter(rec.cameras.values()))
+        extraction = pycolmap.FeatureExtractionOptions()
+        extraction.sift.max_num_features = cfg.max_features
+        sift = pycolmap.FeatureExtractor.create(extraction, device=pycolmap.Device.cpu)
+        matcher = cv2.BFMatcher(cv2.NORM_L2)
+        model_frames = np.unique(landmarks.frames)
+        estimation = pycolmap.AbsolutePoseEstimationOptions()
+        estimation.ransac.max_error = cfg.max_error_px
+        refinement = pycolmap.AbsolutePoseRefinementOptions()
+        refinement.refine_focal_length = False
+        refinement.refine_extra_params = False
+        poses = np.full((len(images), 4, 4), np.nan)
+        inliers = np.full(len(images), np.nan)
+        advance = progress(f"level {level}: register", len(images)) if progress else (lambda k: None)
+        for g, (image, ref) in enumerate(zip(images, references)):
+            features, described = sift.extract_from_uint8_array(np.ascontiguousarray(image))
+            keypoints = np.asarray(pycolmap.keypoints_to_matrix(features), np.float64)
+            desc = described.data.astype(np.float32)
+            desc /= np.maximum(np.linalg.norm(desc, axis=1, keepdims=True), 1e-12)
+            near = model_frames[np.argsort(np.abs(model_frames - ref))[:cfg.localise_neighbours]]
+            pick = np.flatnonzero(np.isin(landmarks.frames, near))
+            pairs = matcher.knnMatch(desc, landmarks.descriptors[pick], k=2)
+            good = [(m.queryIdx, pick[m.trainIdx]) for m, *rest in pairs if rest and m.distance < 0.8 * rest[0].distance]
+            if len(good) >= 12:
+                q, t = np.array(good).T
+                found = pycolmap.estimate_and_refine_absolute_pose(
+                    keypoints[q, :2], landmarks.xyz[t], camera, estimation, refinement)
+                if found is not None and found["num_inliers"] >= cfg.min_inliers:
+                    poses[g] = np.vstack([found["cam_from_world"].inverse().matrix(), [0, 0, 0, 1]])
+                    inliers[g] = found["num_inliers"]
+            advance(1)
+        return poses, inliers
 
     def _check_light(self, source: PhotonSource, merged: Any) -> None:
         """Raise StageError if the level-1 exposures hold too few photons to register."""
@@ -150,7 +237,7 @@ class PycolmapSfM(PoseEstimator):
                              f"{self.config.min_photons} needed; raise group_size)")
 
     def _map(self, images: NDArray[np.uint8], references: NDArray[np.int64], folder: Path, intrinsics: Any,
-             progress: Any, level: int) -> tuple[Any, Any]:
+             progress: Any) -> tuple[Any, Any]:
         """Run COLMAP on one level's exposures; return (largest reconstruction or None, intrinsics)."""
         import cv2
         import pycolmap
@@ -176,13 +263,11 @@ class PycolmapSfM(PoseEstimator):
             reader.camera_model = "SIMPLE_RADIAL"
         extraction = pycolmap.FeatureExtractionOptions()
         extraction.sift.max_num_features = cfg.max_features
-        advance = progress(f"level {level}: structure from motion", 3) if progress else (lambda k: None)
+        advance = progress("level 1: structure from motion", 3) if progress else (lambda k: None)
         pycolmap.extract_features(database, image_dir, image_names=names, camera_mode=pycolmap.CameraMode.SINGLE,
                                   reader_options=reader, extraction_options=extraction, device=pycolmap.Device.cpu)
         advance(1)
         verification = pycolmap.TwoViewGeometryOptions()
-        if level > 1:  # level 1 is the naive baseline: COLMAP's defaults for blurred images
-            verification.ransac.max_error = cfg.max_error_px
         if cfg.matching == "exhaustive" or (cfg.matching == "auto" and len(names) <= cfg.exhaustive_max):
             pycolmap.match_exhaustive(database, verification_options=verification, device=pycolmap.Device.cpu)
         else:
@@ -195,7 +280,7 @@ class PycolmapSfM(PoseEstimator):
         options.random_seed = cfg.seed
         options.multiple_models = False
         # a sideways path of a few decimetres at metres' depth: small triangulation angles
-        options.mapper.init_min_tri_angle = cfg.min_angle_deg if level > 1 else 2 * cfg.min_angle_deg
+        options.mapper.init_min_tri_angle = cfg.min_angle_deg
         if intrinsics is not None:
             options.ba_refine_focal_length = False
             options.ba_refine_principal_point = False
