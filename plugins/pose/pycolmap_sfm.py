@@ -19,11 +19,10 @@ from typing import Annotated, Any, Literal, NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
-from pydantic import Field
-
 from photonpano import hookimpl
 from photonpano.errors import StageError
 from photonpano.stages import PhotonSource, PoseEstimator, PoseEstimatorConfig
+from pydantic import Field
 
 
 class _Landmarks(NamedTuple):
@@ -45,6 +44,9 @@ class PycolmapSfMConfig(PoseEstimatorConfig):
     levels: Annotated[int, Field(ge=1, le=6)] = 4
     """Number of levels; level 1 is naive averaging, each later level doubles the exposures
     and merges them with the previous level's poses."""
+    growth: Annotated[float, Field(ge=0.25, le=1)] = 1.0
+    """Group length at level k is m * growth**(k-1) frames: motion compensation is exact
+    only on the dominant plane, so shorter groups smear nearer and farther surfaces less."""
     matching: Literal["auto", "sequential", "exhaustive"] = "auto"
     """COLMAP matching: each exposure with its ``overlap`` neighbours in time (and 2^k
     further ones), every pair, or ``auto``: every pair up to ``exhaustive_max`` exposures."""
@@ -69,6 +71,11 @@ class PycolmapSfMConfig(PoseEstimatorConfig):
     min_angle_deg: Annotated[float, Field(gt=0)] = 2.0
     """Smallest triangulation angle of COLMAP's initial image pair in degrees (COLMAP's
     default 16 suits orbits, not a camera travelling a fraction of the scene depth)."""
+    attempts: Annotated[int, Field(ge=1)] = 3
+    """Level 1: mapping attempts (other seeds) while fewer than ``min_registered`` exposures register."""
+    bundle_adjust: bool = True
+    """Levels >= 2: triangulate the registered exposures' matches and bundle-adjust their poses
+    and points together (else keep the poses of the single-image registration)."""
     seed: Annotated[int, Field(ge=0)] = 0
     """Random seed of COLMAP's RANSAC and mapper."""
 
@@ -100,7 +107,7 @@ class PycolmapSfM(PoseEstimator):
         if n < 3 * cfg.group_size:
             raise StageError("pose_estimator", "pycolmap-sfm", f"the capture has {n} binary frames; at least "
                              f"3 x group_size = {3 * cfg.group_size} are needed (lower group_size)")
-        resampler, merger = MidpointConfig().build(), FluxMLEConfig().build()
+        resampler, merger = MidpointConfig(growth=cfg.growth).build(), FluxMLEConfig().build()
         executor = make_executor("threads")
         homographies = np.repeat(np.eye(3)[None], n, axis=0)
         levels: list[dict[str, Any]] = []
@@ -120,6 +127,9 @@ class PycolmapSfM(PoseEstimator):
                 poses, inliers = self._model_poses(rec, groups.reference), None
             else:
                 poses, inliers = self._localise(merged.images, groups.reference, rec, landmarks, progress, level)
+                if cfg.bundle_adjust:
+                    poses, refined = self._refine(merged.images, groups.reference, poses, rec,
+                                                  work_dir / f"level_{level}", progress, level)
             registered = int(np.isfinite(poses[:, 0, 0]).sum())
             row = {"level": level, "exposures": len(groups), "registered": registered,
                    "timings_s": {"merge": t_merge, "register": time.perf_counter() - t0}}
@@ -134,6 +144,9 @@ class PycolmapSfM(PoseEstimator):
             else:
                 found = inliers[np.isfinite(inliers)]
                 row.update(median_inliers=float(np.median(found)) if len(found) else 0.0)
+                if cfg.bundle_adjust:
+                    row.update(points=int(refined.num_points3D()),
+                               reprojection_error_px=float(refined.compute_mean_reprojection_error()))
             levels.append(row)
             exposures.append((groups.reference.copy(), poses))
             every = interpolate_poses(groups.reference, poses, n)
@@ -228,21 +241,62 @@ class PycolmapSfM(PoseEstimator):
             advance(1)
         return poses, inliers
 
-    def _check_light(self, source: PhotonSource, merged: Any) -> None:
-        """Raise StageError if the level-1 exposures hold too few photons to register."""
-        photons = float(np.nanmean(merged.flux)) * source.exposure_s * self.config.group_size
-        if not np.isfinite(photons) or photons < self.config.min_photons:
-            raise StageError("pose_estimator", "pycolmap-sfm", f"the capture is too dark: {photons:.2f} photons per "
-                             f"pixel per virtual exposure of {self.config.group_size} frames (at least "
-                             f"{self.config.min_photons} needed; raise group_size)")
+    def _refine(self, images: NDArray[np.uint8], references: NDArray[np.int64], poses: NDArray[np.float64],
+                rec: Any, folder: Path, progress: Any, level: int) -> tuple[NDArray[np.float64], Any]:
+        """Triangulate the level's exposures from their registered poses, then bundle-adjust poses and points.
 
-    def _map(self, images: NDArray[np.uint8], references: NDArray[np.int64], folder: Path, intrinsics: Any,
-             progress: Any) -> tuple[Any, Any]:
-        """Run COLMAP on one level's exposures; return (largest reconstruction or None, intrinsics)."""
-        import cv2
+        The camera stays that of the level-1 model (fixed). Exposures that failed to register
+        keep NaN poses.
+
+        Returns:
+            ``(poses, reconstruction)``: refined (G, 4, 4) camera-to-world poses and the model.
+        """
         import pycolmap
 
-        from photonpano.pose import Intrinsics
+        camera = next(iter(rec.cameras.values()))
+        database, image_dir = self._features(images, references, folder, camera.model.name,
+                                             [float(v) for v in camera.params], progress, level)
+        model = pycolmap.Reconstruction()
+        db = pycolmap.Database.open(str(database))
+        try:
+            db_camera = db.read_all_cameras()[0]
+            fixed = pycolmap.Camera(model=camera.model.name, width=camera.width, height=camera.height,
+                                    params=camera.params, camera_id=db_camera.camera_id)
+            model.add_camera_with_trivial_rig(fixed)
+            for image in db.read_all_images():
+                index = int(np.searchsorted(references, int(Path(image.name).stem)))
+                if not np.isfinite(poses[index, 0, 0]):
+                    continue
+                keypoints = np.asarray(db.read_keypoints(image.image_id))[:, :2]
+                entry = pycolmap.Image(name=image.name, keypoints=keypoints.astype(np.float64),
+                                       camera_id=db_camera.camera_id, image_id=image.image_id)
+                world_from_cam = poses[index]
+                cam_from_world = pycolmap.Rigid3d(pycolmap.Rotation3d(world_from_cam[:3, :3].T),
+                                                  -world_from_cam[:3, :3].T @ world_from_cam[:3, 3])
+                model.add_image_with_trivial_frame(entry, cam_from_world)
+        finally:
+            db.close()
+        options = pycolmap.IncrementalPipelineOptions()
+        options.ba_refine_focal_length = False
+        options.ba_refine_principal_point = False
+        options.ba_refine_extra_params = False
+        (folder / "sparse").mkdir(exist_ok=True)
+        model = pycolmap.triangulate_points(model, database, image_dir, folder / "sparse", clear_points=True,
+                                            options=options, refine_intrinsics=False)
+        adjust = pycolmap.BundleAdjustmentOptions()
+        adjust.refine_focal_length = False
+        adjust.refine_principal_point = False
+        adjust.refine_extra_params = False
+        adjust.print_summary = False
+        adjust.ceres.loss_function_type = pycolmap.LossFunctionType.CAUCHY
+        pycolmap.bundle_adjustment(model, adjust)
+        return self._model_poses(model, references), model
+
+    def _features(self, images: NDArray[np.uint8], references: NDArray[np.int64], folder: Path, camera_model: str,
+                  camera_params: list[float] | None, progress: Any, level: int) -> tuple[Path, Path]:
+        """Write the exposures as PNGs named by reference frame, extract SIFT and match them (COLMAP database)."""
+        import cv2
+        import pycolmap
 
         cfg = self.config
         image_dir = folder / "images"
@@ -256,28 +310,45 @@ class PycolmapSfM(PoseEstimator):
         pycolmap.logging.minloglevel = 2
         pycolmap.set_random_seed(cfg.seed)
         reader = pycolmap.ImageReaderOptions()
-        if intrinsics is not None:
-            reader.camera_model = "PINHOLE"
-            reader.camera_params = ",".join(f"{v:.10g}" for v in intrinsics.colmap_params())
-        else:
-            reader.camera_model = "SIMPLE_RADIAL"
+        reader.camera_model = camera_model
+        if camera_params is not None:
+            reader.camera_params = ",".join(f"{v:.12g}" for v in camera_params)
         extraction = pycolmap.FeatureExtractionOptions()
         extraction.sift.max_num_features = cfg.max_features
-        advance = progress("level 1: structure from motion", 3) if progress else (lambda k: None)
+        advance = progress(f"level {level}: features and matches", 2) if progress else (lambda k: None)
         pycolmap.extract_features(database, image_dir, image_names=names, camera_mode=pycolmap.CameraMode.SINGLE,
                                   reader_options=reader, extraction_options=extraction, device=pycolmap.Device.cpu)
         advance(1)
-        verification = pycolmap.TwoViewGeometryOptions()
         if cfg.matching == "exhaustive" or (cfg.matching == "auto" and len(names) <= cfg.exhaustive_max):
-            pycolmap.match_exhaustive(database, verification_options=verification, device=pycolmap.Device.cpu)
+            pycolmap.match_exhaustive(database, device=pycolmap.Device.cpu)
         else:
             pairing = pycolmap.SequentialPairingOptions()
             pairing.overlap = cfg.overlap
-            pycolmap.match_sequential(database, pairing_options=pairing, verification_options=verification,
-                                      device=pycolmap.Device.cpu)
+            pycolmap.match_sequential(database, pairing_options=pairing, device=pycolmap.Device.cpu)
         advance(1)
+        return database, image_dir
+
+    def _check_light(self, source: PhotonSource, merged: Any) -> None:
+        """Raise StageError if the level-1 exposures hold too few photons to register."""
+        photons = float(np.nanmean(merged.flux)) * source.exposure_s * self.config.group_size
+        if not np.isfinite(photons) or photons < self.config.min_photons:
+            raise StageError("pose_estimator", "pycolmap-sfm", f"the capture is too dark: {photons:.2f} photons per "
+                             f"pixel per virtual exposure of {self.config.group_size} frames (at least "
+                             f"{self.config.min_photons} needed; raise group_size)")
+
+    def _map(self, images: NDArray[np.uint8], references: NDArray[np.int64], folder: Path, intrinsics: Any,
+             progress: Any) -> tuple[Any, Any]:
+        """Run COLMAP on the level-1 exposures; return (largest reconstruction or None, intrinsics)."""
+        import pycolmap
+        from photonpano.pose import Intrinsics
+
+        cfg = self.config
+        if intrinsics is not None:
+            database, image_dir = self._features(images, references, folder, "PINHOLE", intrinsics.colmap_params(),
+                                                 progress, 1)
+        else:
+            database, image_dir = self._features(images, references, folder, "SIMPLE_RADIAL", None, progress, 1)
         options = pycolmap.IncrementalPipelineOptions()
-        options.random_seed = cfg.seed
         options.multiple_models = False
         # a sideways path of a few decimetres at metres' depth: small triangulation angles
         options.mapper.init_min_tri_angle = cfg.min_angle_deg
@@ -285,11 +356,17 @@ class PycolmapSfM(PoseEstimator):
             options.ba_refine_focal_length = False
             options.ba_refine_principal_point = False
             options.ba_refine_extra_params = False
-        models = pycolmap.incremental_mapping(database, image_dir, folder / "sparse", options)
-        advance(1)
-        if not models:
+        rec = None
+        for attempt in range(cfg.attempts):  # COLMAP's multi-threaded mapper can pick a poor initial pair
+            options.random_seed = cfg.seed + attempt
+            models = pycolmap.incremental_mapping(database, image_dir, folder / "sparse", options)
+            best = max(models.values(), key=lambda r: r.num_reg_images()) if models else None
+            if best is not None and (rec is None or best.num_reg_images() > rec.num_reg_images()):
+                rec = best
+            if rec is not None and rec.num_reg_images() >= cfg.min_registered * len(images):
+                break
+        if rec is None:
             return None, intrinsics
-        rec = max(models.values(), key=lambda r: r.num_reg_images())
         if intrinsics is None:
             camera = next(iter(rec.cameras.values()))
             f, cx, cy = camera.params[:3]

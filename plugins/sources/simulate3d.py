@@ -17,12 +17,10 @@ from typing import Annotated, Literal
 
 import numpy as np
 from numpy.typing import NDArray
-from pydantic import Field
-
 from photonpano import hookimpl
-from photonpano.errors import SourceError
 from photonpano.plugins.sources.simulate import bundled_photo, load_scene
 from photonpano.stages import PhotonSource, SourceConfig
+from pydantic import Field
 
 #: The room: (origin p0, in-plane axes u and v, size along u and v in metres, depth at which one
 #: texture pixel covers one frame pixel). Listed far to near (painting order).

@@ -4,11 +4,16 @@ import json
 
 import numpy as np
 import pytest
-from scipy.spatial.transform import Rotation
-
 from photonpano.errors import SpecError
-from photonpano.pose import (Intrinsics, absolute_trajectory_error, interpolate_poses, plane_homographies,
-                             relative_pose_error, umeyama)
+from photonpano.pose import (
+    Intrinsics,
+    absolute_trajectory_error,
+    interpolate_poses,
+    plane_homographies,
+    relative_pose_error,
+    umeyama,
+)
+from scipy.spatial.transform import Rotation
 
 
 def _path(n, seed=0):

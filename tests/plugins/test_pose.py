@@ -5,12 +5,11 @@ import json
 
 import numpy as np
 import pytest
-from typer.testing import CliRunner
-
 from photonpano.cli import app
 from photonpano.plugins.pose.pycolmap_sfm import PycolmapSfMConfig
 from photonpano.plugins.sources.simulate3d import Simulate3DConfig, camera_poses
 from photonpano.testing import PoseEstimatorContract, SourceContract
+from typer.testing import CliRunner
 
 needs_pycolmap = pytest.mark.skipif(importlib.util.find_spec("pycolmap") is None,
                                     reason="pycolmap is not installed (pip install 'photonpano[colmap]')")
