@@ -180,21 +180,24 @@ def _execute_pose(spec, out: Path, force: bool, host) -> dict[str, Any]:
 
 def _report_pose(summary: dict[str, Any], out: Path) -> None:
     last = summary["levels"][-1]
-    typer.echo(f"poses for {summary['frames_with_pose']} of {summary['source']['frames']} binary frames written "
-               f"to {out} (level {last['level']}: {last['registered']}/{last['exposures']} virtual exposures "
+    typer.echo(f"poses for {summary['frames_with_pose']} of {summary['source']['frames']} binary frames "
+               f"written to {out} (level {last['level']}: {last['registered']}/{last['exposures']} virtual exposures "
                f"registered, {summary['timings_s']['estimate']:.1f} s)")
     gt = summary.get("ground_truth")
     if gt and "rpe" in gt:
         typer.echo(f"vs ground truth: ATE {1e3 * gt['ate_m']:.2f} mm, RPE over {gt['rpe_gap_frames']} frames "
-                   f"{1e3 * gt['rpe']['translation_m']:.2f} mm ({gt['rpe']['percent']:.1f} % of the true motion)")
+                   f"{1e3 * gt['rpe']['translation_m']:.2f} mm ({gt['rpe']['percent']:.1f} % of the true "
+                   "motion)")
 
 
 @app.command()
-def pose(input: Annotated[str, typer.Argument(help="A capture (.npy photon cube, SwissSPAD folder, ...) or "
-                                                  "'simulate3d' (a simulated room with ground-truth poses).")],
+def pose(input: Annotated[str, typer.Argument(
+             help="A capture (.npy photon cube, SwissSPAD folder, ...) or 'simulate3d' (a simulated room "
+                  "with ground-truth poses).")],
          output: OutOption,
          intrinsics: Annotated[Optional[Path], typer.Option(
-             help="JSON file with fx, fy, cx, cy in pixels (OpenCV convention); omitted: self-calibration.")] = None,
+             help="JSON file with fx, fy, cx, cy in pixels (OpenCV convention); omitted: "
+                  "self-calibration.")] = None,
          set_: SetOption = None, force: ForceOption = False) -> None:
     """Experimental: estimate a 6-DoF camera pose for every binary frame (pycolmap-sfm)."""
     from .pose import Intrinsics
@@ -205,8 +208,11 @@ def pose(input: Annotated[str, typer.Argument(help="A capture (.npy photon cube,
         host = _host()
         if intrinsics is not None:
             Intrinsics.load(intrinsics)  # a bad file fails before any work
-        data = {"source": {"plugin": "simulate3d"}} if input == "simulate3d" else spec_for_capture(Path(input), host)
-        data = {"source": data["source"], "pose_estimator": {"plugin": "pycolmap-sfm"}}
+        if input == "simulate3d":
+            source = {"plugin": "simulate3d"}
+        else:
+            source = spec_for_capture(Path(input), host)["source"]
+        data = {"source": source, "pose_estimator": {"plugin": "pycolmap-sfm"}}
         if intrinsics is not None:
             data["pose_estimator"]["intrinsics"] = str(intrinsics)
         parsed = validate_spec(apply_overrides(data, set_ or []), host, origin="pose")

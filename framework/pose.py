@@ -28,9 +28,20 @@ from numpy.typing import NDArray
 
 from .errors import SpecError, StageError
 
-__all__ = ["Intrinsics", "PoseResult", "interpolate_poses", "umeyama", "align_to", "absolute_trajectory_error",
-           "relative_pose_error", "plane_homographies", "dominant_plane", "pose_report", "run_pose",
-           "write_ply"]
+__all__ = [
+    "Intrinsics",
+    "PoseResult",
+    "interpolate_poses",
+    "umeyama",
+    "align_to",
+    "absolute_trajectory_error",
+    "relative_pose_error",
+    "plane_homographies",
+    "dominant_plane",
+    "pose_report",
+    "run_pose",
+    "write_ply",
+]
 
 
 @dataclass(frozen=True)
@@ -81,7 +92,9 @@ class Intrinsics:
         for key in ("fx", "fy", "cx", "cy"):
             value = data.get(key)
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-                raise SpecError(f"intrinsics {path}: '{key}' must be a finite number of pixels, got {value!r}")
+                raise SpecError(
+                    f"intrinsics {path}: '{key}' must be a finite number of pixels, got {value!r}"
+                )
             values[key] = float(value)
         if values["fx"] <= 0 or values["fy"] <= 0:
             raise SpecError(f"intrinsics {path}: fx and fy must be positive (pixels)")
@@ -121,7 +134,9 @@ class PoseResult:
 # --- SE(3) interpolation ----------------------------------------------------------------
 
 
-def interpolate_poses(frames: NDArray[np.int64], poses: NDArray[np.float64], n_frames: int) -> NDArray[np.float64]:
+def interpolate_poses(
+    frames: NDArray[np.int64], poses: NDArray[np.float64], n_frames: int
+) -> NDArray[np.float64]:
     """Interpolate camera-to-world poses known at some frames to every binary frame.
 
     Rotations are interpolated by piecewise slerp, camera centres by a cubic spline
@@ -177,8 +192,9 @@ def interpolate_poses(frames: NDArray[np.int64], poses: NDArray[np.float64], n_f
 # --- metrics --------------------------------------------------------------------------------
 
 
-def umeyama(source: NDArray[np.float64], target: NDArray[np.float64], *,
-            with_scale: bool = True) -> tuple[float, NDArray[np.float64], NDArray[np.float64]]:
+def umeyama(
+    source: NDArray[np.float64], target: NDArray[np.float64], *, with_scale: bool = True
+) -> tuple[float, NDArray[np.float64], NDArray[np.float64]]:
     """Least-squares similarity ``target ~ s R source + t`` (Umeyama 1991, Eqs. 40-42).
 
     Args:
@@ -196,7 +212,7 @@ def umeyama(source: NDArray[np.float64], target: NDArray[np.float64], *,
         raise ValueError("umeyama: at least 3 points are needed")
     mu_s, mu_t = source.mean(0), target.mean(0)
     xs, xt = source - mu_s, target - mu_t
-    var_s = float((xs ** 2).sum() / len(source))
+    var_s = float((xs**2).sum() / len(source))
     if var_s <= 0:
         raise ValueError("umeyama: the source points coincide")
     u, d, vt = np.linalg.svd(xt.T @ xs / len(source))
@@ -238,8 +254,9 @@ def absolute_trajectory_error(estimate: NDArray[np.float64], truth: NDArray[np.f
     return float(np.sqrt(np.mean(np.sum((aligned[ok, :3, 3] - truth[ok, :3, 3]) ** 2, axis=1))))
 
 
-def relative_pose_error(estimate: NDArray[np.float64], truth: NDArray[np.float64], gap: int,
-                        stride: int = 10) -> dict[str, float]:
+def relative_pose_error(
+    estimate: NDArray[np.float64], truth: NDArray[np.float64], gap: int, stride: int = 10
+) -> dict[str, float]:
     """Relative pose error over ``gap`` frames, after similarity alignment.
 
     For frame pairs ``(i, i + gap)`` (every ``stride``-th i with both poses known), the
@@ -260,8 +277,9 @@ def relative_pose_error(estimate: NDArray[np.float64], truth: NDArray[np.float64
     """
     aligned = align_to(estimate, truth)
     i = np.arange(0, len(truth) - gap, stride)
-    ok = np.all(np.isfinite(aligned[i].reshape(len(i), -1)), axis=1) & \
-        np.all(np.isfinite(aligned[i + gap].reshape(len(i), -1)), axis=1)
+    ok = np.all(np.isfinite(aligned[i].reshape(len(i), -1)), axis=1) & np.all(
+        np.isfinite(aligned[i + gap].reshape(len(i), -1)), axis=1
+    )
     i = i[ok]
     if len(i) == 0:
         raise ValueError(f"relative_pose_error: no frame pair {gap} frames apart has both poses")
@@ -272,8 +290,12 @@ def relative_pose_error(estimate: NDArray[np.float64], truth: NDArray[np.float64
     motion = np.sqrt(np.mean(np.sum(rel_t[:, :3, 3] ** 2, axis=1)))
     cos = np.clip((np.trace(err[:, :3, :3], axis1=1, axis2=2) - 1) / 2, -1, 1)
     rot = np.degrees(np.sqrt(np.mean(np.arccos(cos) ** 2)))
-    return {"translation_m": float(trans), "motion_m": float(motion),
-            "percent": float(100 * trans / max(motion, 1e-12)), "rotation_deg": float(rot)}
+    return {
+        "translation_m": float(trans),
+        "motion_m": float(motion),
+        "percent": float(100 * trans / max(motion, 1e-12)),
+        "rotation_deg": float(rot),
+    }
 
 
 # --- motion-compensated merging ---------------------------------------------------------------
@@ -300,8 +322,13 @@ def dominant_plane(points: NDArray[np.float64], reference: NDArray[np.float64]) 
     return np.array([0.0, 0.0, 1.0]), float(np.median(depth))
 
 
-def plane_homographies(poses: NDArray[np.float64], k: NDArray[np.float64], reference: NDArray[np.float64],
-                       normal: NDArray[np.float64], distance: float) -> NDArray[np.float64]:
+def plane_homographies(
+    poses: NDArray[np.float64],
+    k: NDArray[np.float64],
+    reference: NDArray[np.float64],
+    normal: NDArray[np.float64],
+    distance: float,
+) -> NDArray[np.float64]:
     """Plane-induced homographies from each frame's pixels to a reference camera's pixels.
 
     With ``Q_t = inv(P_ref) @ P_t = [[R, c], [0, 1]]`` (frame t in the reference camera's
@@ -363,16 +390,20 @@ def write_ply(path: Path, points: NDArray[np.float64], colors: NDArray[np.uint8]
         points: (N, 3) float64 positions.
         colors: (N, 3) uint8 RGB colours.
     """
-    record = np.empty(len(points), dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"),
-                                          ("red", "u1"), ("green", "u1"), ("blue", "u1")])
+    record = np.empty(
+        len(points),
+        dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("red", "u1"), ("green", "u1"), ("blue", "u1")],
+    )
     for i, name in enumerate("xyz"):
         record[name] = points[:, i]
     for i, name in enumerate(("red", "green", "blue")):
         record[name] = colors[:, i]
-    header = ("ply\nformat binary_little_endian 1.0\n"
-              f"element vertex {len(points)}\n"
-              "property float x\nproperty float y\nproperty float z\n"
-              "property uchar red\nproperty uchar green\nproperty uchar blue\nend_header\n")
+    header = (
+        "ply\nformat binary_little_endian 1.0\n"
+        f"element vertex {len(points)}\n"
+        "property float x\nproperty float y\nproperty float z\n"
+        "property uchar red\nproperty uchar green\nproperty uchar blue\nend_header\n"
+    )
     with open(path, "wb") as fh:
         fh.write(header.encode("ascii"))
         fh.write(record.tobytes())
@@ -391,7 +422,13 @@ def _plot(path: Path, result: PoseResult, truth: NDArray[np.float64] | None) -> 
     fig, (top, time_ax) = plt.subplots(1, 2, figsize=(11, 4.5))
     if truth is not None:
         top.plot(truth[:, 0, 3], truth[:, 2, 3], "k-", lw=1, label="true")
-    top.plot(poses[:, 0, 3], poses[:, 2, 3], "-", lw=1, label="estimate" + (" (aligned)" if truth is not None else ""))
+    top.plot(
+        poses[:, 0, 3],
+        poses[:, 2, 3],
+        "-",
+        lw=1,
+        label="estimate" + (" (aligned)" if truth is not None else ""),
+    )
     top.set(xlabel="x (world)", ylabel="z (world)", title="camera centres, top view", aspect="equal")
     top.legend()
     t = np.arange(len(poses))
@@ -406,8 +443,15 @@ def _plot(path: Path, result: PoseResult, truth: NDArray[np.float64] | None) -> 
     plt.close(fig)
 
 
-def run_pose(spec: Any, out_dir: Path | None, host: Any, *, intrinsics: Intrinsics | None = None,
-             force: bool = False, rpe_gap: int | None = None) -> tuple[dict[str, Any], PoseResult]:
+def run_pose(
+    spec: Any,
+    out_dir: Path | None,
+    host: Any,
+    *,
+    intrinsics: Intrinsics | None = None,
+    force: bool = False,
+    rpe_gap: int | None = None,
+) -> tuple[dict[str, Any], PoseResult]:
     """Run a spec's ``pose_estimator`` on its source and write the pose outputs.
 
     Outputs in ``out_dir``: ``poses.npy`` (T, 4, 4), ``exposure_poses.npy`` (E, 4, 4),
@@ -456,19 +500,31 @@ def run_pose(spec: Any, out_dir: Path | None, host: Any, *, intrinsics: Intrinsi
             source = spec.source.build()
             timings["source"] = time.perf_counter() - t0
             if getattr(source, "kind", "binary") != "binary":
-                raise StageError("pose_estimator", type(spec.pose_estimator).__name__, f"source {source.name!r} is not a binary capture")
+                raise StageError(
+                    "pose_estimator",
+                    type(spec.pose_estimator).__name__,
+                    f"source {source.name!r} is not a binary capture",
+                )
             work.mkdir(parents=True, exist_ok=True)
             t0 = time.perf_counter()
             result = spec.pose_estimator.build().estimate(source, intrinsics, work, progress=start_task)
             timings["estimate"] = time.perf_counter() - t0
         summary: dict[str, Any] = {
-            "photonpano": __version__, "python": platform.python_version(),
-            "versions": library_versions(spec), "plugins": host.versions(),
-            "spec": spec.model_dump(mode="json"), "source": source.describe(),
-            "intrinsics": {"given": intrinsics.as_dict() if intrinsics else None,
-                           "used": result.intrinsics.as_dict()},
-            "frames_with_pose": int(np.all(np.isfinite(result.poses.reshape(len(result.poses), -1)), axis=1).sum()),
-            "levels": result.levels, "timings_s": timings,
+            "photonpano": __version__,
+            "python": platform.python_version(),
+            "versions": library_versions(spec),
+            "plugins": host.versions(),
+            "spec": spec.model_dump(mode="json"),
+            "source": source.describe(),
+            "intrinsics": {
+                "given": intrinsics.as_dict() if intrinsics else None,
+                "used": result.intrinsics.as_dict(),
+            },
+            "frames_with_pose": int(
+                np.all(np.isfinite(result.poses.reshape(len(result.poses), -1)), axis=1).sum()
+            ),
+            "levels": result.levels,
+            "timings_s": timings,
         }
         truth = getattr(source, "ground_truth_poses", None)
         if truth is not None:

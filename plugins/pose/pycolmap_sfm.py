@@ -26,7 +26,7 @@ from pydantic import Field
 
 
 class _Landmarks(NamedTuple):
-    """Observations of the level-1 model: (K,) int64 frames, (K, 128) float32 unit descriptors, (K, 3) points."""
+    """Level-1 model observations: (K,) int64 frames, (K, 128) float32 unit descriptors, (K, 3) points."""
 
     frames: NDArray[np.int64]
     descriptors: NDArray[np.float32]
@@ -41,10 +41,10 @@ class PycolmapSfMConfig(PoseEstimatorConfig):
     install_hint = "pip install 'photonpano[colmap]'"
     group_size: Annotated[int, Field(ge=2)] = 1000
     """Binary frames per virtual exposure m."""
-    levels: Annotated[int, Field(ge=1, le=6)] = 4
+    levels: Annotated[int, Field(ge=1, le=6)] = 3
     """Number of levels; level 1 is naive averaging, each later level doubles the exposures
     and merges them with the previous level's poses."""
-    growth: Annotated[float, Field(ge=0.25, le=1)] = 1.0
+    growth: Annotated[float, Field(ge=0.25, le=1)] = 0.5
     """Group length at level k is m * growth**(k-1) frames: motion compensation is exact
     only on the dominant plane, so shorter groups smear nearer and farther surfaces less."""
     matching: Literal["auto", "sequential", "exhaustive"] = "auto"
@@ -105,8 +105,12 @@ class PycolmapSfM(PoseEstimator):
 
         cfg, n = self.config, source.n_frames
         if n < 3 * cfg.group_size:
-            raise StageError("pose_estimator", "pycolmap-sfm", f"the capture has {n} binary frames; at least "
-                             f"3 x group_size = {3 * cfg.group_size} are needed (lower group_size)")
+            raise StageError(
+                "pose_estimator",
+                "pycolmap-sfm",
+                f"the capture has {n} binary frames; at least "
+                f"3 x group_size = {3 * cfg.group_size} are needed (lower group_size)",
+            )
         resampler, merger = MidpointConfig(growth=cfg.growth).build(), FluxMLEConfig().build()
         executor = make_executor("threads")
         homographies = np.repeat(np.eye(3)[None], n, axis=0)
@@ -123,30 +127,53 @@ class PycolmapSfM(PoseEstimator):
             t_merge = time.perf_counter() - t0
             t0 = time.perf_counter()
             if level == 1:
-                rec, used = self._map(merged.images, groups.reference, work_dir / "level_1", intrinsics, progress)
+                rec, used = self._map(
+                    merged.images, groups.reference, work_dir / "level_1", intrinsics, progress
+                )
                 poses, inliers = self._model_poses(rec, groups.reference), None
             else:
-                poses, inliers = self._localise(merged.images, groups.reference, rec, landmarks, progress, level)
+                poses, inliers = self._localise(
+                    merged.images, groups.reference, rec, landmarks, progress, level
+                )
                 if cfg.bundle_adjust:
-                    poses, refined = self._refine(merged.images, groups.reference, poses, rec,
-                                                  work_dir / f"level_{level}", progress, level)
+                    poses, refined = self._refine(
+                        merged.images,
+                        groups.reference,
+                        poses,
+                        rec,
+                        work_dir / f"level_{level}",
+                        progress,
+                        level,
+                    )
             registered = int(np.isfinite(poses[:, 0, 0]).sum())
-            row = {"level": level, "exposures": len(groups), "registered": registered,
-                   "timings_s": {"merge": t_merge, "register": time.perf_counter() - t0}}
+            row = {
+                "level": level,
+                "exposures": len(groups),
+                "registered": registered,
+                "timings_s": {"merge": t_merge, "register": time.perf_counter() - t0},
+            }
             if level == 1:
-                row.update(points=int(rec.num_points3D()) if rec is not None else 0,
-                           reprojection_error_px=float(rec.compute_mean_reprojection_error()) if rec else None)
+                row.update(
+                    points=int(rec.num_points3D()) if rec is not None else 0,
+                    reprojection_error_px=float(rec.compute_mean_reprojection_error()) if rec else None,
+                )
                 if registered < max(3, cfg.min_registered * len(groups)):
-                    raise StageError("pose_estimator", "pycolmap-sfm", f"only {registered} of {len(groups)} "
-                                     "level-1 virtual exposures registered (too dark, too little texture or "
-                                     "motion, or wrong intrinsics)")
+                    raise StageError(
+                        "pose_estimator",
+                        "pycolmap-sfm",
+                        f"only {registered} of {len(groups)} "
+                        "level-1 virtual exposures registered (too dark, too little texture or "
+                        "motion, or wrong intrinsics)",
+                    )
                 landmarks = self._landmarks(rec, work_dir / "level_1" / "database.db")
             else:
                 found = inliers[np.isfinite(inliers)]
                 row.update(median_inliers=float(np.median(found)) if len(found) else 0.0)
                 if cfg.bundle_adjust:
-                    row.update(points=int(refined.num_points3D()),
-                               reprojection_error_px=float(refined.compute_mean_reprojection_error()))
+                    row.update(
+                        points=int(refined.num_points3D()),
+                        reprojection_error_px=float(refined.compute_mean_reprojection_error()),
+                    )
             levels.append(row)
             exposures.append((groups.reference.copy(), poses))
             every = interpolate_poses(groups.reference, poses, n)
@@ -159,13 +186,21 @@ class PycolmapSfM(PoseEstimator):
         rec.write(str(model_dir))
         xyz = np.array([p.xyz for p in rec.points3D.values()], np.float64).reshape(-1, 3)
         rgb = np.array([p.color for p in rec.points3D.values()], np.uint8).reshape(-1, 3)
-        return PoseResult(poses=interpolate_poses(frames, poses, n), exposure_frames=frames, exposure_poses=poses,
-                          points=xyz, colors=rgb, intrinsics=used, levels=levels, level_exposures=exposures,
-                          model_dir=model_dir)
+        return PoseResult(
+            poses=interpolate_poses(frames, poses, n),
+            exposure_frames=frames,
+            exposure_poses=poses,
+            points=xyz,
+            colors=rgb,
+            intrinsics=used,
+            levels=levels,
+            level_exposures=exposures,
+            model_dir=model_dir,
+        )
 
     @staticmethod
     def _model_poses(rec: Any, references: NDArray[np.int64]) -> NDArray[np.float64]:
-        """(G, 4, 4) camera-to-world poses of the images of ``rec`` named by their reference frame (NaN if absent)."""
+        """(G, 4, 4) camera-to-world poses of ``rec``'s images, named by reference frame (NaN if absent)."""
         poses = np.full((len(references), 4, 4), np.nan)
         for image in rec.images.values() if rec is not None else ():
             if image.has_pose:
@@ -196,8 +231,15 @@ class PycolmapSfM(PoseEstimator):
         desc /= np.maximum(np.linalg.norm(desc, axis=1, keepdims=True), 1e-12)
         return _Landmarks(np.asarray(frames, np.int64), desc, np.asarray(xyz, np.float64))
 
-    def _localise(self, images: NDArray[np.uint8], references: NDArray[np.int64], rec: Any, landmarks: Any,
-                  progress: Any, level: int) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    def _localise(
+        self,
+        images: NDArray[np.uint8],
+        references: NDArray[np.int64],
+        rec: Any,
+        landmarks: Any,
+        progress: Any,
+        level: int,
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """Register each exposure against the level-1 model (SIFT, ratio test, LO-RANSAC P3P + refinement).
 
         Returns:
@@ -227,22 +269,35 @@ class PycolmapSfM(PoseEstimator):
             keypoints = np.asarray(pycolmap.keypoints_to_matrix(features), np.float64)
             desc = described.data.astype(np.float32)
             desc /= np.maximum(np.linalg.norm(desc, axis=1, keepdims=True), 1e-12)
-            near = model_frames[np.argsort(np.abs(model_frames - ref))[:cfg.localise_neighbours]]
+            near = model_frames[np.argsort(np.abs(model_frames - ref))[: cfg.localise_neighbours]]
             pick = np.flatnonzero(np.isin(landmarks.frames, near))
             pairs = matcher.knnMatch(desc, landmarks.descriptors[pick], k=2)
-            good = [(m.queryIdx, pick[m.trainIdx]) for m, *rest in pairs if rest and m.distance < 0.8 * rest[0].distance]
+            good = [
+                (m.queryIdx, pick[m.trainIdx])
+                for m, *rest in pairs
+                if rest and m.distance < 0.8 * rest[0].distance
+            ]
             if len(good) >= 12:
                 q, t = np.array(good).T
                 found = pycolmap.estimate_and_refine_absolute_pose(
-                    keypoints[q, :2], landmarks.xyz[t], camera, estimation, refinement)
+                    keypoints[q, :2], landmarks.xyz[t], camera, estimation, refinement
+                )
                 if found is not None and found["num_inliers"] >= cfg.min_inliers:
                     poses[g] = np.vstack([found["cam_from_world"].inverse().matrix(), [0, 0, 0, 1]])
                     inliers[g] = found["num_inliers"]
             advance(1)
         return poses, inliers
 
-    def _refine(self, images: NDArray[np.uint8], references: NDArray[np.int64], poses: NDArray[np.float64],
-                rec: Any, folder: Path, progress: Any, level: int) -> tuple[NDArray[np.float64], Any]:
+    def _refine(
+        self,
+        images: NDArray[np.uint8],
+        references: NDArray[np.int64],
+        poses: NDArray[np.float64],
+        rec: Any,
+        folder: Path,
+        progress: Any,
+        level: int,
+    ) -> tuple[NDArray[np.float64], Any]:
         """Triangulate the level's exposures from their registered poses, then bundle-adjust poses and points.
 
         The camera stays that of the level-1 model (fixed). Exposures that failed to register
@@ -254,25 +309,37 @@ class PycolmapSfM(PoseEstimator):
         import pycolmap
 
         camera = next(iter(rec.cameras.values()))
-        database, image_dir = self._features(images, references, folder, camera.model.name,
-                                             [float(v) for v in camera.params], progress, level)
+        database, image_dir = self._features(
+            images, references, folder, camera.model.name, [float(v) for v in camera.params], progress, level
+        )
         model = pycolmap.Reconstruction()
         db = pycolmap.Database.open(str(database))
         try:
             db_camera = db.read_all_cameras()[0]
-            fixed = pycolmap.Camera(model=camera.model.name, width=camera.width, height=camera.height,
-                                    params=camera.params, camera_id=db_camera.camera_id)
+            fixed = pycolmap.Camera(
+                model=camera.model.name,
+                width=camera.width,
+                height=camera.height,
+                params=camera.params,
+                camera_id=db_camera.camera_id,
+            )
             model.add_camera_with_trivial_rig(fixed)
             for image in db.read_all_images():
                 index = int(np.searchsorted(references, int(Path(image.name).stem)))
                 if not np.isfinite(poses[index, 0, 0]):
                     continue
                 keypoints = np.asarray(db.read_keypoints(image.image_id))[:, :2]
-                entry = pycolmap.Image(name=image.name, keypoints=keypoints.astype(np.float64),
-                                       camera_id=db_camera.camera_id, image_id=image.image_id)
+                entry = pycolmap.Image(
+                    name=image.name,
+                    keypoints=keypoints.astype(np.float64),
+                    camera_id=db_camera.camera_id,
+                    image_id=image.image_id,
+                )
                 world_from_cam = poses[index]
-                cam_from_world = pycolmap.Rigid3d(pycolmap.Rotation3d(world_from_cam[:3, :3].T),
-                                                  -world_from_cam[:3, :3].T @ world_from_cam[:3, 3])
+                cam_from_world = pycolmap.Rigid3d(
+                    pycolmap.Rotation3d(world_from_cam[:3, :3].T),
+                    -world_from_cam[:3, :3].T @ world_from_cam[:3, 3],
+                )
                 model.add_image_with_trivial_frame(entry, cam_from_world)
         finally:
             db.close()
@@ -281,8 +348,15 @@ class PycolmapSfM(PoseEstimator):
         options.ba_refine_principal_point = False
         options.ba_refine_extra_params = False
         (folder / "sparse").mkdir(exist_ok=True)
-        model = pycolmap.triangulate_points(model, database, image_dir, folder / "sparse", clear_points=True,
-                                            options=options, refine_intrinsics=False)
+        model = pycolmap.triangulate_points(
+            model,
+            database,
+            image_dir,
+            folder / "sparse",
+            clear_points=True,
+            options=options,
+            refine_intrinsics=False,
+        )
         adjust = pycolmap.BundleAdjustmentOptions()
         adjust.refine_focal_length = False
         adjust.refine_principal_point = False
@@ -292,9 +366,17 @@ class PycolmapSfM(PoseEstimator):
         pycolmap.bundle_adjustment(model, adjust)
         return self._model_poses(model, references), model
 
-    def _features(self, images: NDArray[np.uint8], references: NDArray[np.int64], folder: Path, camera_model: str,
-                  camera_params: list[float] | None, progress: Any, level: int) -> tuple[Path, Path]:
-        """Write the exposures as PNGs named by reference frame, extract SIFT and match them (COLMAP database)."""
+    def _features(
+        self,
+        images: NDArray[np.uint8],
+        references: NDArray[np.int64],
+        folder: Path,
+        camera_model: str,
+        camera_params: list[float] | None,
+        progress: Any,
+        level: int,
+    ) -> tuple[Path, Path]:
+        """Write the exposures as PNGs named by reference frame, extract SIFT and match (COLMAP database)."""
         import cv2
         import pycolmap
 
@@ -316,8 +398,15 @@ class PycolmapSfM(PoseEstimator):
         extraction = pycolmap.FeatureExtractionOptions()
         extraction.sift.max_num_features = cfg.max_features
         advance = progress(f"level {level}: features and matches", 2) if progress else (lambda k: None)
-        pycolmap.extract_features(database, image_dir, image_names=names, camera_mode=pycolmap.CameraMode.SINGLE,
-                                  reader_options=reader, extraction_options=extraction, device=pycolmap.Device.cpu)
+        pycolmap.extract_features(
+            database,
+            image_dir,
+            image_names=names,
+            camera_mode=pycolmap.CameraMode.SINGLE,
+            reader_options=reader,
+            extraction_options=extraction,
+            device=pycolmap.Device.cpu,
+        )
         advance(1)
         if cfg.matching == "exhaustive" or (cfg.matching == "auto" and len(names) <= cfg.exhaustive_max):
             pycolmap.match_exhaustive(database, device=pycolmap.Device.cpu)
@@ -332,22 +421,35 @@ class PycolmapSfM(PoseEstimator):
         """Raise StageError if the level-1 exposures hold too few photons to register."""
         photons = float(np.nanmean(merged.flux)) * source.exposure_s * self.config.group_size
         if not np.isfinite(photons) or photons < self.config.min_photons:
-            raise StageError("pose_estimator", "pycolmap-sfm", f"the capture is too dark: {photons:.2f} photons per "
-                             f"pixel per virtual exposure of {self.config.group_size} frames (at least "
-                             f"{self.config.min_photons} needed; raise group_size)")
+            raise StageError(
+                "pose_estimator",
+                "pycolmap-sfm",
+                f"the capture is too dark: {photons:.2f} photons per "
+                f"pixel per virtual exposure of {self.config.group_size} frames (at least "
+                f"{self.config.min_photons} needed; raise group_size)",
+            )
 
-    def _map(self, images: NDArray[np.uint8], references: NDArray[np.int64], folder: Path, intrinsics: Any,
-             progress: Any) -> tuple[Any, Any]:
+    def _map(
+        self,
+        images: NDArray[np.uint8],
+        references: NDArray[np.int64],
+        folder: Path,
+        intrinsics: Any,
+        progress: Any,
+    ) -> tuple[Any, Any]:
         """Run COLMAP on the level-1 exposures; return (largest reconstruction or None, intrinsics)."""
         import pycolmap
         from photonpano.pose import Intrinsics
 
         cfg = self.config
         if intrinsics is not None:
-            database, image_dir = self._features(images, references, folder, "PINHOLE", intrinsics.colmap_params(),
-                                                 progress, 1)
+            database, image_dir = self._features(
+                images, references, folder, "PINHOLE", intrinsics.colmap_params(), progress, 1
+            )
         else:
-            database, image_dir = self._features(images, references, folder, "SIMPLE_RADIAL", None, progress, 1)
+            database, image_dir = self._features(
+                images, references, folder, "SIMPLE_RADIAL", None, progress, 1
+            )
         options = pycolmap.IncrementalPipelineOptions()
         options.multiple_models = False
         # a sideways path of a few decimetres at metres' depth: small triangulation angles

@@ -25,11 +25,11 @@ from pydantic import Field
 #: The room: (origin p0, in-plane axes u and v, size along u and v in metres, depth at which one
 #: texture pixel covers one frame pixel). Listed far to near (painting order).
 ROOM_PLANES = (
-    ((-2.9, -1.6, 4.0), (1, 0, 0), (0, 1, 0), (5.8, 2.6), 4.0),      # back wall
-    ((-2.9, 0.8, 1.2), (1, 0, 0), (0, 0, 1), (5.8, 2.8), 3.0),       # floor
-    ((-1.6, -1.6, 1.2), (0, 0, 1), (0, 1, 0), (2.8, 2.4), 3.0),      # left wall
-    ((0.35, -0.55, 2.8), (1, 0, 0), (0, 1, 0), (1.1, 0.9), 2.8),     # panel, right
-    ((-1.05, -0.25, 2.0), (1, 0, 0), (0, 1, 0), (0.8, 0.65), 2.0),   # panel, left, nearest
+    ((-2.9, -1.6, 4.0), (1, 0, 0), (0, 1, 0), (5.8, 2.6), 4.0),  # back wall
+    ((-2.9, 0.8, 1.2), (1, 0, 0), (0, 0, 1), (5.8, 2.8), 3.0),  # floor
+    ((-1.6, -1.6, 1.2), (0, 0, 1), (0, 1, 0), (2.8, 2.4), 3.0),  # left wall
+    ((0.35, -0.55, 2.8), (1, 0, 0), (0, 1, 0), (1.1, 0.9), 2.8),  # panel, right
+    ((-1.05, -0.25, 2.0), (1, 0, 0), (0, 1, 0), (0.8, 0.65), 2.0),  # panel, left, nearest
 )
 
 
@@ -90,7 +90,9 @@ def camera_poses(config: Simulate3DConfig) -> NDArray[np.float64]:
     rng = np.random.default_rng(config.seed + 104729)
     phase = rng.uniform(0, 2 * np.pi, size=6)
     wave = np.sin(2 * np.pi * config.vibration_hz * seconds[:, None] + phase[None])
-    centre = np.stack([config.path_m * s, -0.08 * (1 - 4 * s ** 2) * config.path_m, 0.15 * config.path_m * s], 1)
+    centre = np.stack(
+        [config.path_m * s, -0.08 * (1 - 4 * s**2) * config.path_m, 0.15 * config.path_m * s], 1
+    )
     centre += 1e-3 * config.vibration_mm * wave[:, :3] * np.array([1.0, 1.0, 0.5])
     angles = np.deg2rad(config.vibration_deg) * wave[:, 3:]
     angles[:, 1] += np.deg2rad(config.pan_deg) * s  # yaw about y
@@ -127,8 +129,9 @@ class SimulatedRoom(PhotonSource):
         self.n_frames, self.height, self.width = config.frames, config.height, config.width
         self.frame_rate_hz = config.frame_rate_hz
         self.exposure_s = 1.0 / config.frame_rate_hz
-        self.intrinsics = Intrinsics(config.focal_px, config.focal_px, (config.width - 1) / 2,
-                                     (config.height - 1) / 2)
+        self.intrinsics = Intrinsics(
+            config.focal_px, config.focal_px, (config.width - 1) / 2, (config.height - 1) / 2
+        )
         self.ground_truth_poses = camera_poses(config)
         photos = list(config.photos) or [bundled_photo()]
         self.planes = self._textures(photos)
@@ -150,7 +153,7 @@ class SimulatedRoom(PhotonSource):
             list(pool.map(render, bounds[:-1], bounds[1:]))
 
     def _textures(self, photos: list[Path]) -> list[tuple[NDArray[np.float64], NDArray[np.float32]]]:
-        """Cut one texture per plane from the photos (seeded crops), sized to about one pixel per frame pixel."""
+        """Cut one texture per plane from the photos (seeded crops), about one texel per frame pixel."""
         import cv2
 
         rng = np.random.default_rng(self.config.seed + 15485863)
@@ -165,7 +168,9 @@ class SimulatedRoom(PhotonSource):
             crop_h = max(8, int(crop_w * h / w))
             x0 = int(rng.integers(0, ws - crop_w + 1))
             y0 = int(rng.integers(0, hs - crop_h + 1))
-            texture = cv2.resize(scene[y0:y0 + crop_h, x0:x0 + crop_w], (w, h), interpolation=cv2.INTER_AREA)
+            texture = cv2.resize(
+                scene[y0 : y0 + crop_h, x0 : x0 + crop_w], (w, h), interpolation=cv2.INTER_AREA
+            )
             texture = np.clip(0.05 + 0.95 * texture, 0, 1).astype(np.float32)  # no pitch-black walls
             to_world = np.zeros((4, 3))
             to_world[:3, 0] = np.asarray(u, float) * su / w

