@@ -103,6 +103,7 @@ def test_pose_command_refuses_bad_intrinsics_in_one_line(tmp_path, content):
 )
 def test_pose_command_refuses_short_or_dark_captures_in_one_line(tmp_path, overrides, cause):
     args = [
+        "-q",
         "pose",
         "simulate3d",
         "-o",
