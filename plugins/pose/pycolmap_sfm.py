@@ -90,6 +90,7 @@ class PycolmapSfM(PoseEstimator):
 
     def __init__(self, config: PycolmapSfMConfig) -> None:
         self.config = config
+        self._database: Path | None = None  # the COLMAP database of the kept level-1 model
 
     def estimate(self, source: PhotonSource, intrinsics: Any, work_dir: Path, progress: Any = None) -> Any:
         """Estimate poses level by level (see :meth:`PoseEstimator.estimate`).
@@ -165,7 +166,7 @@ class PycolmapSfM(PoseEstimator):
                         "level-1 virtual exposures registered (too dark, too little texture or "
                         "motion, or wrong intrinsics)",
                     )
-                landmarks = self._landmarks(rec, work_dir / "level_1" / "database.db")
+                landmarks = self._landmarks(rec, self._database)
             else:
                 found = inliers[np.isfinite(inliers)]
                 row.update(median_inliers=float(np.median(found)) if len(found) else 0.0)
@@ -310,7 +311,14 @@ class PycolmapSfM(PoseEstimator):
 
         camera = next(iter(rec.cameras.values()))
         database, image_dir = self._features(
-            images, references, folder, camera.model.name, [float(v) for v in camera.params], progress, level
+            images,
+            references,
+            folder,
+            camera.model.name,
+            [float(v) for v in camera.params],
+            progress,
+            level,
+            seed=self.config.seed,
         )
         model = pycolmap.Reconstruction()
         db = pycolmap.Database.open(str(database))
@@ -375,6 +383,7 @@ class PycolmapSfM(PoseEstimator):
         camera_params: list[float] | None,
         progress: Any,
         level: int,
+        seed: int = 0,
     ) -> tuple[Path, Path]:
         """Write the exposures as PNGs named by reference frame, extract SIFT and match (COLMAP database)."""
         import cv2
@@ -387,10 +396,12 @@ class PycolmapSfM(PoseEstimator):
         for image, ref in zip(images, references):
             names.append(f"{int(ref):08d}.png")
             cv2.imwrite(str(image_dir / names[-1]), image)
-        database = folder / "database.db"
+        database = folder / f"database_{seed}.db"
         database.unlink(missing_ok=True)
+        verification = pycolmap.TwoViewGeometryOptions()
+        verification.ransac.random_seed = seed
         pycolmap.logging.minloglevel = 2
-        pycolmap.set_random_seed(cfg.seed)
+        pycolmap.set_random_seed(seed)
         reader = pycolmap.ImageReaderOptions()
         reader.camera_model = camera_model
         if camera_params is not None:
@@ -409,11 +420,16 @@ class PycolmapSfM(PoseEstimator):
         )
         advance(1)
         if cfg.matching == "exhaustive" or (cfg.matching == "auto" and len(names) <= cfg.exhaustive_max):
-            pycolmap.match_exhaustive(database, device=pycolmap.Device.cpu)
+            pycolmap.match_exhaustive(database, verification_options=verification, device=pycolmap.Device.cpu)
         else:
             pairing = pycolmap.SequentialPairingOptions()
             pairing.overlap = cfg.overlap
-            pycolmap.match_sequential(database, pairing_options=pairing, device=pycolmap.Device.cpu)
+            pycolmap.match_sequential(
+                database,
+                pairing_options=pairing,
+                verification_options=verification,
+                device=pycolmap.Device.cpu,
+            )
         advance(1)
         return database, image_dir
 
@@ -442,16 +458,10 @@ class PycolmapSfM(PoseEstimator):
         from photonpano.pose import Intrinsics
 
         cfg = self.config
-        if intrinsics is not None:
-            database, image_dir = self._features(
-                images, references, folder, "PINHOLE", intrinsics.colmap_params(), progress, 1
-            )
-        else:
-            database, image_dir = self._features(
-                images, references, folder, "SIMPLE_RADIAL", None, progress, 1
-            )
+        model, params = (
+            ("PINHOLE", intrinsics.colmap_params()) if intrinsics is not None else ("SIMPLE_RADIAL", None)
+        )
         options = pycolmap.IncrementalPipelineOptions()
-        options.multiple_models = False
         # a sideways path of a few decimetres at metres' depth: small triangulation angles
         options.mapper.init_min_tri_angle = cfg.min_angle_deg
         if intrinsics is not None:
@@ -459,12 +469,16 @@ class PycolmapSfM(PoseEstimator):
             options.ba_refine_principal_point = False
             options.ba_refine_extra_params = False
         rec = None
-        for attempt in range(cfg.attempts):  # COLMAP's multi-threaded mapper can pick a poor initial pair
+        for attempt in range(cfg.attempts):
+            # COLMAP's verification and mapper can settle on a poor initial pair: other seeds
+            database, image_dir = self._features(
+                images, references, folder, model, params, progress, 1, seed=cfg.seed + attempt
+            )
             options.random_seed = cfg.seed + attempt
-            models = pycolmap.incremental_mapping(database, image_dir, folder / "sparse", options)
+            models = pycolmap.incremental_mapping(database, image_dir, folder / f"sparse_{attempt}", options)
             best = max(models.values(), key=lambda r: r.num_reg_images()) if models else None
             if best is not None and (rec is None or best.num_reg_images() > rec.num_reg_images()):
-                rec = best
+                rec, self._database = best, database
             if rec is not None and rec.num_reg_images() >= cfg.min_registered * len(images):
                 break
         if rec is None:
