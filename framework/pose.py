@@ -543,7 +543,6 @@ def run_pose(
             (out_dir / "intrinsics.json").write_text(json.dumps(result.intrinsics.as_dict(), indent=2))
             _plot(out_dir / "trajectory.png", result, truth)
             (out_dir / "run.json").write_text(json.dumps(summary, indent=2))
-        host.hook.photonpano_run_finished(spec=spec, summary=summary, out_dir=out_dir)
         return summary, result
     finally:
         if out_dir is None:
