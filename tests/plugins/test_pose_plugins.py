@@ -164,3 +164,15 @@ def test_pose_command_writes_every_output_and_scores_against_ground_truth(tmp_pa
     assert all(row["registered"] == row["exposures"] for row in summary["levels"])
     assert summary["ground_truth"]["ate_m"] < 0.01
     assert summary["intrinsics"]["used"] == {"fx": 210.0, "fy": 210.0, "cx": 123.5, "cy": 63.5}
+
+
+def test_run_with_a_pose_estimator_spec_goes_to_the_pose_command(tmp_path):
+    # `photonpano run` takes a spec with a pose_estimator section through the pose run:
+    # its intrinsics file (relative to the spec) is read before any frame is simulated
+    spec = tmp_path / "spec.yaml"
+    spec.write_text("source: {plugin: simulate3d, frames: 3000}\n"
+                    "pose_estimator: {plugin: pycolmap-sfm, intrinsics: missing.json}\n")
+    result = CliRunner().invoke(app, ["-q", "run", str(spec), "-o", str(tmp_path / "out")])
+    assert result.exit_code == 1
+    lines = result.output.strip().splitlines()
+    assert len(lines) == 1 and str(tmp_path / "missing.json") in lines[0] and "cannot read" in lines[0], result.output
