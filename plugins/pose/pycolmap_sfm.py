@@ -118,6 +118,7 @@ class PycolmapSfM(PoseEstimator):
         levels: list[dict[str, Any]] = []
         exposures: list[tuple[NDArray[np.int64], NDArray[np.float64]]] = []
         rec = landmarks = None
+        final = None  # the model whose points are written: level 1's or the last bundle adjustment's
         for level in range(1, cfg.levels + 1):
             t0 = time.perf_counter()
             groups = resampler.groups(n, cfg.group_size, level)
@@ -131,7 +132,7 @@ class PycolmapSfM(PoseEstimator):
                 rec, used = self._map(
                     merged.images, groups.reference, work_dir / "level_1", intrinsics, progress
                 )
-                poses, inliers = self._model_poses(rec, groups.reference), None
+                poses, inliers, final = self._model_poses(rec, groups.reference), None, rec
             else:
                 poses, inliers = self._localise(
                     merged.images, groups.reference, rec, landmarks, progress, level
@@ -170,7 +171,12 @@ class PycolmapSfM(PoseEstimator):
             else:
                 found = inliers[np.isfinite(inliers)]
                 row.update(median_inliers=float(np.median(found)) if len(found) else 0.0)
+                if registered < 3:  # keep the previous level's poses
+                    row["note"] = "too few exposures registered; the previous level's poses are kept"
+                    levels.append(row)
+                    break
                 if cfg.bundle_adjust:
+                    final = refined
                     row.update(
                         points=int(refined.num_points3D()),
                         reprojection_error_px=float(refined.compute_mean_reprojection_error()),
@@ -184,9 +190,9 @@ class PycolmapSfM(PoseEstimator):
         frames, poses = exposures[-1]
         model_dir = work_dir / "model"
         model_dir.mkdir(exist_ok=True)
-        rec.write(str(model_dir))
-        xyz = np.array([p.xyz for p in rec.points3D.values()], np.float64).reshape(-1, 3)
-        rgb = np.array([p.color for p in rec.points3D.values()], np.uint8).reshape(-1, 3)
+        final.write(str(model_dir))
+        xyz = np.array([p.xyz for p in final.points3D.values()], np.float64).reshape(-1, 3)
+        rgb = np.array([p.color for p in final.points3D.values()], np.uint8).reshape(-1, 3)
         return PoseResult(
             poses=interpolate_poses(frames, poses, n),
             exposure_frames=frames,
@@ -372,6 +378,7 @@ class PycolmapSfM(PoseEstimator):
         adjust.print_summary = False
         adjust.ceres.loss_function_type = pycolmap.LossFunctionType.CAUCHY
         pycolmap.bundle_adjustment(model, adjust)
+        model.extract_colors_for_all_images(str(image_dir))
         return self._model_poses(model, references), model
 
     def _features(
