@@ -410,7 +410,7 @@ def write_ply(path: Path, points: NDArray[np.float64], colors: NDArray[np.uint8]
 
 
 def _plot(path: Path, result: PoseResult, truth: NDArray[np.float64] | None) -> None:
-    """Top view (x, z) and x, y, z over time of the estimated (aligned, if truth is known) trajectory."""
+    """Top view (x, z), x/y/z over time and, with ground truth, the error over time of the trajectory."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -419,7 +419,8 @@ def _plot(path: Path, result: PoseResult, truth: NDArray[np.float64] | None) -> 
     poses = result.poses
     if truth is not None:
         poses = align_to(poses, truth)
-    fig, (top, time_ax) = plt.subplots(1, 2, figsize=(11, 4.5))
+    fig, axes = plt.subplots(1, 3 if truth is not None else 2, figsize=(16 if truth is not None else 11, 4.5))
+    top, time_ax = axes[:2]
     if truth is not None:
         top.plot(truth[:, 0, 3], truth[:, 2, 3], "k-", lw=1, label="true")
     top.plot(
@@ -438,6 +439,12 @@ def _plot(path: Path, result: PoseResult, truth: NDArray[np.float64] | None) -> 
             time_ax.plot(t, truth[:, axis, 3], "k:", lw=0.8)
     time_ax.set(xlabel="binary frame", ylabel="camera centre (world)", title="camera centre over time")
     time_ax.legend(fontsize=8)
+    if truth is not None:
+        error = 1e3 * (poses[:, :3, 3] - truth[:, :3, 3])
+        for axis, name in enumerate("xyz"):
+            axes[2].plot(t, error[:, axis], lw=0.8, label=name)
+        axes[2].set(xlabel="binary frame", ylabel="error (truth units / 1000)", title="centre error, aligned")
+        axes[2].legend(fontsize=8)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
