@@ -159,6 +159,9 @@ def run(spec: Annotated[Path, typer.Argument(help="Pipeline spec (YAML).")], out
     try:
         host = _host()
         parsed = load_spec(spec, host, set_ or [])
+        if getattr(parsed, "pose_estimator", None) is not None:  # experimental: camera poses
+            _report_pose(_execute_pose(parsed, output, force, host), output)
+            return
         _report(_execute(parsed, output, force, host, resume), output)
     except PhotonpanoError as exc:
         _fail(str(exc))
@@ -203,6 +206,55 @@ def _capture_spec(path: Path, host) -> dict[str, Any]:
         if _state["debug"]:
             raise
         raise _plugin_failure(exc, host) from exc
+
+
+def _execute_pose(spec, out: Path, force: bool, host) -> dict[str, Any]:
+    from .pose import run_pose
+
+    with _observed(host):
+        return run_pose(spec, out, host, force=force)[0]
+
+
+def _report_pose(summary: dict[str, Any], out: Path) -> None:
+    last = summary["levels"][-1]
+    typer.echo(f"poses for {summary['frames_with_pose']} of {summary['source']['frames']} binary frames "
+               f"written to {out} (level {last['level']}: {last['registered']}/{last['exposures']} virtual exposures "
+               f"registered, {summary['timings_s']['estimate']:.1f} s)")
+    gt = summary.get("ground_truth")
+    if gt and "rpe" in gt:
+        typer.echo(f"vs ground truth: ATE {1e3 * gt['ate_m']:.2f} mm, RPE over {gt['rpe_gap_frames']} frames "
+                   f"{1e3 * gt['rpe']['translation_m']:.2f} mm ({gt['rpe']['percent']:.1f} % of the true "
+                   "motion)")
+
+
+@app.command()
+def pose(input: Annotated[str, typer.Argument(
+             help="A capture (.npy photon cube, SwissSPAD folder, ...) or 'simulate3d' (a simulated room "
+                  "with ground-truth poses).")],
+         output: OutOption,
+         intrinsics: Annotated[Optional[Path], typer.Option(
+             help="JSON file with fx, fy, cx, cy in pixels (OpenCV convention); omitted: "
+                  "self-calibration.")] = None,
+         set_: SetOption = None, force: ForceOption = False) -> None:
+    """Experimental: estimate a 6-DoF camera pose for every binary frame (pycolmap-sfm)."""
+    from .pose import Intrinsics
+    from .spec import apply_overrides, validate_spec
+
+    try:
+        host = _host()
+        if intrinsics is not None:
+            Intrinsics.load(intrinsics)  # a bad file fails before any work
+        if input == "simulate3d":
+            source = {"plugin": "simulate3d"}
+        else:
+            source = _capture_spec(Path(input), host)["source"]
+        data = {"source": source, "pose_estimator": {"plugin": "pycolmap-sfm"}}
+        if intrinsics is not None:
+            data["pose_estimator"]["intrinsics"] = str(intrinsics)
+        parsed = validate_spec(apply_overrides(data, set_ or []), host, origin="pose")
+        _report_pose(_execute_pose(parsed, output, force, host), output)
+    except PhotonpanoError as exc:
+        _fail(str(exc))
 
 
 @app.command()

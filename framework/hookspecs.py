@@ -26,6 +26,7 @@ if TYPE_CHECKING:
         LocatorConfig,
         MergerConfig,
         PhotonSource,
+        PoseEstimatorConfig,
         ResamplerConfig,
         SourceConfig,
     )
@@ -98,6 +99,17 @@ def photonpano_register_compositors() -> list[type[CompositorConfig]]:
         :class:`~photonpano.stages.CompositorConfig` subclasses with unique keys.
 
     .. versionadded:: 0.2
+    """
+
+
+@hookspec
+def photonpano_register_pose_estimators() -> list[type[PoseEstimatorConfig]]:
+    """Offer pose estimator plugins (experimental: 6-DoF camera poses, ``photonpano pose``).
+
+    Returns:
+        :class:`~photonpano.stages.PoseEstimatorConfig` subclasses with unique keys.
+
+    .. versionadded:: 0.1
     """
 
 

@@ -37,6 +37,7 @@ _REGISTER_HOOKS = {
     "locator": "photonpano_register_locators",
     "interpolator": "photonpano_register_interpolators",
     "compositor": "photonpano_register_compositors",
+    "pose_estimator": "photonpano_register_pose_estimators",
 }
 
 

@@ -49,6 +49,7 @@ DEFAULT_PLUGINS: dict[str, str] = {
     "locator": "opencv-sift",
     "interpolator": "cubic-lk",
     "compositor": "drizzle",
+    "pose_estimator": "pycolmap-sfm",
 }
 """The paper's choice for each stage, used when a spec omits the stage."""
 
@@ -126,6 +127,10 @@ def spec_model(host: PluginHost) -> type[BaseModel]:
     slots: dict[str, Any] = {}
     for stage in STAGES:
         classes = list(host.registry(stage).values())
+        if stage == "pose_estimator":  # optional: a spec with it runs `photonpano pose`
+            slots[stage] = (Annotated[Union[_tagged(classes) if classes else None, None], Field(  # noqa: UP007
+                description="Experimental: estimate 6-DoF camera poses instead of a panorama.")], None)
+            continue
         if not classes:
             raise PluginError(f"no {stage} plugins are installed (is photonpano installed?)")
         if stage == "source":

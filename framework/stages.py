@@ -5,7 +5,8 @@ dependencies). The pipeline validates a spec into those configs and calls ``buil
 each to get the working stage object. Stages exchange the frozen records defined here.
 
 Stage kinds, in pipeline order: source, resampler, merger, locator, interpolator,
-compositor.
+compositor; and the experimental pose_estimator (6-DoF camera poses instead of
+homographies, see :mod:`photonpano.pose`).
 """
 
 from __future__ import annotations
@@ -43,6 +44,8 @@ __all__ = [
     "Interpolator",
     "CompositorConfig",
     "Compositor",
+    "PoseEstimatorConfig",
+    "PoseEstimator",
     "STAGES",
 ]
 
@@ -450,6 +453,40 @@ class Compositor(abc.ABC):
         """
 
 
+# --- pose estimator (experimental): 6-DoF camera poses ------------------------------
+
+
+class PoseEstimatorConfig(StageConfig):
+    """Config base of pose estimators; ``build()`` returns a :class:`PoseEstimator`."""
+
+    stage: ClassVar[str] = "pose_estimator"
+    intrinsics: Path | None = None
+    """JSON file with the camera's ``fx``, ``fy``, ``cx``, ``cy`` in pixels (OpenCV convention:
+    pixel centres at integers; other keys ignored); none: self-calibration."""
+
+
+class PoseEstimator(abc.ABC):
+    """Estimates a camera-to-world pose for binary frames of a capture (experimental)."""
+
+    @abc.abstractmethod
+    def estimate(self, source: PhotonSource, intrinsics: Any, work_dir: Path, progress: Any = None) -> Any:
+        """Estimate poses of the capture.
+
+        Args:
+            source: the capture.
+            intrinsics: a :class:`photonpano.pose.Intrinsics` (pixels, OpenCV convention),
+                or None to self-calibrate.
+            work_dir: an existing folder for intermediate files (images, databases, models).
+            progress: optional ``start_task``-like callable (see :mod:`photonpano.progress`).
+
+        Returns:
+            A :class:`photonpano.pose.PoseResult`.
+
+        Raises:
+            StageError: if the capture is too short or too dark to register.
+        """
+
+
 STAGES: dict[str, type[StageConfig]] = {
     "source": SourceConfig,
     "resampler": ResamplerConfig,
@@ -457,5 +494,6 @@ STAGES: dict[str, type[StageConfig]] = {
     "locator": LocatorConfig,
     "interpolator": InterpolatorConfig,
     "compositor": CompositorConfig,
+    "pose_estimator": PoseEstimatorConfig,
 }
 """Stage kind -> config base class, in pipeline order."""

@@ -1,0 +1,1 @@
+"""Pose estimator plugins (experimental): 6-DoF camera poses from virtual exposures."""

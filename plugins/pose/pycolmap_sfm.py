@@ -1,0 +1,503 @@
+"""Pose estimator ``pycolmap-sfm`` (experimental): stratified structure from motion on virtual exposures.
+
+Level 1 is the plain baseline: the capture is cut into groups of m binary frames, each
+merged without motion compensation into a flux image (``flux-mle``), tone-mapped to
+8 bits and given to COLMAP (SIFT, sequential or exhaustive matching, incremental
+mapping with the known intrinsics, or self-calibration without them). Each later level
+re-samples with ``midpoint`` (groups between the previous ones, so twice as many
+exposures) and re-merges every group with the plane-induced homographies of the
+current pose estimate (a fronto-parallel plane at the median depth of the sparse
+points), so the new virtual exposures are sharp at their centre frame; they are mapped
+again and the poses interpolated to every binary frame (SE(3): slerp + cubic).
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+from typing import Annotated, Any, Literal, NamedTuple
+
+import numpy as np
+from numpy.typing import NDArray
+from photonpano import hookimpl
+from photonpano.errors import StageError
+from photonpano.stages import PhotonSource, PoseEstimator, PoseEstimatorConfig
+from pydantic import Field
+
+
+class _Landmarks(NamedTuple):
+    """Level-1 model observations: (K,) int64 frames, (K, 128) float32 unit descriptors, (K, 3) points."""
+
+    frames: NDArray[np.int64]
+    descriptors: NDArray[np.float32]
+    xyz: NDArray[np.float64]
+
+
+class PycolmapSfMConfig(PoseEstimatorConfig):
+    """Camera poses by COLMAP structure from motion on stratified, motion-compensated virtual exposures."""
+
+    plugin: Literal["pycolmap-sfm"] = "pycolmap-sfm"
+    requires = ("pycolmap",)
+    install_hint = "pip install 'photonpano[colmap]'"
+    group_size: Annotated[int, Field(ge=2)] = 1000
+    """Binary frames per virtual exposure m."""
+    levels: Annotated[int, Field(ge=1, le=6)] = 3
+    """Number of levels; level 1 is naive averaging, each later level doubles the exposures
+    and merges them with the previous level's poses."""
+    growth: Annotated[float, Field(ge=0.25, le=1)] = 0.5
+    """Group length at level k is m * growth**(k-1) frames: motion compensation is exact
+    only on the dominant plane, so shorter groups smear nearer and farther surfaces less."""
+    matching: Literal["auto", "sequential", "exhaustive"] = "auto"
+    """COLMAP matching: each exposure with its ``overlap`` neighbours in time (and 2^k
+    further ones), every pair, or ``auto``: every pair up to ``exhaustive_max`` exposures."""
+    exhaustive_max: Annotated[int, Field(ge=2)] = 100
+    """auto matching: the most exposures matched exhaustively."""
+    overlap: Annotated[int, Field(ge=1)] = 12
+    """sequential matching: neighbours matched on each side (and 2^k further ones)."""
+    max_features: Annotated[int, Field(ge=100)] = 4096
+    """SIFT features per exposure."""
+    min_photons: Annotated[float, Field(gt=0)] = 2.0
+    """Refuse captures whose level-1 exposures collect fewer photons per pixel on average
+    (too dark to register)."""
+    min_registered: Annotated[float, Field(gt=0, le=1)] = 0.5
+    """Fail when less than this fraction of the level-1 exposures registers."""
+    max_error_px: Annotated[float, Field(gt=0)] = 2.0
+    """Levels >= 2: RANSAC threshold of the absolute pose (reprojection error, pixels)."""
+    localise_neighbours: Annotated[int, Field(ge=1)] = 3
+    """Levels >= 2: an exposure is matched against the model images of this many level-1
+    exposures nearest in time."""
+    min_inliers: Annotated[int, Field(ge=6)] = 30
+    """Levels >= 2: fewest 2D-3D inliers that register an exposure."""
+    min_angle_deg: Annotated[float, Field(gt=0)] = 2.0
+    """Smallest triangulation angle of COLMAP's initial image pair in degrees (COLMAP's
+    default 16 suits orbits, not a camera travelling a fraction of the scene depth)."""
+    attempts: Annotated[int, Field(ge=1)] = 3
+    """Level 1: mapping attempts (other seeds) while fewer than ``min_registered`` exposures register."""
+    bundle_adjust: bool = True
+    """Levels >= 2: triangulate the registered exposures' matches and bundle-adjust their poses
+    and points together (else keep the poses of the single-image registration)."""
+    seed: Annotated[int, Field(ge=0)] = 0
+    """Random seed of COLMAP's RANSAC and mapper."""
+
+    def build(self) -> PycolmapSfM:
+        """Return the estimator."""
+        self.check_available()
+        return PycolmapSfM(self)
+
+
+class PycolmapSfM(PoseEstimator):
+    """Stratified structure from motion with pycolmap (see the module doc)."""
+
+    def __init__(self, config: PycolmapSfMConfig) -> None:
+        self.config = config
+        self._database: Path | None = None  # the COLMAP database of the kept level-1 model
+
+    def estimate(self, source: PhotonSource, intrinsics: Any, work_dir: Path, progress: Any = None) -> Any:
+        """Estimate poses level by level (see :meth:`PoseEstimator.estimate`).
+
+        Raises:
+            StageError: capture too short (fewer than 3 m frames) or too dark, or too few
+                exposures registered at level 1.
+        """
+        from photonpano.executor import make_executor
+        from photonpano.plugins.mergers.flux_mle import FluxMLEConfig
+        from photonpano.plugins.resamplers.midpoint import MidpointConfig
+        from photonpano.pose import PoseResult, dominant_plane, interpolate_poses, plane_homographies
+
+        cfg, n = self.config, source.n_frames
+        if n < 3 * cfg.group_size:
+            raise StageError(
+                "pose_estimator",
+                "pycolmap-sfm",
+                f"the capture has {n} binary frames; at least "
+                f"3 x group_size = {3 * cfg.group_size} are needed (lower group_size)",
+            )
+        resampler, merger = MidpointConfig(growth=cfg.growth).build(), FluxMLEConfig().build()
+        executor = make_executor("threads")
+        homographies = np.repeat(np.eye(3)[None], n, axis=0)
+        levels: list[dict[str, Any]] = []
+        exposures: list[tuple[NDArray[np.int64], NDArray[np.float64]]] = []
+        rec = landmarks = None
+        final = None  # the model whose points are written: level 1's or the last bundle adjustment's
+        for level in range(1, cfg.levels + 1):
+            t0 = time.perf_counter()
+            groups = resampler.groups(n, cfg.group_size, level)
+            advance = progress(f"level {level}: merge", len(groups)) if progress else None
+            merged = merger.merge(source, homographies, groups, progress=advance, executor=executor)
+            if level == 1:
+                self._check_light(source, merged)
+            t_merge = time.perf_counter() - t0
+            t0 = time.perf_counter()
+            if level == 1:
+                rec, used = self._map(
+                    merged.images, groups.reference, work_dir / "level_1", intrinsics, progress
+                )
+                poses, inliers, final = self._model_poses(rec, groups.reference), None, rec
+            else:
+                poses, inliers = self._localise(
+                    merged.images, groups.reference, rec, landmarks, progress, level
+                )
+                if cfg.bundle_adjust:
+                    poses, refined = self._refine(
+                        merged.images,
+                        groups.reference,
+                        poses,
+                        rec,
+                        work_dir / f"level_{level}",
+                        progress,
+                        level,
+                    )
+            registered = int(np.isfinite(poses[:, 0, 0]).sum())
+            row = {
+                "level": level,
+                "exposures": len(groups),
+                "registered": registered,
+                "timings_s": {"merge": t_merge, "register": time.perf_counter() - t0},
+            }
+            if level == 1:
+                row.update(
+                    points=int(rec.num_points3D()) if rec is not None else 0,
+                    reprojection_error_px=float(rec.compute_mean_reprojection_error()) if rec else None,
+                )
+                if registered < max(3, cfg.min_registered * len(groups)):
+                    raise StageError(
+                        "pose_estimator",
+                        "pycolmap-sfm",
+                        f"only {registered} of {len(groups)} "
+                        "level-1 virtual exposures registered (too dark, too little texture or "
+                        "motion, or wrong intrinsics)",
+                    )
+                landmarks = self._landmarks(rec, self._database)
+            else:
+                found = inliers[np.isfinite(inliers)]
+                row.update(median_inliers=float(np.median(found)) if len(found) else 0.0)
+                if registered < 3:  # keep the previous level's poses
+                    row["note"] = "too few exposures registered; the previous level's poses are kept"
+                    levels.append(row)
+                    break
+                if cfg.bundle_adjust:
+                    final = refined
+                    row.update(
+                        points=int(refined.num_points3D()),
+                        reprojection_error_px=float(refined.compute_mean_reprojection_error()),
+                    )
+            levels.append(row)
+            exposures.append((groups.reference.copy(), poses))
+            every = interpolate_poses(groups.reference, poses, n)
+            reference = poses[np.flatnonzero(np.isfinite(poses[:, 0, 0]))[registered // 2]]
+            normal, distance = dominant_plane(landmarks.xyz, reference)
+            homographies = plane_homographies(every, used.matrix(), reference, normal, distance)
+        frames, poses = exposures[-1]
+        model_dir = work_dir / "model"
+        model_dir.mkdir(exist_ok=True)
+        final.write(str(model_dir))
+        xyz = np.array([p.xyz for p in final.points3D.values()], np.float64).reshape(-1, 3)
+        rgb = np.array([p.color for p in final.points3D.values()], np.uint8).reshape(-1, 3)
+        return PoseResult(
+            poses=interpolate_poses(frames, poses, n),
+            exposure_frames=frames,
+            exposure_poses=poses,
+            points=xyz,
+            colors=rgb,
+            intrinsics=used,
+            levels=levels,
+            level_exposures=exposures,
+            model_dir=model_dir,
+        )
+
+    @staticmethod
+    def _model_poses(rec: Any, references: NDArray[np.int64]) -> NDArray[np.float64]:
+        """(G, 4, 4) camera-to-world poses of ``rec``'s images, named by reference frame (NaN if absent)."""
+        poses = np.full((len(references), 4, 4), np.nan)
+        for image in rec.images.values() if rec is not None else ():
+            if image.has_pose:
+                index = np.searchsorted(references, int(Path(image.name).stem))
+                poses[index] = np.vstack([image.cam_from_world().inverse().matrix(), [0, 0, 0, 1]])
+        return poses
+
+    @staticmethod
+    def _landmarks(rec: Any, database: Path) -> _Landmarks:
+        """The level-1 model's 2D-3D observations: per registered image, descriptors and 3D points."""
+        import pycolmap
+
+        frames, descriptors, xyz = [], [], []
+        db = pycolmap.Database.open(str(database))
+        try:
+            for image_id, image in rec.images.items():
+                if not image.has_pose:
+                    continue
+                data = db.read_descriptors(image_id).data
+                for idx, point in enumerate(image.points2D):
+                    if point.has_point3D():
+                        frames.append(int(Path(image.name).stem))
+                        descriptors.append(data[idx])
+                        xyz.append(rec.points3D[point.point3D_id].xyz)
+        finally:
+            db.close()
+        desc = np.asarray(descriptors, np.float32)
+        desc /= np.maximum(np.linalg.norm(desc, axis=1, keepdims=True), 1e-12)
+        return _Landmarks(np.asarray(frames, np.int64), desc, np.asarray(xyz, np.float64))
+
+    def _localise(
+        self,
+        images: NDArray[np.uint8],
+        references: NDArray[np.int64],
+        rec: Any,
+        landmarks: Any,
+        progress: Any,
+        level: int,
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """Register each exposure against the level-1 model (SIFT, ratio test, LO-RANSAC P3P + refinement).
+
+        Returns:
+            ``(poses, inliers)``: (G, 4, 4) camera-to-world poses (NaN where it failed) and
+            (G,) float inlier counts (NaN where it failed).
+        """
+        import cv2
+        import pycolmap
+
+        cfg = self.config
+        camera = next(iter(rec.cameras.values()))
+        extraction = pycolmap.FeatureExtractionOptions()
+        extraction.sift.max_num_features = cfg.max_features
+        sift = pycolmap.FeatureExtractor.create(extraction, device=pycolmap.Device.cpu)
+        matcher = cv2.BFMatcher(cv2.NORM_L2)
+        model_frames = np.unique(landmarks.frames)
+        estimation = pycolmap.AbsolutePoseEstimationOptions()
+        estimation.ransac.max_error = cfg.max_error_px
+        refinement = pycolmap.AbsolutePoseRefinementOptions()
+        refinement.refine_focal_length = False
+        refinement.refine_extra_params = False
+        poses = np.full((len(images), 4, 4), np.nan)
+        inliers = np.full(len(images), np.nan)
+        advance = progress(f"level {level}: register", len(images)) if progress else (lambda k: None)
+        for g, (image, ref) in enumerate(zip(images, references)):
+            features, described = sift.extract_from_uint8_array(np.ascontiguousarray(image))
+            keypoints = np.asarray(pycolmap.keypoints_to_matrix(features), np.float64)
+            desc = described.data.astype(np.float32)
+            desc /= np.maximum(np.linalg.norm(desc, axis=1, keepdims=True), 1e-12)
+            near = model_frames[np.argsort(np.abs(model_frames - ref))[: cfg.localise_neighbours]]
+            pick = np.flatnonzero(np.isin(landmarks.frames, near))
+            pairs = matcher.knnMatch(desc, landmarks.descriptors[pick], k=2)
+            good = [
+                (m.queryIdx, pick[m.trainIdx])
+                for m, *rest in pairs
+                if rest and m.distance < 0.8 * rest[0].distance
+            ]
+            if len(good) >= 12:
+                q, t = np.array(good).T
+                found = pycolmap.estimate_and_refine_absolute_pose(
+                    keypoints[q, :2], landmarks.xyz[t], camera, estimation, refinement
+                )
+                if found is not None and found["num_inliers"] >= cfg.min_inliers:
+                    poses[g] = np.vstack([found["cam_from_world"].inverse().matrix(), [0, 0, 0, 1]])
+                    inliers[g] = found["num_inliers"]
+            advance(1)
+        return poses, inliers
+
+    def _refine(
+        self,
+        images: NDArray[np.uint8],
+        references: NDArray[np.int64],
+        poses: NDArray[np.float64],
+        rec: Any,
+        folder: Path,
+        progress: Any,
+        level: int,
+    ) -> tuple[NDArray[np.float64], Any]:
+        """Triangulate the level's exposures from their registered poses, then bundle-adjust poses and points.
+
+        The camera stays that of the level-1 model (fixed). Exposures that failed to register
+        keep NaN poses.
+
+        Returns:
+            ``(poses, reconstruction)``: refined (G, 4, 4) camera-to-world poses and the model.
+        """
+        import pycolmap
+
+        camera = next(iter(rec.cameras.values()))
+        database, image_dir = self._features(
+            images,
+            references,
+            folder,
+            camera.model.name,
+            [float(v) for v in camera.params],
+            progress,
+            level,
+            seed=self.config.seed,
+        )
+        model = pycolmap.Reconstruction()
+        db = pycolmap.Database.open(str(database))
+        try:
+            db_camera = db.read_all_cameras()[0]
+            fixed = pycolmap.Camera(
+                model=camera.model.name,
+                width=camera.width,
+                height=camera.height,
+                params=camera.params,
+                camera_id=db_camera.camera_id,
+            )
+            model.add_camera_with_trivial_rig(fixed)
+            for image in db.read_all_images():
+                index = int(np.searchsorted(references, int(Path(image.name).stem)))
+                if not np.isfinite(poses[index, 0, 0]):
+                    continue
+                keypoints = np.asarray(db.read_keypoints(image.image_id))[:, :2]
+                entry = pycolmap.Image(
+                    name=image.name,
+                    keypoints=keypoints.astype(np.float64),
+                    camera_id=db_camera.camera_id,
+                    image_id=image.image_id,
+                )
+                world_from_cam = poses[index]
+                cam_from_world = pycolmap.Rigid3d(
+                    pycolmap.Rotation3d(world_from_cam[:3, :3].T),
+                    -world_from_cam[:3, :3].T @ world_from_cam[:3, 3],
+                )
+                model.add_image_with_trivial_frame(entry, cam_from_world)
+        finally:
+            db.close()
+        options = pycolmap.IncrementalPipelineOptions()
+        options.ba_refine_focal_length = False
+        options.ba_refine_principal_point = False
+        options.ba_refine_extra_params = False
+        (folder / "sparse").mkdir(exist_ok=True)
+        model = pycolmap.triangulate_points(
+            model,
+            database,
+            image_dir,
+            folder / "sparse",
+            clear_points=True,
+            options=options,
+            refine_intrinsics=False,
+        )
+        adjust = pycolmap.BundleAdjustmentOptions()
+        adjust.refine_focal_length = False
+        adjust.refine_principal_point = False
+        adjust.refine_extra_params = False
+        adjust.print_summary = False
+        adjust.ceres.loss_function_type = pycolmap.LossFunctionType.CAUCHY
+        pycolmap.bundle_adjustment(model, adjust)
+        model.extract_colors_for_all_images(str(image_dir))
+        return self._model_poses(model, references), model
+
+    def _features(
+        self,
+        images: NDArray[np.uint8],
+        references: NDArray[np.int64],
+        folder: Path,
+        camera_model: str,
+        camera_params: list[float] | None,
+        progress: Any,
+        level: int,
+        seed: int = 0,
+    ) -> tuple[Path, Path]:
+        """Write the exposures as PNGs named by reference frame, extract SIFT and match (COLMAP database)."""
+        import cv2
+        import pycolmap
+
+        cfg = self.config
+        image_dir = folder / "images"
+        image_dir.mkdir(parents=True, exist_ok=True)
+        names = []
+        for image, ref in zip(images, references):
+            names.append(f"{int(ref):08d}.png")
+            cv2.imwrite(str(image_dir / names[-1]), image)
+        database = folder / f"database_{seed}.db"
+        database.unlink(missing_ok=True)
+        verification = pycolmap.TwoViewGeometryOptions()
+        verification.ransac.random_seed = seed
+        pycolmap.logging.minloglevel = 2
+        pycolmap.set_random_seed(seed)
+        reader = pycolmap.ImageReaderOptions()
+        reader.camera_model = camera_model
+        if camera_params is not None:
+            reader.camera_params = ",".join(f"{v:.12g}" for v in camera_params)
+        extraction = pycolmap.FeatureExtractionOptions()
+        extraction.sift.max_num_features = cfg.max_features
+        advance = progress(f"level {level}: features and matches", 2) if progress else (lambda k: None)
+        pycolmap.extract_features(
+            database,
+            image_dir,
+            image_names=names,
+            camera_mode=pycolmap.CameraMode.SINGLE,
+            reader_options=reader,
+            extraction_options=extraction,
+            device=pycolmap.Device.cpu,
+        )
+        advance(1)
+        if cfg.matching == "exhaustive" or (cfg.matching == "auto" and len(names) <= cfg.exhaustive_max):
+            pycolmap.match_exhaustive(database, verification_options=verification, device=pycolmap.Device.cpu)
+        else:
+            pairing = pycolmap.SequentialPairingOptions()
+            pairing.overlap = cfg.overlap
+            pycolmap.match_sequential(
+                database,
+                pairing_options=pairing,
+                verification_options=verification,
+                device=pycolmap.Device.cpu,
+            )
+        advance(1)
+        return database, image_dir
+
+    def _check_light(self, source: PhotonSource, merged: Any) -> None:
+        """Raise StageError if the level-1 exposures hold too few photons to register."""
+        photons = float(np.nanmean(merged.flux)) * source.exposure_s * self.config.group_size
+        if not np.isfinite(photons) or photons < self.config.min_photons:
+            raise StageError(
+                "pose_estimator",
+                "pycolmap-sfm",
+                f"the capture is too dark: {photons:.2f} photons per "
+                f"pixel per virtual exposure of {self.config.group_size} frames (at least "
+                f"{self.config.min_photons} needed; raise group_size)",
+            )
+
+    def _map(
+        self,
+        images: NDArray[np.uint8],
+        references: NDArray[np.int64],
+        folder: Path,
+        intrinsics: Any,
+        progress: Any,
+    ) -> tuple[Any, Any]:
+        """Run COLMAP on the level-1 exposures; return (largest reconstruction or None, intrinsics)."""
+        import pycolmap
+        from photonpano.pose import Intrinsics
+
+        cfg = self.config
+        model, params = (
+            ("PINHOLE", intrinsics.colmap_params()) if intrinsics is not None else ("SIMPLE_RADIAL", None)
+        )
+        options = pycolmap.IncrementalPipelineOptions()
+        # a sideways path of a few decimetres at metres' depth: small triangulation angles
+        options.mapper.init_min_tri_angle = cfg.min_angle_deg
+        if intrinsics is not None:
+            options.ba_refine_focal_length = False
+            options.ba_refine_principal_point = False
+            options.ba_refine_extra_params = False
+        rec = None
+        for attempt in range(cfg.attempts):
+            # COLMAP's verification and mapper can settle on a poor initial pair: other seeds
+            database, image_dir = self._features(
+                images, references, folder, model, params, progress, 1, seed=cfg.seed + attempt
+            )
+            options.random_seed = cfg.seed + attempt
+            models = pycolmap.incremental_mapping(database, image_dir, folder / f"sparse_{attempt}", options)
+            best = max(models.values(), key=lambda r: r.num_reg_images()) if models else None
+            if best is not None and (rec is None or best.num_reg_images() > rec.num_reg_images()):
+                rec, self._database = best, database
+            if rec is not None and rec.num_reg_images() >= cfg.min_registered * len(images):
+                break
+        if rec is None:
+            return None, intrinsics
+        if intrinsics is None:
+            camera = next(iter(rec.cameras.values()))
+            f, cx, cy = camera.params[:3]
+            intrinsics = Intrinsics(float(f), float(f), float(cx) - 0.5, float(cy) - 0.5)
+        return rec, intrinsics
+
+
+@hookimpl
+def photonpano_register_pose_estimators() -> list[type[PoseEstimatorConfig]]:
+    """Register the ``pycolmap-sfm`` pose estimator."""
+    return [PycolmapSfMConfig]
