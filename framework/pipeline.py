@@ -84,7 +84,9 @@ def run_pipeline(spec: BaseModel, out_dir: Path, host: PluginHost, *, force: boo
     def on_level(result):
         host.hook.photonpano_level_finished(level=result, spec=spec, source=source, out_dir=out_dir)
 
-    homographies, stats, pano, stage_timings = reconstruct(spec, source, on_level=on_level, progress=progress)
+    confidence: dict[str, Any] = {}
+    homographies, stats, pano, stage_timings = reconstruct(spec, source, on_level=on_level, progress=progress,
+                                                           report=confidence)
     timings.update(stage_timings)
 
     np.save(out_dir / "homographies.npy", pano.homographies)
@@ -98,6 +100,7 @@ def run_pipeline(spec: BaseModel, out_dir: Path, host: PluginHost, *, force: boo
         "plugins": host.versions(),
         "spec": spec.model_dump(mode="json"),
         "source": source.describe(),
+        **confidence,
         "panorama": {"height": int(pano.flux.shape[0]), "width": int(pano.flux.shape[1]),
                      "observed_fraction": float(np.isfinite(pano.flux).mean())},
         "levels": stats,
@@ -114,7 +117,8 @@ def run_pipeline(spec: BaseModel, out_dir: Path, host: PluginHost, *, force: boo
     return summary
 
 
-def reconstruct(spec: BaseModel, source, *, on_level=None, progress=None):
+def reconstruct(spec: BaseModel, source, *, on_level=None, progress=None,
+                report: dict[str, Any] | None = None):
     """Estimate the motion of ``source`` and assemble its panorama as ``spec`` says.
 
     Args:
@@ -122,6 +126,10 @@ def reconstruct(spec: BaseModel, source, *, on_level=None, progress=None):
         source: the opened capture.
         on_level: called with each :class:`~photonpano.reconstruct.LevelResult`.
         progress: ``progress(task, total)`` returning an ``advance(n)`` callable.
+        report: filled, if given, with the confidence report of ``run.json``:
+            ``status``, ``warnings``, ``group_size`` (the plan: chosen m and why, see
+            :class:`~photonpano.adaptive.GroupPlan`) and ``panorama_agreement``
+            (:func:`~photonpano.quality.panorama_agreement`).
 
     Returns:
         ``(homographies, level_statistics, panorama, timings_s)``: (T, 3, 3) float64
@@ -129,12 +137,18 @@ def reconstruct(spec: BaseModel, source, *, on_level=None, progress=None):
         trajectory RMSE when the source has ground truth), the
         :class:`~photonpano.reconstruct.Panorama` and wall times in seconds.
     """
+    from .adaptive import plan_group_size
+    from .coarse import CascadeLocator
     from .executor import make_executor
+    from .quality import agreement_binning, assess, level_figures, panorama_agreement
     from .reconstruct import assemble_panorama, estimate_motion
 
     stats: list[dict[str, Any]] = []
-
+    plan = plan_group_size(spec.group_size, source)
     locator = spec.locator.build()
+    if plan.auto:  # explicit group sizes keep the plain locator
+        locator = CascadeLocator(locator, plan.binning)
+    merger = spec.merger.build()
 
     def level_done(result):
         if on_level is not None:
@@ -145,6 +159,9 @@ def reconstruct(spec: BaseModel, source, *, on_level=None, progress=None):
         elif hasattr(locator, "cache_stats"):  # feature reuse of the built-in locators
             row["locator_cache"] = locator.cache_stats()
             locator.reset_cache_stats()
+        row["quality"] = level_figures(result, plan, source.width, source.height)
+        if isinstance(locator, CascadeLocator) and result.locator_cache is None:
+            row["registration_check"] = locator.take_statistics()
         if source.ground_truth is not None:
             row["trajectory_rmse_px"] = _rmse(result.homographies, source)
         stats.append(row)
@@ -154,8 +171,8 @@ def reconstruct(spec: BaseModel, source, *, on_level=None, progress=None):
     with make_executor(spec.executor, spec.workers) as executor:
         t0 = time.perf_counter()
         homographies, _ = estimate_motion(
-            source, spec.resampler.build(), spec.merger.build(), locator, spec.interpolator.build(),
-            levels=spec.levels, group_size=spec.group_size, pair_offsets=tuple(spec.pair_offsets),
+            source, spec.resampler.build(), merger, locator, spec.interpolator.build(),
+            levels=spec.levels, group_size=plan.group_size, pair_offsets=tuple(spec.pair_offsets),
             executor=executor, refine_locator=spec.refine_locator.build if spec.refine_locator else None,
             keep_merged=spec.outputs.merged_frames, on_level=level_done, progress=progress)
         timings["levels"] = time.perf_counter() - t0
@@ -164,6 +181,14 @@ def reconstruct(spec: BaseModel, source, *, on_level=None, progress=None):
         pano = assemble_panorama(source, homographies, scale=spec.scale, subbatch_px=spec.panorama_subbatch_px,
                                  progress=advance, executor=executor)
         timings["panorama"] = time.perf_counter() - t0
+    if report is not None:
+        t0 = time.perf_counter()
+        agreement = panorama_agreement(source, merger, homographies, pano, plan.group_size,
+                                       agreement_binning(plan))
+        status, warnings = assess(plan, stats, agreement)
+        report.update(status=status, warnings=warnings, group_size=plan.record(),
+                      panorama_agreement=agreement)
+        timings["confidence"] = time.perf_counter() - t0
     return homographies, stats, pano, timings
 
 

@@ -8,7 +8,7 @@ the super-resolution scale and the outputs::
     source: {plugin: npy-cube, path: capture.npy}
     locator: {plugin: opencv-sift, ratio: 0.75}
     levels: 3
-    group_size: 500
+    group_size: auto
 
 Omitted stages use the paper's defaults (``midpoint``, ``flux-mle``, ``opencv-sift``,
 ``cubic-lk``). The stage slots are discriminated unions built at run time from the
@@ -117,8 +117,9 @@ def spec_model(host: PluginHost) -> type[BaseModel]:
         **slots,
         levels=(Annotated[int, Field(ge=1, le=8, description="Number of levels (iterations of "
                                      "re-sample, merge, locate, interpolate).")], 3),
-        group_size=(Annotated[int, Field(ge=2, description="Binary frames per group m (virtual "
-                                         "exposure length, in frames).")], 500),
+        group_size=(Annotated[Union[Literal["auto"], Annotated[int, Field(ge=2)]], Field(  # noqa: UP007
+            description="Binary frames per group m (virtual exposure length, in frames); auto: "
+            "chosen from the capture's photon rate and apparent speed (photonpano.adaptive).")], "auto"),
         pair_offsets=(Annotated[list[Annotated[int, Field(ge=1)]], Field(
             min_length=1, description="Register merged frames g and g+k for each k; [1] is the "
             "paper's chain, more offsets are solved jointly against chaining drift.")], [1, 2, 4, 8, 16, 32, 64]),
