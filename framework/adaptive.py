@@ -146,9 +146,10 @@ def probe_capture(source, *, probes: int = 8, min_photons: float = 20.0, min_blo
                   min_correlation: float = 0.25) -> CaptureProbe:
     """Measure a capture's photon rate and apparent speed from a few blocks of frames.
 
-    At ``probes`` places spread over the capture, two adjacent blocks of L binary frames
-    are summed, binned to about 32 pixels on the short side, and their shift is found by
-    phase correlation; speed = shift / L. L is the larger of ``min_block`` and the
+    The photon rate is first taken from the middle 1000 frames (to choose L), then from
+    every probed block. At ``probes`` places spread over the capture, two adjacent
+    blocks of L binary frames are summed, binned to about 32 pixels on the short side,
+    and their shift is found by phase correlation; speed = shift / L. L is the larger of ``min_block`` and the
     length that gathers ``min_photons`` detections per binned pixel, and is divided by
     4 (down to 8 frames) while fewer than half the probes correlate, for motion that
     moves the frame by more than the correlation can follow. Cost: ``2 * probes * L``
@@ -176,12 +177,14 @@ def probe_capture(source, *, probes: int = 8, min_photons: float = 20.0, min_blo
     if p:
         block = max(block, math.ceil(min_photons / (p * binning ** 2)))
     best: tuple[list[float], list[float], int] = ([], [], 0)
+    detections, counted = 0.0, 0
     while True:
         length = max(1, min(block, n // 2))
         centres = np.unique(np.linspace(length, n - length, probes).astype(np.int64))
         speeds, correlations = [], []
         for centre in centres:
             counts = source.sum_ranges(np.array([centre - length, centre, centre + length]))
+            detections, counted = detections + float(counts.mean()) * 2, counted + 2 * length
             a, _ = binned_image(counts[0].astype(np.float32), binning)
             b, _ = binned_image(counts[1].astype(np.float32), binning)
             shift, cc = _shift_and_correlation(a, b)
@@ -196,6 +199,8 @@ def probe_capture(source, *, probes: int = 8, min_photons: float = 20.0, min_blo
     speeds, correlations, length = best
     good = np.asarray(speeds)[np.isfinite(speeds)]
     speed = float(np.percentile(good, 75)) if len(good) >= max(1, len(speeds) // 2) else None
+    if binary:  # the rate over every probed block, spread over the capture
+        p = detections / counted
     return CaptureProbe(p, speed, length, binning, [float(c) for c in correlations])
 
 
