@@ -169,6 +169,8 @@ def probe_capture(source, *, probes: int = 8, min_photons: float = 20.0, min_blo
     n = source.n_frames
     binning = max(1, min(source.height, source.width) // 32)
     binary = source.kind != "intensity"
+    if n < 8:  # too short to probe; the resampler says what is wrong with it
+        return CaptureProbe(None, None)
     p = None
     if binary:
         sample = source.sum_ranges(np.array([n // 2 - min(n // 2, 500), n // 2 + min(n - n // 2, 500)]))
