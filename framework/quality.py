@@ -27,7 +27,8 @@ __all__ = ["level_figures", "panorama_agreement", "assess", "THRESHOLDS"]
 
 THRESHOLDS = {"failed_fraction": 0.2, "rejected_fraction": 0.1, "residual_px": 2.0, "agreement": 0.5,
               "photons_per_pixel": 2.0}
-"""Limits of :func:`assess`: bridged registrations (fraction), replaced keyframes
+"""Limits of :func:`assess`: bridged registrations (fraction; at the last level, 0.5 at
+earlier ones, whose errors the later levels correct), replaced keyframes
 (fraction), median pose-graph residual (pixels), median agreement of merged frames
 with the panorama (correlation), detections per (binned) pixel in a merged frame."""
 
@@ -150,7 +151,9 @@ def assess(plan: GroupPlan, levels: list[dict[str, Any]],
                         "at level 1")
     for row in levels:
         q, k = row.get("quality", {}), row["level"]
-        if q.get("failed_fraction", 0) > t["failed_fraction"]:
+        # earlier levels are corrected by the later ones: only many failures there matter
+        limit = t["failed_fraction"] if row is levels[-1] else max(t["failed_fraction"], 0.5)
+        if q.get("failed_fraction", 0) > limit:
             warnings.append(f"level {k}: {q['failed_fraction']:.0%} of the registrations failed "
                             "and were bridged")
         if q.get("rejected_fraction", 0) > t["rejected_fraction"]:
