@@ -22,7 +22,15 @@ from pathlib import Path
 from typing import Annotated, Any, Literal, Union
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, create_model, field_validator
+from pydantic import (
+    BaseModel,
+    BeforeValidator,
+    ConfigDict,
+    Field,
+    ValidationError,
+    create_model,
+    field_validator,
+)
 
 from .errors import PluginError, SpecError
 from .host import PluginHost
@@ -79,6 +87,13 @@ class _SpecBase(BaseModel):
         return value
 
 
+def _group_size(value: Any) -> Any:
+    """Accept ``"auto"`` or an integer >= 2 as a group size, with one message for anything else."""
+    if value == "auto" or (isinstance(value, int) and not isinstance(value, bool) and value >= 2):
+        return value
+    raise ValueError("expected an integer >= 2 (binary frames per group) or auto")
+
+
 def _tagged(classes: list[type]) -> Any:
     return Annotated[Union[tuple(classes)], Field(discriminator="plugin")]  # noqa: UP007
 
@@ -117,7 +132,8 @@ def spec_model(host: PluginHost) -> type[BaseModel]:
         **slots,
         levels=(Annotated[int, Field(ge=1, le=8, description="Number of levels (iterations of "
                                      "re-sample, merge, locate, interpolate).")], 3),
-        group_size=(Annotated[Union[Literal["auto"], Annotated[int, Field(ge=2)]], Field(  # noqa: UP007
+        group_size=(Annotated[Union[Literal["auto"], Annotated[int, Field(ge=2)]],  # noqa: UP007
+                              BeforeValidator(_group_size), Field(
             description="Binary frames per group m (virtual exposure length, in frames); auto: "
             "chosen from the capture's photon rate and apparent speed (photonpano.adaptive).")], "auto"),
         pair_offsets=(Annotated[list[Annotated[int, Field(ge=1)]], Field(
