@@ -22,7 +22,7 @@ spatially binned merged frames (:class:`~photonpano.coarse.CascadeLocator`, the
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -224,26 +224,33 @@ def choose_group_size(probe: CaptureProbe, n_frames: int, *, blur_px: float = 10
     """
     speed, p = probe.speed_px_per_frame, probe.photons_per_pixel_per_frame
     cap = max(2, n_frames // min_groups)
+    # a static scene (speed 0) allows any length; an unknown speed the paper's typical m
+    m_motion = blur_px / max(speed, 1e-9) if speed is not None else float(typical)
+
+    def plan(m: float, binning: int, reason: str) -> GroupPlan:
+        if m > cap:
+            m, reason = cap, reason + f"; capped at {cap} for {min_groups} groups"
+        m = max(2, int(float(f"{m:.2g}")))
+        return GroupPlan(m, binning, p * m if p is not None else None, speed,
+                         speed * m if speed is not None else None, reason, True, probe)
+
     if p is None:  # intensity frames: no photon noise to average away, only motion to follow
-        m = max(2, min(cap, 16, int(blur_px / speed) if speed else 16))
-        reason = "intensity frames: a short group (at most 16 frames, at least 5 groups)"
-        return GroupPlan(m, 1, None, speed, speed * m if speed else None, reason, True, probe)
-    m_motion = blur_px / speed if speed else float(typical)
+        return plan(min(16.0, m_motion), 1, "intensity frames: a short group (at most 16 frames)")
     m = min(float(typical), m_motion)
-    reason = (f"motion: {speed:.4f} px/frame allows {m_motion:.0f} frames of {blur_px:g} px smear"
-              if speed and m_motion < typical else f"the paper's typical {typical} frames")
-    if not speed:
-        reason += " (the motion pre-pass found no structure)"
+    if speed is None:
+        reason = f"the paper's typical {typical} frames (the motion pre-pass found no structure)"
+    elif m_motion < typical:
+        reason = f"motion: {speed:.4f} px/frame allows {m_motion:.0f} frames of {blur_px:g} px smear"
+    else:
+        reason = f"the paper's typical {typical} frames (motion {speed:.4f} px/frame allows more)"
     m_light = photons / max(p, 1e-12)
-    if m_light > m:
-        m = min(m_light, 2 * max(m, m_motion if speed else m))
+    if m_light > m:  # the dark: up to twice the smear budget, binning makes up the rest
+        m = min(m_light, 2 * m_motion)
         reason = (f"light: {p:.2e} photons/pixel/frame needs {m_light:.0f} frames "
                   f"for {photons:g} photons/pixel")
-    if m > cap:
-        m, reason = cap, reason + f"; capped at {cap} for {min_groups} groups"
-    m = max(2, int(float(f"{m:.2g}")))
-    binning = int(min(max_binning, max(1, math.ceil(math.sqrt(photons / max(p * m, 1e-12))))))
-    return GroupPlan(m, binning, p * m, speed, speed * m if speed else None, reason, True, probe)
+    result = plan(m, 1, reason)
+    binning = math.ceil(math.sqrt(photons / max(p * result.group_size, 1e-12)))
+    return replace(result, binning=int(min(max_binning, max(1, binning))))
 
 
 def plan_group_size(group_size: int | str, source) -> GroupPlan:
