@@ -256,11 +256,19 @@ def choose_group_size(probe: CaptureProbe, n_frames: int, *, blur_px: float = 10
 def plan_group_size(group_size: int | str, source) -> GroupPlan:
     """Resolve a spec's ``group_size`` for ``source``: an integer as given, ``"auto"`` measured.
 
+    The capture is probed either way (the confidence report uses the photon rate and
+    speed), except with ``source`` None, which only an integer allows.
+
     Raises:
         ValueError: for a value that is neither a positive integer nor ``"auto"``.
     """
     if group_size == "auto":
         return choose_group_size(probe_capture(source), source.n_frames)
     if isinstance(group_size, int) and group_size >= 2:
-        return GroupPlan(group_size)
+        if source is None:
+            return GroupPlan(group_size)
+        probe = probe_capture(source)  # for the confidence report only
+        p, speed = probe.photons_per_pixel_per_frame, probe.speed_px_per_frame
+        return GroupPlan(group_size, 1, p * group_size if p is not None else None, speed,
+                         speed * group_size if speed is not None else None, "set in the spec", False, probe)
     raise ValueError(f"group_size: expected an integer >= 2 or 'auto', got {group_size!r}")

@@ -25,10 +25,11 @@ from .stages import Groups
 
 __all__ = ["level_figures", "panorama_agreement", "assess", "THRESHOLDS"]
 
-THRESHOLDS = {"failed_fraction": 0.2, "rejected_fraction": 0.1, "residual_px": 2.0, "agreement": 0.5,
-              "photons_per_pixel": 2.0}
-"""Limits of :func:`assess`: bridged registrations (fraction; at the last level, 0.5 at
-earlier ones, whose errors the later levels correct), replaced keyframes
+THRESHOLDS = {"failed_fraction": 0.2, "failed_against_panorama": 0.1, "rejected_fraction": 0.1,
+              "residual_px": 2.0, "agreement": 0.5, "photons_per_pixel": 2.0}
+"""Limits of :func:`assess`: bridged registrations (fraction; of pairs at the last
+level, 0.5 at earlier ones, whose errors the later levels correct; of registrations
+against the panorama at any level), replaced keyframes
 (fraction), median pose-graph residual (pixels), median agreement of merged frames
 with the panorama (correlation), detections per (binned) pixel in a merged frame."""
 
@@ -151,8 +152,11 @@ def assess(plan: GroupPlan, levels: list[dict[str, Any]],
                         "at level 1")
     for row in levels:
         q, k = row.get("quality", {}), row["level"]
-        # earlier levels are corrected by the later ones: only many failures there matter
+        # a pairwise level's failures are corrected by the later levels (only many matter
+        # there); a registration against a good panorama rarely fails
         limit = t["failed_fraction"] if row is levels[-1] else max(t["failed_fraction"], 0.5)
+        if "median_correction_px" in q:
+            limit = t["failed_against_panorama"]
         if q.get("failed_fraction", 0) > limit:
             warnings.append(f"level {k}: {q['failed_fraction']:.0%} of the registrations failed "
                             "and were bridged")
