@@ -47,3 +47,24 @@ def test_uniform_photons_never_end_ok(tmp_path):
     else:
         assert "Traceback" not in result.output
         assert result.output.strip().splitlines()[-1].startswith("error: ")
+
+
+def test_assess_weighs_failures_by_where_they_happen():
+    """Pairwise failures at level 1 are corrected later; failures against the panorama are not."""
+    from photonpano.adaptive import CaptureProbe, GroupPlan
+    from photonpano.quality import assess
+
+    plan = GroupPlan(500, 1, 50.0, 0.02, 10.0, "auto", True, CaptureProbe(0.1, 0.02))
+    agree = {"median": 0.99, "min": 0.98, "binning": 2}
+
+    def levels(first, second):
+        return [{"level": 1, "quality": {"failed_fraction": first, "pose_graph_residual_px": 0.2}},
+                {"level": 2, "quality": {"failed_fraction": second, "median_correction_px": 0.3}}]
+
+    assert assess(plan, levels(0.38, 0.0), agree) == ("ok", [])
+    status, warnings = assess(plan, levels(0.3, 0.15), agree)
+    assert status == "degraded" and warnings == ["level 2: 15% of the registrations failed and were bridged"]
+    assert assess(plan, levels(0.6, 0.0), agree)[0] == "degraded"
+    assert assess(plan, levels(0.0, 0.0), {**agree, "median": 0.2})[0] == "degraded"
+    noise = GroupPlan(500, 1, 50.0, None, None, "auto", True, CaptureProbe(0.1, None, 200, 7, [0.01, 0.02]))
+    assert "no scene structure" in assess(noise, levels(0.0, 0.0), agree)[1][0]
