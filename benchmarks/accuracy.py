@@ -18,8 +18,9 @@ Variants: ``default`` (``photonpano pano``'s settings, ``group_size: auto``), ``
 ``level1`` (level 1 of the default spec only).
 
 With ``--write``, the table replaces the one between ``<!-- accuracy-table:start -->``
-and ``<!-- accuracy-table:end -->`` in that Markdown file (``docs/accuracy.md``), so
-the documentation shows what the benchmark measured.
+and ``<!-- accuracy-table:end -->`` in that Markdown file (``docs/accuracy.md``; another
+name than ``accuracy-table`` with ``--table``), so the documentation shows what the
+benchmark measured.
 
 Usage::
 
@@ -60,7 +61,7 @@ VARIANTS = {
               "interpolator.measurement=reference-frame", "resampler.anchor_ends=false"],
     "level1": ["levels=1"],
 }
-START, END = "<!-- accuracy-table:start -->", "<!-- accuracy-table:end -->"
+START, END = "<!-- {}:start -->", "<!-- {}:end -->"
 
 
 def run_case(regime: str, variant: str, frames: int | None, photo: Path | None, host: PluginHost,
@@ -114,20 +115,21 @@ def markdown(rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
-def write_table(path: Path, table: str, command: str) -> None:
-    """Replace the text between the table markers of ``path`` by ``table``.
+def write_table(path: Path, table: str, command: str, name: str = "accuracy-table") -> None:
+    """Replace the text between the markers ``<!-- name:start -->`` and ``<!-- name:end -->`` of ``path``.
 
     Raises:
         SystemExit: if the file lacks the markers.
     """
+    start, end = START.format(name), END.format(name)
     text = path.read_text()
-    if START not in text or END not in text:
-        raise SystemExit(f"{path}: no {START} ... {END} markers to write the table between")
-    head, rest = text.split(START, 1)
-    _, tail = rest.split(END, 1)
+    if start not in text or end not in text:
+        raise SystemExit(f"{path}: no {start} ... {end} markers to write the table between")
+    head, rest = text.split(start, 1)
+    _, tail = rest.split(end, 1)
     stamp = (f"Written by `{command}` on {time.strftime('%Y-%m-%d')} ({platform.node() or 'this machine'}, "
              "bold: meets the bar).")
-    path.write_text(f"{head}{START}\n{stamp}\n\n{table}\n{END}{tail}")
+    path.write_text(f"{head}{start}\n{stamp}\n\n{table}\n{end}{tail}")
 
 
 def main() -> None:
@@ -139,6 +141,7 @@ def main() -> None:
     parser.add_argument("--frames", type=int, default=None, help="override every regime's frame count")
     parser.add_argument("--photo", type=Path, default=None, help="photo to simulate from (default: bundled)")
     parser.add_argument("--write", type=Path, default=None, help="Markdown file whose table to replace")
+    parser.add_argument("--table", default="accuracy-table", help="marker name of the table to replace")
     args = parser.parse_args()
     host = PluginHost()
     rows, sources = [], {}
@@ -151,7 +154,7 @@ def main() -> None:
     if args.write:
         import sys
 
-        write_table(args.write, table, "python benchmarks/accuracy.py " + " ".join(sys.argv[1:]))
+        write_table(args.write, table, "python benchmarks/accuracy.py " + " ".join(sys.argv[1:]), args.table)
 
 
 if __name__ == "__main__":

@@ -19,7 +19,8 @@ def test_the_table_replaces_only_the_text_between_the_markers(tmp_path):
     """Text around the markers is kept; the old table is replaced; a file without markers is refused."""
     bench = _module()
     doc = tmp_path / "accuracy.md"
-    doc.write_text(f"intro\n{bench.START}\nold table\n{bench.END}\noutro\n")
+    start, end = bench.START.format("accuracy-table"), bench.END.format("accuracy-table")
+    doc.write_text(f"intro\n{start}\nold table\n{end}\noutro\n")
     row = {"regime": "fast-pan", "variant": "default", "frames": 12000, "bar": 0.5, "rmse": [0.5, 0.3, 0.24],
            "psnr": 32.0, "psnr_true": 32.1, "gap": 0.1, "group_size": 84, "binning": 2, "status": "ok",
            "warnings": [], "seconds": 113.0, "cpu_s": 40.0}
