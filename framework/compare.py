@@ -125,7 +125,8 @@ def _compare_one(item: str, base: dict[str, Any], host: PluginHost, out_dir: Pat
             homographies, _ = estimate_motion(
                 source, spec.resampler.build(), spec.merger.build(), locator, spec.interpolator.build(),
                 levels=spec.levels,
-                group_size=plan_group_size(spec.group_size, source).group_size,
+                group_size=(plan_group_size(spec.group_size, source).group_size if spec.group_size == "auto"
+                            else spec.group_size),
                 pair_offsets=tuple(spec.pair_offsets),
                 executor=executor, refine_locator=refine_locator, on_level=on_level)
     except PhotonpanoError as exc:
