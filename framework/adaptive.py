@@ -149,10 +149,11 @@ def probe_capture(source, *, probes: int = 8, min_photons: float = 20.0, min_blo
     The photon rate is first taken from the middle 1000 frames (to choose L), then from
     every probed block. At ``probes`` places spread over the capture, two adjacent
     blocks of L binary frames are summed, binned to about 32 pixels on the short side,
-    and their shift is found by phase correlation; speed = shift / L. L is the larger of ``min_block`` and the
-    length that gathers ``min_photons`` detections per binned pixel, and is divided by
-    4 (down to 8 frames) while fewer than half the probes correlate, for motion that
-    moves the frame by more than the correlation can follow. Cost: ``2 * probes * L``
+    and their shift is found by phase correlation; speed = shift / L. L is the larger
+    of ``min_block`` and the length that gathers ``min_photons`` detections per binned
+    pixel, and is divided by 4 (down to 8 frames) while fewer than half the probes
+    correlate, for motion that moves the frame by more than the correlation can follow;
+    the step where most probes correlated is kept. Cost: ``2 * probes * L``
     frames of :meth:`~photonpano.stages.PhotonSource.sum_ranges`.
 
     Args:
@@ -178,7 +179,7 @@ def probe_capture(source, *, probes: int = 8, min_photons: float = 20.0, min_blo
     block = min_block
     if p:
         block = max(block, math.ceil(min_photons / (p * binning ** 2)))
-    best: tuple[list[float], list[float], int] = ([], [], 0)
+    best: tuple[int, list[float], list[float], int] = (-1, [], [], 0)
     detections, counted = 0.0, 0
     while True:
         length = max(1, min(block, n // 2))
@@ -193,12 +194,12 @@ def probe_capture(source, *, probes: int = 8, min_photons: float = 20.0, min_blo
             correlations.append(cc)
             speeds.append(float(np.hypot(*shift)) * binning / length if cc >= min_correlation else np.nan)
         found = int(np.sum(np.isfinite(speeds)))
-        if found > len(best[0]) // 2 or not best[0]:
-            best = (speeds, correlations, length)
+        if found > best[0]:
+            best = (found, speeds, correlations, length)
         if found >= len(centres) / 2 or length <= 8:
             break
         block = length // 4
-    speeds, correlations, length = best
+    _, speeds, correlations, length = best
     good = np.asarray(speeds)[np.isfinite(speeds)]
     speed = float(np.percentile(good, 75)) if len(good) >= max(1, len(speeds) // 2) else None
     if binary:  # the rate over every probed block, spread over the capture
