@@ -148,6 +148,9 @@ def _report(summary: dict[str, Any], out: Path) -> None:
                        f"{gt['psnr_true_homographies_db']:.2f} dB (gap {gt['psnr_gap_db']:.2f} dB)")
     for warning in summary.get("warnings", []):
         typer.secho(f"warning: {warning}", fg=typer.colors.YELLOW, err=True)
+    if "status" in summary:
+        typer.echo(f"status: {summary['status']} (group size {summary['group_size']['group_size']}: "
+                   f"{summary['group_size']['reason']})")
 
 
 @app.command()

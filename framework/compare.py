@@ -78,6 +78,7 @@ def compare_locators(base: dict[str, Any], locators: list[str], host: PluginHost
 def _compare_one(item: str, base: dict[str, Any], host: PluginHost, out_dir: Path | None, origin: str,
                  source: Any, log: Any, rows: list[dict[str, Any]], refine: bool) -> Any:
     """Run one locator (see :func:`compare_locators`); append its row; return the source."""
+    from .adaptive import plan_group_size
     from .executor import make_executor
     from .metrics import trajectory_error
     from .reconstruct import estimate_motion
@@ -123,7 +124,10 @@ def _compare_one(item: str, base: dict[str, Any], host: PluginHost, out_dir: Pat
         with make_executor(spec.executor, spec.workers) as executor:
             homographies, _ = estimate_motion(
                 source, spec.resampler.build(), spec.merger.build(), locator, spec.interpolator.build(),
-                levels=spec.levels, group_size=spec.group_size, pair_offsets=tuple(spec.pair_offsets),
+                levels=spec.levels,
+                group_size=(plan_group_size(spec.group_size, source).group_size if spec.group_size == "auto"
+                            else spec.group_size),
+                pair_offsets=tuple(spec.pair_offsets),
                 executor=executor, refine_locator=refine_locator, on_level=on_level)
     except PhotonpanoError as exc:
         row["status"] = str(exc)

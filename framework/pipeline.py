@@ -148,8 +148,9 @@ def _run_into(spec: BaseModel, folder, host: PluginHost) -> RunResult:
         if folder is not None:
             folder.adopt_new_files()  # what observers wrote
 
+    confidence: dict[str, Any] = {}
     homographies, stats, pano, stage_timings = reconstruct(
-        spec, source, on_level=on_level, progress=progress, resume=start,
+        spec, source, on_level=on_level, progress=progress, resume=start, report=confidence,
         checkpoint=folder.save_checkpoint if folder is not None else None)
     timings.update(stage_timings)
 
@@ -170,6 +171,7 @@ def _run_into(spec: BaseModel, folder, host: PluginHost) -> RunResult:
         "plugins": host.versions(),
         "spec": spec.model_dump(mode="json"),
         "source": source.describe(),
+        **confidence,
         "panorama": {"height": int(pano.flux.shape[0]), "width": int(pano.flux.shape[1]),
                      "observed_fraction": float(np.isfinite(pano.flux).mean())},
         "levels": stats,
@@ -232,7 +234,8 @@ def library_versions(spec: BaseModel | None = None) -> dict[str, str]:
     return versions
 
 
-def reconstruct(spec: BaseModel, source, *, on_level=None, progress=None, checkpoint=None, resume=None):
+def reconstruct(spec: BaseModel, source, *, on_level=None, progress=None, checkpoint=None, resume=None,
+                report: dict[str, Any] | None = None):
     """Estimate the motion of ``source`` and assemble its panorama as ``spec`` says.
 
     Args:
@@ -242,6 +245,10 @@ def reconstruct(spec: BaseModel, source, *, on_level=None, progress=None, checkp
         progress: ``progress(task, total)`` returning an ``advance(n)`` callable.
         checkpoint: called with a :class:`~photonpano.outputs.Checkpoint` after each level.
         resume: a :class:`~photonpano.outputs.Checkpoint` to continue from (None: level 1).
+        report: filled, if given, with the confidence report of ``run.json``:
+            ``status``, ``warnings``, ``group_size`` (the plan: chosen m and why, see
+            :class:`~photonpano.adaptive.GroupPlan`) and ``panorama_agreement``
+            (:func:`~photonpano.quality.panorama_agreement`).
 
     Returns:
         ``(homographies, level_statistics, panorama, timings_s)``: (T, 3, 3) float64
@@ -250,13 +257,20 @@ def reconstruct(spec: BaseModel, source, *, on_level=None, progress=None, checkp
         :class:`~photonpano.compose.Panorama` (from the spec's compositor) and wall
         times in seconds.
     """
+    from .adaptive import plan_group_size
+    from .coarse import CascadeLocator
     from .compose import compose
     from .executor import make_executor
     from .outputs import Checkpoint
+    from .quality import agreement_binning, assess, level_figures, panorama_agreement
     from .reconstruct import estimate_motion
 
     stats: list[dict[str, Any]] = list(resume.statistics) if resume is not None else []
+    plan = plan_group_size(spec.group_size, source)
     locator = spec.locator.build()
+    if plan.auto:  # explicit group sizes keep the plain locator
+        locator = CascadeLocator(locator, plan.binning)
+    merger = spec.merger.build()
 
     def level_done(result):
         if on_level is not None:
@@ -267,6 +281,9 @@ def reconstruct(spec: BaseModel, source, *, on_level=None, progress=None, checkp
         elif hasattr(locator, "cache_stats"):  # feature reuse of the built-in locators
             row["locator_cache"] = locator.cache_stats()
             locator.reset_cache_stats()
+        row["quality"] = level_figures(result, plan, source.width, source.height)
+        if isinstance(locator, CascadeLocator) and result.locator_cache is None:
+            row["registration_check"] = locator.take_statistics()
         if source.ground_truth is not None:
             row["trajectory_rmse_px"] = _rmse(result.homographies, source)
         stats.append(row)
@@ -280,8 +297,8 @@ def reconstruct(spec: BaseModel, source, *, on_level=None, progress=None, checkp
     with make_executor(spec.executor, spec.workers) as executor:
         t0 = time.perf_counter()
         homographies, _ = estimate_motion(
-            source, spec.resampler.build(), spec.merger.build(), locator, spec.interpolator.build(),
-            levels=spec.levels, group_size=spec.group_size, pair_offsets=tuple(spec.pair_offsets),
+            source, spec.resampler.build(), merger, locator, spec.interpolator.build(),
+            levels=spec.levels, group_size=plan.group_size, pair_offsets=tuple(spec.pair_offsets),
             executor=executor, refine_locator=spec.refine_locator.build if spec.refine_locator else None,
             keep_merged=spec.outputs.merged_frames, on_level=level_done, progress=progress,
             **({} if resume is None else _start_state(resume)))
@@ -291,6 +308,14 @@ def reconstruct(spec: BaseModel, source, *, on_level=None, progress=None, checkp
         pano = compose(source, homographies, spec.compositor.build(), subbatch_px=spec.panorama_subbatch_px,
                        progress=advance, executor=executor)
         timings["panorama"] = time.perf_counter() - t0
+    if report is not None:
+        t0 = time.perf_counter()
+        agreement = panorama_agreement(source, merger, homographies, pano, plan.group_size,
+                                       agreement_binning(plan))
+        status, warnings = assess(plan, stats, agreement)
+        report.update(status=status, warnings=warnings, group_size=plan.record(),
+                      panorama_agreement=agreement)
+        timings["confidence"] = time.perf_counter() - t0
     return homographies, stats, pano, timings
 
 

@@ -11,26 +11,22 @@ or fewer that are each already a good exposure, rather than 100 000 binary frame
   registration against the panorama follows (a falling ball dragged a static camera's
   estimate by 52 px), while pairwise feature registration with the per-pair motion
   model choice (GRIC, ``motion: auto``) keeps to the static background;
-- a group size m from the frame count and the frames' noise (:func:`video_group_size`).
+- the group size m is ``auto`` as for every capture (:mod:`photonpano.adaptive`): from
+  the frames' light and apparent speed, capped so that level 1 has at least 5 groups and
+  at most 16 frames per group for intensity frames (3 for the 15-frame Photron clip).
 """
 
 from __future__ import annotations
 
-import math
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 from .errors import PhotonpanoError
 
-__all__ = ["spec_for_capture", "video_group_size", "INTENSITY_SETTINGS"]
+__all__ = ["spec_for_capture", "INTENSITY_SETTINGS"]
 
 INTENSITY_SETTINGS: dict[str, Any] = {"merger": "mean", "levels": 2, "refine_locator": None}
 """Settings ``pano`` gives captures of intensity frames (see the module docstring)."""
-
-#: signal-to-noise ratio wanted in a merged frame of intensity video
-TARGET_SNR = 30.0
 
 
 def spec_for_capture(path: Path, host: Any) -> dict[str, Any]:
@@ -44,12 +40,10 @@ def spec_for_capture(path: Path, host: Any) -> dict[str, Any]:
 
     Returns:
         ``{"source": {...}}`` plus, for intensity sources (config class attribute
-        ``kind == "intensity"``), :data:`INTENSITY_SETTINGS` and a ``group_size`` from
-        :func:`video_group_size` (the source is opened once to measure it).
+        ``kind == "intensity"``), :data:`INTENSITY_SETTINGS`.
 
     Raises:
-        PhotonpanoError: if ``path`` does not exist, no source plugin reads it, or the
-            source cannot be opened.
+        PhotonpanoError: if ``path`` does not exist or no source plugin reads it.
     """
     if not path.exists():
         raise PhotonpanoError(f"input {path} does not exist")
@@ -60,41 +54,4 @@ def spec_for_capture(path: Path, host: Any) -> dict[str, Any]:
     config_class = host.registry("source").get(source.get("plugin"))
     if getattr(config_class, "kind", "binary") != "intensity":
         return {"source": source}
-    opened = config_class.model_validate(source).build()
-    return {"source": source, **INTENSITY_SETTINGS, "group_size": video_group_size(opened)}
-
-
-def video_group_size(source: Any, *, target_snr: float = TARGET_SNR, min_groups: int = 5) -> int:
-    """Choose the group size m for a capture of intensity frames.
-
-    A merged frame of m frames has the noise of one frame divided by sqrt(m), so the
-    noise asks for ``m >= (target_snr / snr)^2``; the motion estimate needs at least
-    ``min_groups`` groups at level 1 (so the cubic interpolation has keyframes to
-    follow), which caps m at ``n_frames // min_groups``. The single-frame SNR is
-    measured on the first two frames: signal = median intensity, noise = the median
-    absolute difference of the two frames / (0.6745 sqrt 2) (a robust sigma; motion
-    between the frames only raises it, so m errs on the large side).
-
-    Args:
-        source: an opened intensity source (``sum_ranges`` gives linear intensity).
-        target_snr: SNR wanted per merged frame (dimensionless).
-        min_groups: fewest groups wanted at level 1.
-
-    Returns:
-        m >= 2 (binary frames per group).
-
-    Raises:
-        PhotonpanoError: if the capture has fewer than 4 frames (too short to estimate
-            motion from).
-    """
-    n = int(source.n_frames)
-    if n < 4:
-        raise PhotonpanoError(f"{source.name}: {n} frames is too short to estimate motion (need at least 4)")
-    cap = max(2, n // min_groups)
-    pair = np.asarray(source.sum_ranges(np.array([0, 1, 2])), np.float64)
-    signal = float(np.median(pair))
-    sigma = float(np.median(np.abs(pair[0] - pair[1]))) / (0.6745 * math.sqrt(2))
-    if signal <= 0:
-        return cap
-    wanted = math.ceil((target_snr * sigma / signal) ** 2) if sigma > 0 else 2
-    return int(min(cap, max(2, wanted)))
+    return {"source": source, **INTENSITY_SETTINGS}

@@ -9,7 +9,7 @@ drizzle, scale: 2}``; a top-level ``scale: 2`` is moved there)::
     source: {plugin: npy-cube, path: capture.npy}
     locator: {plugin: opencv-sift, ratio: 0.75}
     levels: 3
-    group_size: 500
+    group_size: auto
 
 Omitted stages use the paper's defaults (``midpoint``, ``flux-mle``, ``opencv-sift``,
 ``cubic-lk``) and the ``drizzle`` compositor. The stage slots are discriminated unions
@@ -26,6 +26,7 @@ from typing import Annotated, Any, Literal, Union
 import yaml
 from pydantic import (
     BaseModel,
+    BeforeValidator,
     ConfigDict,
     Field,
     ValidationError,
@@ -114,6 +115,13 @@ class _SpecBase(BaseModel):
         return value
 
 
+def _group_size(value: Any) -> Any:
+    """Accept ``"auto"`` or an integer >= 2 as a group size, with one message for anything else."""
+    if value == "auto" or (isinstance(value, int) and not isinstance(value, bool) and value >= 2):
+        return value
+    raise ValueError("expected an integer >= 2 (binary frames per group) or auto")
+
+
 def _tagged(classes: list[type]) -> Any:
     return Annotated[Union[tuple(classes)], Field(discriminator="plugin")]  # noqa: UP007
 
@@ -156,8 +164,10 @@ def spec_model(host: PluginHost) -> type[BaseModel]:
         **slots,
         levels=(Annotated[int, Field(ge=1, le=8, description="Number of levels (iterations of "
                                      "re-sample, merge, locate, interpolate).")], 3),
-        group_size=(Annotated[int, Field(ge=2, description="Binary frames per group m (virtual "
-                                         "exposure length, in frames).")], 500),
+        group_size=(Annotated[Union[Literal["auto"], Annotated[int, Field(ge=2)]],  # noqa: UP007
+                              BeforeValidator(_group_size), Field(
+            description="Binary frames per group m (virtual exposure length, in frames); auto: "
+            "chosen from the capture's photon rate and apparent speed (photonpano.adaptive).")], "auto"),
         pair_offsets=(Annotated[list[Annotated[int, Field(ge=1)]], Field(
             min_length=1, description="Register merged frames g and g+k for each k; [1] is the "
             "paper's chain, more offsets are solved jointly against chaining drift.")], [1, 2, 4, 8, 16, 32, 64]),

@@ -83,6 +83,9 @@ class SimulateConfig(SourceConfig):
     undersamples the scene 2x (the test of super-resolution). The camera path and its
     speeds stay in scene pixels; ``ground_truth`` is in frame pixels (scene coordinates
     divided by the pitch) and ``scene_flux`` at scene resolution (``scene_pitch``)."""
+    mean_intensity: Annotated[float, Field(gt=0, le=1)] | None = None
+    """Scale the photo's linear intensity so that its mean is this (e.g. 0.016 for a
+    dark scene; values are clipped at 1); None: the photo as it is."""
 
     def build(self) -> SimulatedCapture:
         """Simulate the capture (takes about 0.5 ms per binary frame)."""
@@ -202,6 +205,8 @@ class SimulatedCapture(PhotonSource):
         self.config = config
         photo = config.photo or bundled_photo()
         scene = load_scene(photo, config.scene_width)
+        if config.mean_intensity is not None:
+            scene = np.minimum(scene * np.float32(config.mean_intensity / max(float(scene.mean()), 1e-12)), 1)
         self.n_frames, self.height, self.width = config.frames, config.height, config.width
         self.frame_rate_hz = config.frame_rate_hz
         self.exposure_s = 1.0 / config.frame_rate_hz

@@ -28,7 +28,7 @@ def test_defaults_are_the_papers_pipeline(host):
     spec = validate_spec({"source": {"plugin": "npy-cube", "path": "x.npy"}}, host)
     assert (spec.resampler.plugin, spec.merger.plugin, spec.locator.plugin, spec.interpolator.plugin) == (
         "midpoint", "flux-mle", "opencv-sift", "cubic-lk")
-    assert (spec.levels, spec.group_size, spec.scale) == (3, 500, 1.0)
+    assert (spec.levels, spec.group_size, spec.scale) == (3, "auto", 1.0)
 
 
 def test_field_errors_name_line_stage_plugin_and_field(tmp_path, host):

@@ -169,30 +169,9 @@ def test_pano_picks_sources_and_video_settings(host, tmp_path, clip):
     spec = spec_for_capture(mraw, host)
     assert spec["source"]["plugin"] == "photron-mraw"
     assert {k: spec[k] for k in INTENSITY_SETTINGS} == INTENSITY_SETTINGS  # mean merger, pairwise levels
-    assert 2 <= spec["group_size"] <= 3  # clean 12-bit frames; 15 frames: at least 5 groups at level 1
     cube = tmp_path / "cube.npy"
     np.save(cube, np.zeros((16, 8, 1), np.uint8))
     assert spec_for_capture(cube, host) == {"source": {"plugin": "npy-cube", "path": str(cube)}}
-
-
-def test_video_group_size_follows_noise_and_length():
-    from photonpano.presets import video_group_size
-
-    class Frames:
-        name = "synthetic"
-
-        def __init__(self, n, sigma):
-            rng = np.random.default_rng(0)
-            self.frames = 0.5 + sigma * rng.standard_normal((n, 32, 32))
-            self.n_frames = n
-
-        def sum_ranges(self, edges):
-            return np.stack([self.frames[a:b].sum(0) for a, b in zip(edges[:-1], edges[1:])])
-
-    assert video_group_size(Frames(1000, 0.001)) == 2  # clean frames: no averaging needed
-    noisy = video_group_size(Frames(1000, 0.1))  # SNR 5 per frame -> (30 / 5)^2 = 36 frames
-    assert 30 <= noisy <= 42
-    assert video_group_size(Frames(20, 0.1)) == 4  # capped: at least 5 groups
 
 
 # --- the mean merger ----------------------------------------------------------------

@@ -1,0 +1,275 @@
+"""Virtual exposures that adapt to the capture: ``group_size: auto``.
+
+The paper fixes the group size m (250-750 binary frames at 100 kHz) and notes that it
+must grow in the dark and shrink for fast motion (Sec. 4 and suppl. S.3). A user does
+not know their photon rate or speed in advance, so :func:`probe_capture` measures both
+from the capture in a cheap pre-pass, and :func:`choose_group_size` turns them into m:
+
+- **light**: detections per pixel per binary frame ``p``, from the probe's photon
+  counts; a group should gather about ``photons`` detections per pixel, so
+  ``m_light = photons / p``.
+- **motion**: the apparent speed in pixels per binary frame, from phase correlation
+  of heavily binned sums of adjacent blocks of frames at a few places in the capture;
+  a group should not smear the scene by more than ``blur_px``, so
+  ``m_motion = blur_px / speed``.
+
+m is ``min(typical, m_motion)``, raised towards ``m_light`` in the dark (up to twice
+the blur budget); any photon deficit left is made up at level 1 by registering
+spatially binned merged frames (:class:`~photonpano.coarse.CascadeLocator`, the
+``binning`` of the plan). Explicit integers bypass all of this.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, field, replace
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+__all__ = ["CaptureProbe", "GroupPlan", "probe_capture", "choose_group_size", "plan_group_size",
+           "binned_image", "normalised_correlation"]
+
+
+@dataclass(frozen=True)
+class CaptureProbe:
+    """What the pre-pass measured.
+
+    Attributes:
+        photons_per_pixel_per_frame: mean detections per pixel per binary frame (None
+            for intensity sources, which have no photon counts).
+        speed_px_per_frame: apparent speed of the scene in frame pixels per binary frame
+            (75th percentile over the probes), or None when no probe found structure.
+        block_frames: frames summed per probe block.
+        binning: pixels binned per side in the probe images.
+        correlations: normalised cross-correlation of each probe pair after its shift
+            (near 0 for a capture without a scene).
+    """
+
+    photons_per_pixel_per_frame: float | None
+    speed_px_per_frame: float | None
+    block_frames: int = 0
+    binning: int = 1
+    correlations: list[float] = field(default_factory=list)
+
+
+@dataclass(frozen=True)
+class GroupPlan:
+    """The group size chosen for a capture and why (recorded in ``run.json``).
+
+    Attributes:
+        group_size: binary frames per group m at level 1.
+        binning: pixels per side binned for the level-1 fallback registration (1: none).
+        photons_per_pixel_per_group: expected detections per pixel in a level-1 merged
+            frame (None for intensity sources).
+        speed_px_per_frame: the probe's speed estimate (None: unknown).
+        blur_px: expected motion smear within a group, in pixels (None: unknown).
+        reason: one line saying which limit set m.
+        auto: True when m was chosen here, False for an explicit integer.
+        probe: the pre-pass figures (None when no probe ran).
+    """
+
+    group_size: int
+    binning: int = 1
+    photons_per_pixel_per_group: float | None = None
+    speed_px_per_frame: float | None = None
+    blur_px: float | None = None
+    reason: str = "set in the spec"
+    auto: bool = False
+    probe: CaptureProbe | None = None
+
+    def record(self) -> dict[str, Any]:
+        """Return the JSON-ready ``group_size`` entry of ``run.json``."""
+        out = asdict(self)
+        if self.probe is not None:
+            out["probe"] = {**asdict(self.probe),
+                            "correlations": [round(c, 3) for c in self.probe.correlations]}
+        return out
+
+
+def binned_image(image: NDArray[np.floating], factor: int, mask: NDArray[np.bool_] | None = None
+                 ) -> tuple[NDArray[np.float32], NDArray[np.bool_]]:
+    """Average ``factor`` x ``factor`` blocks of an image, ignoring untrusted pixels.
+
+    Args:
+        image: (H, W) float image (NaN allowed where ``mask`` is False).
+        factor: block size in pixels (>= 1); the image is cropped to a multiple of it.
+        mask: (H, W) bool trusted pixels (None: all finite pixels).
+
+    Returns:
+        ``(binned, valid)``: (H // factor, W // factor) float32 block means and bool
+        blocks with at least 90 % trusted pixels. Binned pixel ``u`` covers input pixels
+        ``factor * u .. factor * u + factor - 1``, i.e. its centre is at
+        ``factor * u + (factor - 1) / 2``.
+    """
+    import cv2
+
+    h, w = (image.shape[0] // factor) * factor, (image.shape[1] // factor) * factor
+    image = image[:h, :w]
+    trusted = np.isfinite(image) if mask is None else (mask[:h, :w] & np.isfinite(image))
+    values = np.where(trusted, image, 0).astype(np.float32)
+    size = (w // factor, h // factor)
+    total = cv2.resize(values, size, interpolation=cv2.INTER_AREA)
+    weight = cv2.resize(trusted.astype(np.float32), size, interpolation=cv2.INTER_AREA)
+    valid = weight >= 0.9
+    return np.where(valid, total / np.maximum(weight, 1e-6), 0).astype(np.float32), valid
+
+
+def normalised_correlation(a: NDArray[np.floating], b: NDArray[np.floating],
+                           valid: NDArray[np.bool_]) -> float:
+    """Pearson correlation of two images over ``valid`` pixels (0 with fewer than 16)."""
+    if int(valid.sum()) < 16:
+        return 0.0
+    x, y = a[valid].astype(np.float64), b[valid].astype(np.float64)
+    x, y = x - x.mean(), y - y.mean()
+    denominator = math.sqrt(float((x * x).sum() * (y * y).sum()))
+    return float((x * y).sum() / denominator) if denominator > 0 else 0.0
+
+
+def _shift_and_correlation(a: NDArray[np.float32], b: NDArray[np.float32]
+                           ) -> tuple[NDArray[np.float64], float]:
+    """Translation of ``b`` relative to ``a`` by phase correlation, and their correlation after it."""
+    import cv2
+
+    window = cv2.createHanningWindow(a.shape[::-1], cv2.CV_32F)
+    (dx, dy), _ = cv2.phaseCorrelate(a - a.mean(), b - b.mean(), window)
+    h, w = a.shape
+    moved = cv2.warpAffine(b, np.float32([[1, 0, -dx], [0, 1, -dy]]), (w, h), flags=cv2.INTER_LINEAR,
+                           borderValue=np.nan)
+    valid = np.isfinite(moved)
+    valid[:2], valid[-2:], valid[:, :2], valid[:, -2:] = False, False, False, False
+    return np.array([dx, dy]), normalised_correlation(a, moved, valid)
+
+
+def probe_capture(source, *, probes: int = 8, min_photons: float = 20.0, min_block: int = 200,
+                  min_correlation: float = 0.25) -> CaptureProbe:
+    """Measure a capture's photon rate and apparent speed from a few blocks of frames.
+
+    The photon rate is first taken from the middle 1000 frames (to choose L), then from
+    every probed block. At ``probes`` places spread over the capture, two adjacent
+    blocks of L binary frames are summed, binned to about 32 pixels on the short side,
+    and their shift is found by phase correlation; speed = shift / L. L is the larger
+    of ``min_block`` and the length that gathers ``min_photons`` detections per binned
+    pixel, and is divided by 4 (down to 8 frames) while fewer than half the probes
+    correlate, for motion that moves the frame by more than the correlation can follow;
+    the step where most probes correlated is kept. Cost: ``2 * probes * L``
+    frames of :meth:`~photonpano.stages.PhotonSource.sum_ranges`.
+
+    Args:
+        source: the capture (binary or intensity).
+        probes: number of places probed.
+        min_photons: detections per binned pixel per block (binary sources).
+        min_block: shortest block, in binary frames.
+        min_correlation: a probe whose images correlate less after the shift found no
+            structure (photon noise alone correlates near 0).
+
+    Returns:
+        The :class:`CaptureProbe`.
+    """
+    n = source.n_frames
+    binning = max(1, min(source.height, source.width) // 32)
+    binary = source.kind != "intensity"
+    if n < 8:  # too short to probe; the resampler says what is wrong with it
+        return CaptureProbe(None, None)
+    p = None
+    if binary:
+        sample = source.sum_ranges(np.array([n // 2 - min(n // 2, 500), n // 2 + min(n - n // 2, 500)]))
+        p = float(sample.mean()) / min(n, 1000)
+    block = min_block
+    if p:
+        block = max(block, math.ceil(min_photons / (p * binning ** 2)))
+    best: tuple[int, list[float], list[float], int] = (-1, [], [], 0)
+    detections, counted = 0.0, 0
+    while True:
+        length = max(1, min(block, n // 2))
+        centres = np.unique(np.linspace(length, n - length, probes).astype(np.int64))
+        speeds, correlations = [], []
+        for centre in centres:
+            counts = source.sum_ranges(np.array([centre - length, centre, centre + length]))
+            detections, counted = detections + float(counts.mean()) * 2, counted + 2 * length
+            a, _ = binned_image(counts[0].astype(np.float32), binning)
+            b, _ = binned_image(counts[1].astype(np.float32), binning)
+            shift, cc = _shift_and_correlation(a, b)
+            correlations.append(cc)
+            speeds.append(float(np.hypot(*shift)) * binning / length if cc >= min_correlation else np.nan)
+        found = int(np.sum(np.isfinite(speeds)))
+        if found > best[0]:
+            best = (found, speeds, correlations, length)
+        if found >= len(centres) / 2 or length <= 8:
+            break
+        block = length // 4
+    _, speeds, correlations, length = best
+    good = np.asarray(speeds)[np.isfinite(speeds)]
+    speed = float(np.percentile(good, 75)) if len(good) >= max(1, len(speeds) // 2) else None
+    if binary:  # the rate over every probed block, spread over the capture
+        p = detections / counted
+    return CaptureProbe(p, speed, length, binning, [float(c) for c in correlations])
+
+
+def choose_group_size(probe: CaptureProbe, n_frames: int, *, blur_px: float = 10.0, photons: float = 10.0,
+                      typical: int = 500, min_groups: int = 5, max_binning: int = 8) -> GroupPlan:
+    """Turn a probe into a group size (and level-1 binning).
+
+    Args:
+        probe: the pre-pass figures.
+        n_frames: binary frames in the capture.
+        blur_px: largest motion smear wanted within a group, in pixels.
+        photons: detections per pixel wanted in a merged frame.
+        typical: the paper's group size, used when motion and light allow it.
+        min_groups: level 1 gets at least this many groups (if the capture allows 2).
+        max_binning: largest level-1 binning.
+
+    Returns:
+        The :class:`GroupPlan` (``auto`` True).
+    """
+    speed, p = probe.speed_px_per_frame, probe.photons_per_pixel_per_frame
+    cap = max(2, n_frames // min_groups)
+    # a static scene (speed 0) allows any length; an unknown speed the paper's typical m
+    m_motion = blur_px / max(speed, 1e-9) if speed is not None else float(typical)
+
+    def plan(m: float, binning: int, reason: str) -> GroupPlan:
+        if m > cap:
+            m, reason = cap, reason + f"; capped at {cap} for {min_groups} groups"
+        m = max(2, int(float(f"{m:.2g}")))
+        return GroupPlan(m, binning, p * m if p is not None else None, speed,
+                         speed * m if speed is not None else None, reason, True, probe)
+
+    if p is None:  # intensity frames: no photon noise to average away, only motion to follow
+        return plan(min(16.0, m_motion), 1, "intensity frames: a short group (at most 16 frames)")
+    m = min(float(typical), m_motion)
+    if speed is None:
+        reason = f"the paper's typical {typical} frames (the motion pre-pass found no structure)"
+    elif m_motion < typical:
+        reason = f"motion: {speed:.4f} px/frame allows {m_motion:.0f} frames of {blur_px:g} px smear"
+    else:
+        reason = f"the paper's typical {typical} frames (motion {speed:.4f} px/frame allows more)"
+    m_light = photons / max(p, 1e-12)
+    if m_light > m:  # the dark: up to twice the smear budget, binning makes up the rest
+        m = min(m_light, 2 * m_motion)
+        reason = (f"light: {p:.2e} photons/pixel/frame needs {m_light:.0f} frames "
+                  f"for {photons:g} photons/pixel")
+    result = plan(m, 1, reason)
+    binning = math.ceil(math.sqrt(photons / max(p * result.group_size, 1e-12)))
+    return replace(result, binning=int(min(max_binning, max(1, binning))))
+
+
+def plan_group_size(group_size: int | str, source) -> GroupPlan:
+    """Resolve a spec's ``group_size`` for ``source``: an integer as given, ``"auto"`` measured.
+
+    The capture is probed either way (the confidence report uses the photon rate and
+    speed), except with ``source`` None, which only an integer allows.
+
+    Raises:
+        ValueError: for a value that is neither a positive integer nor ``"auto"``.
+    """
+    if group_size == "auto":
+        return choose_group_size(probe_capture(source), source.n_frames)
+    if isinstance(group_size, int) and group_size >= 2:
+        if source is None:
+            return GroupPlan(group_size)
+        probe = probe_capture(source)  # for the confidence report only
+        p, speed = probe.photons_per_pixel_per_frame, probe.speed_px_per_frame
+        return GroupPlan(group_size, 1, p * group_size if p is not None else None, speed,
+                         speed * group_size if speed is not None else None, "set in the spec", False, probe)
+    raise ValueError(f"group_size: expected an integer >= 2 or 'auto', got {group_size!r}")

@@ -1,0 +1,172 @@
+"""A confidence report that needs no ground truth: per-level figures, ``status`` and ``warnings``.
+
+A run must never end with a confident wrong answer. Each level records figures that
+any capture has (:func:`level_figures`): photons per pixel per group, the share of
+registrations that failed and were bridged, and how well the registered pairs agree
+with the solved keyframes (pose-graph residual) or how far the panorama moved each
+merged frame (levels against the mosaic). At the end, a sample of groups is merged
+with the final homographies and compared with the panorama rendered at their pose
+(:func:`panorama_agreement`): a merged frame shows the scene it was registered to only
+if the trajectory is right. :func:`assess` turns the figures into ``status``
+(``"ok"`` or ``"degraded"``) and one-line warnings (``docs/outputs.md``).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from . import geometry
+from .adaptive import GroupPlan, normalised_correlation
+from .stages import Groups
+
+__all__ = ["level_figures", "panorama_agreement", "assess", "THRESHOLDS"]
+
+THRESHOLDS = {"failed_fraction": 0.2, "failed_against_panorama": 0.1, "rejected_fraction": 0.1,
+              "residual_px": 2.0, "agreement": 0.5, "photons_per_pixel": 2.0}
+"""Limits of :func:`assess`: bridged registrations (fraction; of pairs at the last
+level, 0.5 at earlier ones, whose errors the later levels correct; of registrations
+against the panorama at any level), replaced keyframes
+(fraction), median pose-graph residual (pixels), median agreement of merged frames
+with the panorama (correlation), detections per (binned) pixel in a merged frame."""
+
+
+def _corner_distance(a: NDArray[np.float64], b: NDArray[np.float64], width: int,
+                     height: int) -> NDArray[np.float64]:
+    c = geometry.corners(width, height)
+    return np.linalg.norm(geometry.apply(a, c) - geometry.apply(b, c), axis=-1).mean(axis=-1)
+
+
+def level_figures(result, plan: GroupPlan, width: int, height: int) -> dict[str, Any]:
+    """Ground-truth-free figures of one finished level.
+
+    Args:
+        result: the :class:`~photonpano.reconstruct.LevelResult`.
+        plan: the capture's :class:`~photonpano.adaptive.GroupPlan`.
+        width: frame width in pixels.
+        height: frame height in pixels.
+
+    Returns:
+        ``{"photons_per_pixel_per_group"`` (None for intensity sources),
+        ``"failed_fraction"`` (primary registrations bridged), ``"pose_graph_residual_px"``
+        (median mean-corner distance between each successful pair's homography and
+        the solved keyframes; pairwise levels) or ``"median_correction_px"`` (median
+        corner shift of the registrations against the panorama), ``"rejected_fraction"``}.
+    """
+    pairs, index = result.pairs, result.pair_index
+    p = plan.probe.photons_per_pixel_per_frame if plan.probe is not None else None
+    length = float(np.median(result.groups.stop - result.groups.start))
+    primary = (index[:, 1] - index[:, 0] == 1) | (index[:, 0] < 0)
+    out: dict[str, Any] = {
+        "photons_per_pixel_per_group": p * length if p is not None else None,
+        "failed_fraction": float((~pairs.ok[primary]).mean()) if primary.any() else 0.0,
+        "rejected_fraction": result.rejected_keyframes / max(len(result.groups), 1),
+    }
+    ok = pairs.ok
+    if (index[:, 0] < 0).all():
+        moved = _corner_distance(pairs.homographies[ok], np.eye(3)[None], width, height)
+        out["median_correction_px"] = float(np.median(moved)) if len(moved) else None
+    elif ok.any():
+        k = result.keyframes
+        solved = np.linalg.inv(k[index[ok, 0]]) @ k[index[ok, 1]]
+        out["pose_graph_residual_px"] = float(np.median(_corner_distance(pairs.homographies[ok], solved,
+                                                                         width, height)))
+    return out
+
+
+def panorama_agreement(source, merger, homographies: NDArray[np.float64], panorama, group_size: int,
+                       factor: int, *, samples: int = 12) -> dict[str, Any]:
+    """Compare merged frames with the panorama rendered at their pose.
+
+    ``samples`` groups of ``group_size`` frames spread over the capture are merged with
+    the final homographies, the panorama is resampled into each reference frame's grid
+    (:func:`~photonpano.reconstruct.panorama_views`), and both are binned by ``factor``
+    (square-root flux, see :func:`~photonpano.coarse.binned_frame`) and correlated.
+
+    Args:
+        source: the capture.
+        merger: the built merger.
+        homographies: (T, 3, 3) float64 final frame-to-panorama homographies.
+        panorama: the final :class:`~photonpano.reconstruct.Panorama`.
+        group_size: frames per sampled group.
+        factor: binning of the comparison (pixels per side).
+        samples: groups compared.
+
+    Returns:
+        ``{"median", "min", "binning"}``: correlations (1 = identical up to gain and
+        offset, about 0 for photon noise).
+    """
+    from .coarse import binned_frame
+    from .reconstruct import panorama_views
+
+    n = source.n_frames
+    m = min(group_size, n)
+    refs = np.unique(np.linspace(m // 2, n - 1 - (m - 1) // 2, samples).astype(np.int64))
+    start = np.clip(refs - m // 2, 0, n - m)
+    groups = Groups(start=start, stop=start + m, reference=refs)
+    merged = merger.merge(source, homographies, groups)
+    views = panorama_views(panorama, panorama.homographies[refs], source.height, source.width, min_frames=m)
+    values = []
+    for i in range(len(refs)):
+        a = binned_frame(merged.flux[i], merged.masks[i], factor)
+        b = binned_frame(views.flux[i], views.masks[i], factor)
+        values.append(normalised_correlation(a[0], b[0], a[1] & b[1]))
+    return {"median": float(np.median(values)), "min": float(np.min(values)), "binning": factor}
+
+
+def agreement_binning(plan: GroupPlan, photons: float = 20.0) -> int:
+    """Binning giving a level-1 merged frame about ``photons`` detections per pixel (2 to 8)."""
+    per_group = plan.photons_per_pixel_per_group
+    if per_group is None:
+        return 2
+    return int(min(8, max(2, math.ceil(math.sqrt(photons / max(per_group, 1e-12))))))
+
+
+def assess(plan: GroupPlan, levels: list[dict[str, Any]],
+           agreement: dict[str, Any] | None) -> tuple[str, list[str]]:
+    """Decide ``status`` and the warnings of a run from its figures.
+
+    Args:
+        plan: the group-size plan (its probe's findings are checked too).
+        levels: per-level statistics rows, each with a ``"quality"`` entry from
+            :func:`level_figures` (and ``"registration_check"`` where the binned check ran).
+        agreement: :func:`panorama_agreement`'s result, or None if it was not measured.
+
+    Returns:
+        ``(status, warnings)``: ``"ok"`` when no warning was raised, else ``"degraded"``;
+        one line per problem.
+    """
+    t = THRESHOLDS
+    warnings: list[str] = []
+    probe = plan.probe
+    binary = probe is not None and probe.photons_per_pixel_per_frame is not None
+    if binary and probe.speed_px_per_frame is None:
+        warnings.append("the motion pre-pass found no scene structure in the photons (median correlation "
+                        f"{np.median(probe.correlations):.2f} of blocks {probe.block_frames} frames apart)")
+    per_group = plan.photons_per_pixel_per_group
+    if per_group is not None and per_group * plan.binning ** 2 < t["photons_per_pixel"]:
+        warnings.append(f"only {per_group * plan.binning ** 2:.1f} photons per (binned) pixel per group "
+                        "at level 1")
+    for row in levels:
+        q, k = row.get("quality", {}), row["level"]
+        # a pairwise level's failures are corrected by the later levels (only many matter
+        # there); a registration against a good panorama rarely fails
+        limit = t["failed_fraction"] if row is levels[-1] else max(t["failed_fraction"], 0.5)
+        if "median_correction_px" in q:
+            limit = t["failed_against_panorama"]
+        if q.get("failed_fraction", 0) > limit:
+            warnings.append(f"level {k}: {q['failed_fraction']:.0%} of the registrations failed "
+                            "and were bridged")
+        if q.get("rejected_fraction", 0) > t["rejected_fraction"]:
+            warnings.append(f"level {k}: {q['rejected_fraction']:.0%} of the keyframe updates "
+                            "were implausible")
+        if (q.get("pose_graph_residual_px") or 0) > t["residual_px"]:
+            warnings.append(f"level {k}: registered pairs disagree with the solved trajectory by "
+                            f"{q['pose_graph_residual_px']:.1f} px (median)")
+    if agreement is not None and not agreement["median"] >= t["agreement"]:
+        warnings.append(f"merged frames agree poorly with the panorama at their pose (median correlation "
+                        f"{agreement['median']:.2f} < {t['agreement']})")
+    return ("degraded" if warnings else "ok"), warnings

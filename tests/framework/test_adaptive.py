@@ -1,0 +1,123 @@
+"""group_size: auto (photonpano.adaptive) and the binned check and fallback (photonpano.coarse)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from photonpano.adaptive import CaptureProbe, choose_group_size, plan_group_size, probe_capture
+from photonpano.stages import Locator, MergedFrames, PairRegistrations
+
+
+def _capture(**settings):
+    from photonpano.plugins.sources.simulate import SimulateConfig
+
+    base = {"frames": 3000, "height": 96, "width": 192, "vibration_px": 0.0}
+    return SimulateConfig(**{**base, **settings}).build()
+
+
+@pytest.mark.parametrize("speed", [0.02, 0.12])
+def test_probe_measures_speed_and_photon_rate(speed):
+    """Probe measures speed and photon rate."""
+    capture = _capture(speed_px_per_frame=speed, flux=0.5)
+    probe = probe_capture(capture)
+    assert probe.speed_px_per_frame == pytest.approx(speed, rel=0.15)
+    expected = float(capture.sum_ranges(np.array([0, capture.n_frames])).mean()) / capture.n_frames
+    assert probe.photons_per_pixel_per_frame == pytest.approx(expected, rel=0.2)
+
+
+def test_probe_finds_no_structure_in_uniform_photons(tmp_path):
+    """Probe finds no structure in uniform photons."""
+    import cv2
+
+    photo = tmp_path / "grey.png"
+    cv2.imwrite(str(photo), np.full((720, 1440, 3), 128, np.uint8))
+    probe = probe_capture(_capture(photo=photo))
+    assert probe.speed_px_per_frame is None
+    assert max(probe.correlations) < 0.25
+
+
+def test_group_size_follows_motion_and_light():
+    """Group size follows motion and light."""
+    bright_slow = choose_group_size(CaptureProbe(0.2, 0.01), 20_000)
+    fast = choose_group_size(CaptureProbe(0.2, 0.12), 20_000)
+    dark = choose_group_size(CaptureProbe(0.0015, 0.02), 20_000)
+    assert bright_slow.group_size == 500 and bright_slow.binning == 1  # the paper's typical m
+    assert fast.group_size == pytest.approx(10 / 0.12, rel=0.05)  # 10 px of smear
+    assert fast.blur_px == pytest.approx(10, rel=0.05)
+    # dark: longer groups (twice the smear budget) and binning make up the photons
+    assert 500 < dark.group_size <= 1000
+    assert dark.photons_per_pixel_per_group * dark.binning ** 2 >= 10
+    assert "light" in dark.reason and "motion" in fast.reason
+
+
+def test_group_size_leaves_enough_groups_and_suits_short_intensity_clips():
+    """Group size leaves enough groups and suits short intensity clips."""
+    assert choose_group_size(CaptureProbe(0.0001, 0.01), 3000).group_size == 600  # 5 groups
+    assert choose_group_size(CaptureProbe(None, None), 15).group_size == 3
+
+
+def test_explicit_group_size_is_kept():
+    """Explicit group size is kept."""
+    plan = plan_group_size(300, source=None)
+    assert (plan.group_size, plan.auto, plan.binning) == (300, False, 1)
+    with pytest.raises(ValueError, match="group_size"):
+        plan_group_size("big", source=None)
+
+
+class _Fixed(Locator):
+    """A locator returning one fixed result (ok or failed) for every pair."""
+
+    def __init__(self, homography, ok):
+        self.homography, self.ok = homography, ok
+
+    def register_pairs(self, merged, pairs, initial):
+        n = len(pairs)
+        return PairRegistrations(np.repeat(self.homography[None], n, 0), np.zeros(n, np.int64),
+                                 np.full(n, 50, np.int64), np.full(n, self.ok))
+
+
+def _noisy_pair(shift, photons_per_pixel, seed=0):
+    """Two merged frames of the bundled photo, b shifted by ``shift`` pixels, at a few photons per pixel."""
+    import cv2
+    from photonpano.plugins.sources.simulate import bundled_photo, load_scene
+
+    scene = load_scene(bundled_photo(), 1440)[200:500, 400:900]
+    rng = np.random.default_rng(seed)
+    h, w = 200, 400
+    a = scene[50:50 + h, 50:50 + w]
+    moved = cv2.warpAffine(scene, np.float32([[1, 0, -shift[0]], [0, 1, -shift[1]]]), scene.shape[::-1])
+    b = moved[50:50 + h, 50:50 + w]  # b(x) = a(x + shift): b's pixel x is a's pixel x + shift
+    frames = [rng.poisson(photons_per_pixel * img / img.mean()).astype(np.float32) for img in (a, b)]
+    flux = np.stack(frames)
+    return MergedFrames(flux=flux, frames=np.ones_like(flux), images=np.zeros(flux.shape, np.uint8),
+                        masks=np.ones(flux.shape, bool))
+
+
+def test_cascade_rescues_failed_pairs_and_rejects_wrong_ones():
+    """Cascade rescues failed pairs and rejects wrong ones."""
+    from photonpano.coarse import CascadeLocator
+
+    merged = _noisy_pair((6.0, -3.0), photons_per_pixel=1.5)
+    truth = np.array([[1, 0, 6.0], [0, 1, -3.0], [0, 0, 1]])
+    pairs, initial = np.array([[0, 1]]), np.eye(3)[None]
+    failing = CascadeLocator(_Fixed(np.eye(3), ok=False), binning=3)
+    found = failing.register_pairs(merged, pairs, initial)
+    assert found.ok[0]
+    assert np.abs(found.homographies[0][:2, 2] - truth[:2, 2]).max() < 0.5
+    wrong = CascadeLocator(_Fixed(np.array([[1, 0, -40.0], [0, 1, 25.0], [0, 0, 1]]), ok=True), binning=3)
+    found = wrong.register_pairs(merged, pairs, initial)
+    stats = wrong.take_statistics()
+    assert stats["rejected_by_check"] == 1 and stats["rescued"] == 1
+    assert np.abs(found.homographies[0][:2, 2] - truth[:2, 2]).max() < 0.5
+
+
+def test_cascade_flags_pure_noise():
+    """Cascade flags pure noise."""
+    from photonpano.coarse import CascadeLocator
+
+    rng = np.random.default_rng(1)
+    flux = rng.poisson(2.0, (2, 200, 400)).astype(np.float32)
+    merged = MergedFrames(flux=flux, frames=np.ones_like(flux), images=np.zeros(flux.shape, np.uint8),
+                          masks=np.ones(flux.shape, bool))
+    cascade = CascadeLocator(_Fixed(np.eye(3), ok=True), binning=3)
+    assert not cascade.register_pairs(merged, np.array([[0, 1]]), np.eye(3)[None]).ok[0]

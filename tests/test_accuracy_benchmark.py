@@ -1,0 +1,35 @@
+"""benchmarks/accuracy.py writes its table into the docs between markers (issue 10)."""
+
+import importlib.util
+from pathlib import Path
+
+import pytest
+
+BENCHMARK = Path(__file__).parents[1] / "benchmarks" / "accuracy.py"
+
+
+def _module():
+    spec = importlib.util.spec_from_file_location("accuracy_benchmark", BENCHMARK)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_the_table_replaces_only_the_text_between_the_markers(tmp_path):
+    """Text around the markers is kept; the old table is replaced; a file without markers is refused."""
+    bench = _module()
+    doc = tmp_path / "accuracy.md"
+    start, end = bench.START.format("accuracy-table"), bench.END.format("accuracy-table")
+    doc.write_text(f"intro\n{start}\nold table\n{end}\noutro\n")
+    row = {"regime": "fast-pan", "variant": "default", "frames": 12000, "bar": 0.5, "rmse": [0.5, 0.3, 0.24],
+           "psnr": 32.0, "psnr_true": 32.1, "gap": 0.1, "group_size": 84, "binning": 2, "status": "ok",
+           "warnings": [], "seconds": 113.0, "cpu_s": 40.0}
+    bench.write_table(doc, bench.markdown([row]), "python benchmarks/accuracy.py")
+    text = doc.read_text()
+    assert text.startswith("intro\n") and text.endswith("outro\n") and "old table" not in text
+    assert "| fast-pan | 12000 | default | 0.500, 0.300, **0.240** | 0.5 |" in text
+    assert "| 84 (2) | ok |" in text
+    doc.write_text("no markers")
+    with pytest.raises(SystemExit, match="markers"):
+        bench.write_table(doc, "table", "cmd")
+    assert set(bench.REGIMES) >= {"fast-pan", "dark-flux", "dark-scene", "rotation-zoom"}
