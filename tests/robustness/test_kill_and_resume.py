@@ -87,7 +87,7 @@ def test_resume_after_an_interrupted_level_equals_an_uninterrupted_run(reference
     assert not (out / "run.json").exists() and not (out / outputs.LOCK).exists()
     assert sorted(p.name for p in (out / outputs.CHECKPOINTS).iterdir()) == [f"level_{stop_after}.npz"]
     monkeypatch.setattr(outputs.RunFolder, "save_checkpoint", save)
-    summary = run_pipeline(spec, out, host, resume=True)
+    summary = run_pipeline(spec, out, host, resume=True).summary
     assert summary["resumed_after_level"] == stop_after and len(summary["levels"]) == 3
     assert np.array_equal(np.load(out / "homographies.npy"), expected)
     assert assert_sound_folder(out) and not (out / outputs.CHECKPOINTS).exists()
