@@ -91,7 +91,7 @@ def run_once(frames: int, overrides: list[str] = ()) -> dict:
     from photonpano.host import PluginHost
     from photonpano.metrics import trajectory_error
     from photonpano.pipeline import reconstruct
-    from photonpano.plugins.sources.simulate import SimulateConfig, camera_path, load_scene, bundled_photo
+    from photonpano.plugins.sources.simulate import SimulateConfig, bundled_photo, camera_path, load_scene
     from photonpano.spec import apply_overrides, validate_spec
 
     path = cube_path(frames)
@@ -124,7 +124,8 @@ def measure(frames: int, overrides: list[str] = ()) -> dict:
 
 def report(r: dict) -> None:
     """Print one run's figures."""
-    print(f"{r['frames']} frames: wall {r['wall_s']:.1f} s, CPU {r['cpu_s']:.1f} s, peak RSS {r['peak_rss_mb']:.0f} MB, "
+    print(f"{r['frames']} frames: wall {r['wall_s']:.1f} s, CPU {r['cpu_s']:.1f} s, "
+          f"peak RSS {r['peak_rss_mb']:.0f} MB, "
           f"floor {r['floor_s']:.2f} s, pipeline/floor {r['ratio']:.1f}x, trajectory RMSE {r['rmse_px']:.3f} px")
     for level in r["levels"]:
         print(f"  level {level['level']}: {level['groups']} groups, merge {level['merge']:.1f} s, "

@@ -121,7 +121,6 @@ def _observed(host):
 def _execute(spec, out: Path, force: bool, host, resume: bool = False) -> dict[str, Any]:
     import warnings
 
-    from .faults import plugin_failure
     from .pipeline import run_pipeline
 
     for note in host.collisions:  # a third party offering a key or name already taken

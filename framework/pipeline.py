@@ -99,7 +99,6 @@ def run_pipeline(spec: BaseModel, out_dir: Path | None, host: PluginHost, *, for
         PhotonpanoError: bad output folder, unreadable source, failed stage.
     """
     from .outputs import RunFolder
-
     from .spec import check_available
 
     check_available(spec)

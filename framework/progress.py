@@ -68,8 +68,14 @@ class RichProgress:
     """Progress bars with elapsed time and ETA on the terminal (rich), one per task."""
 
     def __init__(self, console: Any = None) -> None:
-        from rich.progress import (BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn,
-                                   TimeRemainingColumn)
+        from rich.progress import (
+            BarColumn,
+            MofNCompleteColumn,
+            Progress,
+            TextColumn,
+            TimeElapsedColumn,
+            TimeRemainingColumn,
+        )
 
         self.bars = Progress(TextColumn("{task.description:<26}"), BarColumn(), MofNCompleteColumn(),
                              TimeElapsedColumn(), TextColumn("eta"), TimeRemainingColumn(), console=console,
@@ -78,12 +84,14 @@ class RichProgress:
 
     @hookimpl
     def photonpano_run_start(self, source: Any) -> None:
+        """Print the capture's description and start drawing."""
         self.bars.console.print(f"source: {source.name}: {source.n_frames} frames of "
                                 f"{source.height}x{source.width}")
         self.bars.start()
 
     @hookimpl
     def photonpano_progress(self, task: str, total: int | None, advance: int) -> None:
+        """Add a bar for a new task, or advance its bar."""
         if task not in self.tasks:
             self.bars.start()
             self.tasks[task] = self.bars.add_task(task, total=total)
@@ -91,10 +99,12 @@ class RichProgress:
 
     @hookimpl
     def photonpano_level_finished(self, level: Any) -> None:
+        """Print the level's one-line summary above the bars."""
         self.bars.console.print(level_line(level))
 
     @hookimpl
     def photonpano_run_finished(self) -> None:
+        """Stop drawing."""
         self.stop()
 
     def stop(self) -> None:
@@ -113,6 +123,7 @@ class TqdmProgress:
 
     @hookimpl
     def photonpano_progress(self, task: str, total: int | None, advance: int) -> None:
+        """Open a bar for a new task, or advance its bar (closed when complete)."""
         bar = self.bars.get(task)
         if bar is None:
             bar = self.bars[task] = self._tqdm(total=total, desc=task, unit="", dynamic_ncols=True)
@@ -122,6 +133,7 @@ class TqdmProgress:
 
     @hookimpl
     def photonpano_run_finished(self) -> None:
+        """Stop drawing."""
         self.stop()
 
     def stop(self) -> None:
@@ -135,20 +147,24 @@ class LogObserver:
 
     @hookimpl
     def photonpano_run_start(self, spec: Any, source: Any, out_dir: Any) -> None:
+        """Log the capture and output folder (INFO) and the resolved spec (DEBUG)."""
         log.info("run start: source %s (%d frames of %dx%d), output %s", source.name, source.n_frames,
                  source.height, source.width, out_dir)
         log.debug("spec: %s", spec.model_dump(mode="json"))
 
     @hookimpl
     def photonpano_progress(self, task: str, total: int | None, advance: int) -> None:
+        """Log the start of each task (DEBUG)."""
         if advance == 0:
             log.debug("%s: started (%s units)", task, total)
 
     @hookimpl
     def photonpano_level_finished(self, level: Any) -> None:
+        """Log the level's one-line summary (INFO)."""
         log.info(level_line(level))
 
     @hookimpl
     def photonpano_run_finished(self, summary: dict[str, Any], out_dir: Any) -> None:
+        """Log the panorama size and the timings (INFO)."""
         log.info("run finished: panorama %dx%d, timings %s, output %s", summary["panorama"]["width"],
                  summary["panorama"]["height"], summary["timings_s"], out_dir)

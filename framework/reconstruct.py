@@ -231,8 +231,8 @@ def robust_least_squares(linearise: Callable[[NDArray[np.float64]], tuple[NDArra
     ``W = diag(1 / sqrt(1 + r^2 / f^2))`` by a direct factorisation
     (:func:`_solve_normal_equations`: banded Cholesky, else SuperLU). For pose graphs,
     whose normal matrix is banded, this is 3-4x faster than scipy's ``least_squares``
-    with ``lsmr`` (which it replaced) and linear in the number of keyframes. Reference: Triggs et al., "Bundle Adjustment - A Modern
-    Synthesis", 2000, Secs. 4.3 and 6.
+    with ``lsmr`` (which it replaced) and linear in the number of keyframes. Reference:
+    Triggs et al., "Bundle Adjustment - A Modern Synthesis", 2000, Secs. 4.3 and 6.
 
     Args:
         linearise: ``linearise(x)`` returns the residuals ((R,) float64) and their
@@ -333,7 +333,8 @@ def plausible(homographies: NDArray[np.float64], width: int, height: int,
     q = geometry.apply(homographies, geometry.corners(width, height))  # (P, 4, 2)
     edge = np.roll(q, -1, axis=1) - q
     cross = edge[..., 0] * np.roll(edge, -1, axis=1)[..., 1] - edge[..., 1] * np.roll(edge, -1, axis=1)[..., 0]
-    area = 0.5 * np.abs(np.sum(q[..., 0] * np.roll(q[..., 1], -1, axis=1) - np.roll(q[..., 0], -1, axis=1) * q[..., 1], axis=1))
+    shoelace = q[..., 0] * np.roll(q[..., 1], -1, axis=1) - np.roll(q[..., 0], -1, axis=1) * q[..., 1]
+    area = 0.5 * np.abs(np.sum(shoelace, axis=1))
     ratio = area / ((width - 1) * (height - 1))
     finite = np.all(np.isfinite(q), axis=(1, 2))
     return finite & np.all(cross > 0, axis=1) & (ratio < max_area_change) & (ratio > 1 / max_area_change)
@@ -504,7 +505,8 @@ def locate_keyframes(locator: Locator, merge: Callable[[NDArray[np.int64]], Merg
 
 
 def _stack(*parts: MergedFrames) -> MergedFrames:
-    return MergedFrames(*(np.concatenate([getattr(p, f) for p in parts]) for f in ("flux", "frames", "images", "masks")))
+    fields = ("flux", "frames", "images", "masks")
+    return MergedFrames(*(np.concatenate([getattr(p, f) for p in parts]) for f in fields))
 
 
 def _bridge(current: NDArray[np.float64], measured: NDArray[np.float64], ok: NDArray[np.bool_]) -> NDArray[np.float64]:
@@ -643,7 +645,8 @@ def _guard_keyframes(current: NDArray[np.float64], solved: NDArray[np.float64], 
     return _bridge(current, solved, good), int((~good).sum())
 
 
-def _corner_disagreement(a: NDArray[np.float64], b: NDArray[np.float64], width: int, height: int) -> NDArray[np.float64]:
+def _corner_disagreement(a: NDArray[np.float64], b: NDArray[np.float64], width: int,
+                         height: int) -> NDArray[np.float64]:
     """Largest corner distance in pixels between (P, 3, 3) homographies ``a`` and ``b``."""
     c = geometry.corners(width, height)
     return np.linalg.norm(geometry.apply(a, c) - geometry.apply(b, c), axis=-1).max(axis=-1)
@@ -687,7 +690,10 @@ def estimate_motion(
 
     Args:
         source: the capture.
-        resampler, merger, locator, interpolator: built stage objects.
+        resampler: the built resampler (groups of each level).
+        merger: the built merger (virtual exposures).
+        locator: the built locator of pairwise levels.
+        interpolator: the built interpolator (homographies for every binary frame).
         levels: number of levels (>= 1).
         group_size: binary frames per group m.
         pair_offsets: register merged frames g and g + k for each k; (1,) is the

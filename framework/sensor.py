@@ -42,7 +42,6 @@ from typing import Literal
 
 import numpy as np
 from numpy.typing import NDArray
-
 from pydantic import model_validator
 
 from .errors import SourceError

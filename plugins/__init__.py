@@ -1,0 +1,1 @@
+"""The built-in plugins of photonpano, registered through the ``photonpano.plugins`` entry points."""

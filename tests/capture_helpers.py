@@ -58,8 +58,9 @@ def write_video(path: Path, frames: np.ndarray, fps: float = 30, codec: str = "l
         codec: ``libx264`` (MP4), ``mjpeg`` (AVI), ``mpeg4``...
         **options: codec options, e.g. ``crf="18"``.
     """
-    import av
     from fractions import Fraction
+
+    import av
 
     with av.open(str(path), "w") as container:
         stream = container.add_stream(codec, rate=Fraction(fps).limit_denominator(1000))
@@ -97,7 +98,6 @@ def simulate_highspeed_video(frames: int = 1200, fps: float = 1000.0, height: in
         frame-to-scene homographies (averaged over each exposure).
     """
     import cv2
-
     from photonpano.photons import linear_to_srgb
     from photonpano.plugins.sources.simulate import SimulateConfig, bundled_photo, camera_path, load_scene
 

@@ -6,9 +6,8 @@ import sys
 from pathlib import Path
 
 import numpy as np
-import pytest
-
 import photonpano
+import pytest
 from photonpano.errors import PhotonpanoError, SpecError
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -101,9 +100,8 @@ def test_numba_cache_stays_out_of_the_package(tmp_path):
 
 
 def test_version_and_log_file(tmp_path):
-    from typer.testing import CliRunner
-
     from photonpano.cli import app
+    from typer.testing import CliRunner
 
     runner = CliRunner()
     result = runner.invoke(app, ["--version"])

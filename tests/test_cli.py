@@ -7,9 +7,8 @@ import sys
 import cv2
 import numpy as np
 import pytest
-from typer.testing import CliRunner
-
 from photonpano.cli import app
+from typer.testing import CliRunner
 
 runner = CliRunner()
 

@@ -4,10 +4,9 @@ import json
 
 import numpy as np
 import pytest
-from typer.testing import CliRunner
-
 from photonpano.cli import app
 from photonpano.compare import markdown_table
+from typer.testing import CliRunner
 
 TINY = ["--set", "source.frames=2400", "--set", "source.height=128", "--set", "source.width=248",
         "--set", "source.vibration_px=2", "--set", "group_size=300", "--set", "levels=2"]

@@ -6,7 +6,6 @@ spec.
 """
 
 import pytest
-
 from photonpano.pipeline import ground_truth_report, reconstruct
 from photonpano.spec import validate_spec
 
@@ -46,10 +45,9 @@ def test_rotation_zoom_and_shake_are_tracked(host):
 
 
 def test_super_resolution_canvas(host):
-    """scale 2: a canvas twice as large whose 2x2 averages match the scale-1 panorama."""
+    """Scale 2: a canvas twice as large whose 2x2 averages match the scale-1 panorama."""
     import cv2
     import numpy as np
-
     from photonpano.reconstruct import assemble_panorama
 
     spec = validate_spec({"source": {"plugin": "simulate", "frames": 3000, "height": 128, "width": 248},
@@ -72,7 +70,6 @@ def test_observers_get_the_panorama_with_the_capture_open(host, tmp_path):
     import types
 
     import numpy as np
-
     from photonpano import hookimpl
     from photonpano.pipeline import run_pipeline
 

@@ -1,0 +1,1 @@
+"""Built-in interpolators: homographies for every binary frame from keyframes."""

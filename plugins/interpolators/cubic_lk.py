@@ -17,12 +17,11 @@ from typing import Annotated, Literal
 
 import numpy as np
 from numpy.typing import NDArray
-from pydantic import Field
-
 from photonpano import hookimpl
 from photonpano.geometry import homographies_from_params, params_from_homographies
 from photonpano.stages import Groups, Interpolator, InterpolatorConfig
 from photonpano.types import check_shape
+from pydantic import Field
 
 
 class CubicLKConfig(InterpolatorConfig):

@@ -1,0 +1,1 @@
+"""Built-in locators: registration of merged frames (OpenCV, kornia, pycolmap)."""

@@ -1,0 +1,1 @@
+"""Built-in mergers: virtual exposures from groups of binary frames."""

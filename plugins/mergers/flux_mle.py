@@ -12,7 +12,6 @@ from typing import Literal
 
 import numpy as np
 from numpy.typing import NDArray
-
 from photonpano import hookimpl
 from photonpano.plugins.mergers.common import WarpMergeConfig, WarpMerger
 from photonpano.stages import MergerConfig, PhotonSource

@@ -16,11 +16,10 @@ from __future__ import annotations
 from typing import Annotated, Literal
 
 import numpy as np
-from pydantic import Field
-
 from photonpano import hookimpl
 from photonpano.plugins.mergers.common import WarpMergeConfig, WarpMerger
 from photonpano.stages import MergerConfig, PhotonSource
+from pydantic import Field
 
 
 class MeanConfig(WarpMergeConfig):
@@ -67,7 +66,10 @@ class MeanMerger(WarpMerger):
 
     def estimate(self, source: PhotonSource, sums: np.ndarray, frames: np.ndarray,
                  n_frames: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Mean linear intensity per pixel, trusted mask (saturation excluded) and image (see :meth:`WarpMerger.estimate`)."""
+        """Mean linear intensity per pixel, trusted mask (saturation excluded) and image.
+
+        See :meth:`WarpMerger.estimate`.
+        """
         from photonpano.intensity import mean_intensity
 
         mask = frames >= self.config.min_coverage * n_frames

@@ -1,0 +1,1 @@
+"""Built-in observers: extra outputs written from the run's lifecycle hooks."""

@@ -133,9 +133,8 @@ def photonpano_panorama_finished(panorama: Any, spec: Any, source: Any, out_dir:
         return
     import cv2
     from photonpano.hdr import write_flux_tiff
-    from photonpano.photons import linear_to_srgb
-
     from photonpano.outputs import atomic_path, save_npy
+    from photonpano.photons import linear_to_srgb
 
     rgb = colour_panorama(source, panorama.homographies, panorama.flux.shape[:2], make=spec.compositor.build,
                           subbatch_px=spec.panorama_subbatch_px)

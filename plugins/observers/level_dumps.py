@@ -14,8 +14,6 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 from photonpano import hookimpl
 
 
@@ -25,7 +23,6 @@ def photonpano_level_finished(level: Any, spec: Any, source: Any, out_dir: Path 
     if out_dir is None or not spec.outputs.merged_frames:
         return
     import cv2
-
     from photonpano.outputs import atomic_path, save_npy
 
     merged = level.merged

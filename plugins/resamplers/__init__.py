@@ -1,0 +1,1 @@
+"""Built-in resamplers: which binary frames form each virtual exposure."""

@@ -11,10 +11,9 @@ from __future__ import annotations
 from typing import Annotated, Literal
 
 import numpy as np
-from pydantic import Field
-
 from photonpano import hookimpl
 from photonpano.stages import Groups, Resampler, ResamplerConfig
+from pydantic import Field
 
 
 def level_one_references(n_frames: int, group_size: int) -> np.ndarray:

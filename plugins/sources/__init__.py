@@ -1,0 +1,1 @@
+"""Built-in sources: photon cubes, SwissSPAD readouts, high-speed video, simulators."""

@@ -16,12 +16,11 @@ from typing import Annotated, Any, Literal
 
 import numpy as np
 from numpy.typing import NDArray
-from pydantic import Field
-
 from photonpano import hookimpl
 from photonpano.errors import SourceError
 from photonpano.sensor import SwissSpadCorrections
 from photonpano.stages import PhotonSource, SourceConfig
+from pydantic import Field
 
 
 class NpyCubeConfig(SwissSpadCorrections):

@@ -19,12 +19,11 @@ from typing import Annotated, Any, ClassVar, Literal
 
 import numpy as np
 from numpy.typing import NDArray
-from pydantic import Field
-
 from photonpano import hookimpl
 from photonpano.errors import SourceError
 from photonpano.intensity import IntensitySource, response_lut
 from photonpano.stages import SourceConfig
+from pydantic import Field
 
 __all__ = ["PhotronMrawConfig", "PhotronMraw", "header_and_data", "unpack_uint12"]
 
@@ -135,7 +134,6 @@ class PhotronMraw(IntensitySource):
                 or a data file whose size does not match the header; messages name the file.
         """
         import pyMRAW
-
         from photonpano.streaming import FrameFiles, FrameSegment
 
         self.config = config
@@ -167,7 +165,8 @@ class PhotronMraw(IntensitySource):
                               f"{bits} bits = {n * frame_bytes} bytes (truncated or wrong header)")
         self.header, self.bits, self.effective_bits = cih, bits, eff
         self.shift = max(bits - eff, 0) if side == "higher" and bits != 8 else 0
-        shape, dtype = ((frame_bytes,), np.uint8) if bits == 12 else ((h, w), np.dtype("<u2") if bits == 16 else np.uint8)
+        frame_dtype = np.dtype("<u2") if bits == 16 else np.uint8
+        shape, dtype = ((frame_bytes,), np.uint8) if bits == 12 else ((h, w), frame_dtype)
         self.frames = FrameFiles([FrameSegment(mraw, 0, n)], shape, dtype, chunk_bytes=int(config.chunk_mb * 2**20))
         self.chunk_frames = max(1, min(self.frames.chunk_frames, 64))
         stop = n if config.stop is None else config.stop

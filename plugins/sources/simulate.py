@@ -15,12 +15,11 @@ from typing import Annotated, Literal
 
 import numpy as np
 from numpy.typing import NDArray
-from pydantic import Field
-
 from photonpano import hookimpl
 from photonpano.errors import SourceError
 from photonpano.outputs import atomic_path
 from photonpano.stages import PhotonSource, SourceConfig
+from pydantic import Field
 
 BUNDLED_PHOTO = "office_equirect.jpg"
 
@@ -169,7 +168,6 @@ def load_scene(photo: Path, scene_width: int) -> NDArray[np.float32]:
         SourceError: if the file is missing or cannot be decoded.
     """
     import cv2
-
     from photonpano.photons import srgb_to_linear
 
     if not photo.is_file():
@@ -231,7 +229,6 @@ class SimulatedCapture(PhotonSource):
     def _render(self, scene: NDArray[np.float32], to_scene: NDArray[np.float64]) -> None:
         """Draw every binary frame: ``to_scene`` (T, 3, 3) maps frame pixels to scene pixels."""
         import cv2
-
         from photonpano.photons import simulate_packed_frames
         from photonpano.progress import start_task
 

@@ -20,12 +20,11 @@ from typing import Annotated, Any, Callable, Literal
 
 import numpy as np
 from numpy.typing import NDArray
-from pydantic import Field
-
 from photonpano import hookimpl
 from photonpano.errors import SourceError
 from photonpano.sensor import BIN_FILE_BYTES, LAYOUTS, SwissSpadCorrections
 from photonpano.stages import PhotonSource, SourceConfig
+from pydantic import Field
 
 __all__ = ["SwissSpadBinConfig", "SwissSpadBin", "convert_bin_to_npy", "SourceWarning"]
 

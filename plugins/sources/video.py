@@ -28,12 +28,11 @@ from typing import Annotated, Any, ClassVar, Literal
 
 import numpy as np
 from numpy.typing import NDArray
-from pydantic import Field
-
 from photonpano import hookimpl
 from photonpano.errors import SourceError
 from photonpano.intensity import IntensitySource, read_cih_frame_rate, response_lut
 from photonpano.stages import SourceConfig
+from pydantic import Field
 
 __all__ = ["VideoConfig", "VideoSource", "VIDEO_SUFFIXES", "IMAGE_SUFFIXES", "find_cih"]
 
@@ -87,8 +86,11 @@ class VideoConfig(SourceConfig):
 
 
 def find_cih(path: Path) -> Path | None:
-    """Return the ``.cih`` file of a recording: ``<name>.cih`` next to it, or the only
-    ``.cih`` inside an image folder (or ``<folder>.cih`` next to it); None if absent."""
+    """Return the ``.cih`` file of a recording, or None if absent.
+
+    That is ``<name>.cih`` next to it, or the only ``.cih`` inside an image folder (or
+    ``<folder>.cih`` next to it).
+    """
     candidates = [path.with_suffix(".cih"), path.with_suffix(".CIH")]
     if path.is_dir():
         inside = sorted(p for p in path.iterdir() if p.suffix.lower() == ".cih")

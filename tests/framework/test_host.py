@@ -6,7 +6,6 @@ from pathlib import Path
 from typing import Literal
 
 import pytest
-
 from photonpano import hookimpl, hookspecs
 from photonpano.errors import PluginError
 from photonpano.host import GROUP, PluginHost

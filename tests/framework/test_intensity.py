@@ -2,7 +2,6 @@
 
 import numpy as np
 import pytest
-
 from photonpano.intensity import estimate_radiance, mean_intensity, read_cih_frame_rate, response_lut
 from photonpano.photons import flux_mle, srgb_to_linear
 

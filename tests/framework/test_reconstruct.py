@@ -2,7 +2,6 @@
 
 import numpy as np
 import pytest
-
 from photonpano import geometry
 from photonpano.errors import StageError
 from photonpano.reconstruct import chain_keyframes, locate_keyframes, pairs_at_offsets, plausible

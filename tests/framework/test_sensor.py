@@ -8,12 +8,22 @@ bottom half.
 
 import numpy as np
 import pytest
-
 from photonpano.errors import SourceError
 from photonpano.photons import sum_packed_ranges
-from photonpano.sensor import (LAYOUTS, SensorCorrector, SwissSpadCorrections, bundled_sensor_file,
-                               decode_frames, encode_frames, layout_scores, load_cfa, load_mask,
-                               record_counts_to_frame, transform_matrix, transform_shape)
+from photonpano.sensor import (
+    LAYOUTS,
+    SensorCorrector,
+    SwissSpadCorrections,
+    bundled_sensor_file,
+    decode_frames,
+    encode_frames,
+    layout_scores,
+    load_cfa,
+    load_mask,
+    record_counts_to_frame,
+    transform_matrix,
+    transform_shape,
+)
 
 
 def documented_bytes(frames: np.ndarray, layout: str) -> np.ndarray:

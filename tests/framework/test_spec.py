@@ -1,7 +1,6 @@
 import json
 
 import pytest
-
 from photonpano.errors import SpecError
 from photonpano.spec import apply_overrides, dump_spec, load_spec, spec_model, validate_spec
 

@@ -2,7 +2,6 @@
 
 import numpy as np
 import pytest
-
 from photonpano.photons import sum_packed_ranges, sum_unpacked_ranges
 from photonpano.streaming import FrameFiles, FrameSegment
 

@@ -1,19 +1,28 @@
-"""The contract kit (photonpano.testing) on the built-in plugins of every other stage kind,
-and on deliberately broken plugins (the kit must catch them)."""
+"""The contract kit (photonpano.testing) on built-in and deliberately broken plugins.
+
+The built-in plugins of every other stage kind must pass; broken ones must be caught.
+"""
 
 from typing import Literal
 
 import numpy as np
 import pytest
-
 from photonpano.plugins.interpolators.cubic_lk import CubicLKConfig
 from photonpano.plugins.mergers.flux_mle import FluxMLEConfig
 from photonpano.plugins.resamplers.midpoint import MidpointConfig
 from photonpano.plugins.sources.npy_cube import NpyCubeConfig
 from photonpano.plugins.sources.simulate import SimulateConfig
 from photonpano.stages import Locator, LocatorConfig, PairRegistrations
-from photonpano.testing import (InterpolatorContract, LocatorContract, MergerContract, ResamplerContract,
-                                SourceContract, corner_error_px, synthetic_pair, tiny_capture)
+from photonpano.testing import (
+    InterpolatorContract,
+    LocatorContract,
+    MergerContract,
+    ResamplerContract,
+    SourceContract,
+    corner_error_px,
+    synthetic_pair,
+    tiny_capture,
+)
 
 
 class TestSimulate(SourceContract):

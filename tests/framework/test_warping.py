@@ -1,5 +1,4 @@
 import numpy as np
-
 from photonpano import geometry
 from photonpano.warping import WarpAccumulator, subbatch_edges
 

@@ -4,7 +4,6 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
-
 from capture_helpers import embed_colorspad
 from photonpano.compose import Panorama
 from photonpano.plugins.compositors.drizzle import DrizzleConfig

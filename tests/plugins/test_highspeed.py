@@ -12,12 +12,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from typer.testing import CliRunner
-
 from capture_helpers import simulate_highspeed_video, write_video
 from photonpano.cli import app
 from photonpano.errors import SourceError, StageError
 from photonpano.intensity import IntensitySource
+from typer.testing import CliRunner
 
 HIGHSPEED = Path(__file__).parents[1] / "data" / "highspeed"
 runner = CliRunner()
@@ -302,10 +301,9 @@ def test_real_photron_clip_static_within_one_pixel_with_the_default_locator():
 def test_pano_on_the_real_photron_clip_needs_no_overrides(tmp_path):
     """Acceptance (issue 10): ``photonpano pano ball_12bit.mraw -o out`` alone keeps the static camera static."""
     _pymraw()
-    from typer.testing import CliRunner
-
     from photonpano.cli import app
     from photonpano.geometry import apply, corners
+    from typer.testing import CliRunner
 
     result = CliRunner().invoke(app, ["-q", "pano", str(HIGHSPEED / "ball_12bit.mraw"), "-o", str(tmp_path / "out")])
     assert result.exit_code == 0, result.output

@@ -1,6 +1,5 @@
 import numpy as np
 import pytest
-
 from photonpano import geometry
 from photonpano.plugins.interpolators.cubic_lk import CubicLKConfig
 from photonpano.stages import Groups

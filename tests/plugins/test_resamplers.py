@@ -1,6 +1,5 @@
 import numpy as np
 import pytest
-
 from photonpano.plugins.resamplers.midpoint import ConstantConfig, MidpointConfig
 
 

@@ -2,11 +2,10 @@ import hashlib
 
 import numpy as np
 import pytest
-
-from testdata import packed_cube
 from photonpano.errors import SourceError
 from photonpano.plugins.sources.npy_cube import NpyCubeConfig
 from photonpano.plugins.sources.simulate import SimulateConfig, camera_path
+from testdata import packed_cube
 
 
 def _digest(path):

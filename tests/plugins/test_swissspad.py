@@ -12,14 +12,13 @@ import warnings
 
 import numpy as np
 import pytest
-from typer.testing import CliRunner
-
 from capture_helpers import simulate_raw_half
 from photonpano.cli import app
 from photonpano.errors import SourceError
 from photonpano.plugins.sources.npy_cube import NpyCubeConfig
 from photonpano.plugins.sources.swissspad import SourceWarning, SwissSpadBinConfig
 from photonpano.sensor import LAYOUTS, write_bin_files
+from typer.testing import CliRunner
 
 runner = CliRunner()
 

@@ -30,8 +30,11 @@ outputs: {trajectory_plot: false}
 
 
 def invoke(*args):
-    """Run the command line in this process with ``-q`` (stderr holds only warnings and errors,
-    no progress display); return click's result (``exit_code``, ``stderr``)."""
+    """Run the command line in this process with ``-q``; return click's result.
+
+    With ``-q`` stderr holds only warnings and errors (no progress display); the result
+    has ``exit_code`` and ``stderr``.
+    """
     return CliRunner().invoke(app, ["-q", *(str(a) for a in args)])
 
 

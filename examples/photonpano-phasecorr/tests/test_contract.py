@@ -1,7 +1,6 @@
 """photonpano's contract tests, run on this plugin (what every plugin package should do)."""
 
 import numpy as np
-
 from photonpano.testing import LocatorContract, corner_error_px, synthetic_pair
 from photonpano_phasecorr.plugin import PhaseCorrConfig
 

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-
 from locator_cases import DATA
+
 
 @pytest.fixture(scope="session")
 def real_pair():
@@ -15,7 +15,6 @@ def real_pair():
     the warp left the source) is untrusted.
     """
     import cv2
-
     from photonpano.stages import MergedFrames
 
     source, target = cv2.imread(str(DATA / "source.png")), cv2.imread(str(DATA / "target.png"))

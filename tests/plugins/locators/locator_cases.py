@@ -1,7 +1,8 @@
 """Cases shared by the locator tests: the real registration pair, the backends, guards.
 
 Imported as ``from locator_cases import ...`` (a unique module name: ``from conftest
-import`` would pick whichever conftest was imported first)."""
+import`` would pick whichever conftest was imported first).
+"""
 
 from __future__ import annotations
 
@@ -38,7 +39,6 @@ def need_backend(key: str) -> None:
 def perturbed_truth(shifts_px=((2.1, -1.4), (-1.7, 2.3), (1.2, 1.9), (-2.4, -0.9))) -> np.ndarray:
     """The true warp with the target's corners moved by a few pixels (a direct method's start)."""
     import cv2
-
     from photonpano import geometry
 
     c = geometry.corners(640, 480).astype(np.float32)

@@ -2,7 +2,6 @@
 
 import numpy as np
 import pytest
-
 from photonpano.plugins.locators.opencv_ecc import OpenCVEccConfig
 from photonpano.plugins.locators.opencv_features import OpenCVOrbConfig
 from photonpano.plugins.locators.opencv_sift import OpenCVSiftConfig
@@ -24,7 +23,8 @@ def _eye(n):
     return np.repeat(np.eye(3)[None], n, axis=0)
 
 
-@pytest.mark.parametrize("config", [OpenCVSiftConfig(image_scale=1.0), OpenCVOrbConfig(refine="lm")], ids=lambda c: c.plugin)
+@pytest.mark.parametrize("config", [OpenCVSiftConfig(image_scale=1.0), OpenCVOrbConfig(refine="lm")],
+                         ids=lambda c: c.plugin)
 def test_second_call_of_a_level_reuses_every_description(four_frames, config):
     locator = config.build()
     chain = locator.register_pairs(four_frames, CHAIN, _eye(3))

@@ -5,7 +5,6 @@ running them here keeps the kit honest and the built-ins within the contract.
 """
 
 import pytest
-
 from photonpano.plugins.locators.kornia_direct import KorniaDirectConfig
 from photonpano.plugins.locators.kornia_sift import KorniaSiftConfig
 from photonpano.plugins.locators.opencv_ecc import OpenCVEccConfig

@@ -9,7 +9,6 @@ gain and offset. kornia-direct's plain L1 loss traded that mismatch for a spurio
 import numpy as np
 import pytest
 from locator_cases import DATA, DIRECT_LOCATORS, need_backend
-
 from photonpano import geometry
 from photonpano.host import PluginHost
 from photonpano.photons import tone_map

@@ -2,7 +2,6 @@
 
 import numpy as np
 from locator_cases import DATA
-
 from photonpano import geometry
 from photonpano.plugins.locators.common import ecc_polish
 

@@ -2,7 +2,6 @@
 
 import numpy as np
 import pytest
-
 from photonpano import geometry
 from photonpano.plugins.locators.common import gric, robust_motion
 

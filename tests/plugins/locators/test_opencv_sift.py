@@ -2,7 +2,6 @@
 
 import cv2
 import numpy as np
-
 from locator_cases import DATA, H_TARGET_TO_SOURCE
 from photonpano import geometry
 from photonpano.plugins.locators.opencv_sift import OpenCVSiftConfig

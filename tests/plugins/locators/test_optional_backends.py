@@ -1,15 +1,17 @@
-"""Optional backends: listed as unavailable with the install command when missing, refused
-at validation before any data is read, and never imported just to register or validate."""
+"""Optional backends: unavailable with an install command, refused early, imported lazily.
+
+Listed as unavailable with the install command when missing, refused at validation
+before any data is read, and never imported just to register or validate.
+"""
 
 import importlib.util
 import subprocess
 import sys
 
 import pytest
-from typer.testing import CliRunner
-
 from photonpano.errors import MissingDependency, SpecError
 from photonpano.spec import validate_spec
+from typer.testing import CliRunner
 
 HINTS = {"kornia-sift": "pip install 'photonpano[kornia]'", "kornia-direct": "pip install 'photonpano[kornia]'",
          "pycolmap-sift": "pip install 'photonpano[colmap]'"}

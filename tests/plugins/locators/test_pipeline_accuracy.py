@@ -8,7 +8,6 @@ is checked on 4 000 frames of the full 254x496 size instead (measured 0.09 px). 
 """
 
 import pytest
-
 from locator_cases import ALL_LOCATORS, need_backend
 from photonpano.pipeline import reconstruct
 from photonpano.spec import validate_spec

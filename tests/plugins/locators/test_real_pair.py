@@ -6,7 +6,6 @@ from the true warp with the corners moved 1.6-2.6 px, their use in the pipeline.
 
 import numpy as np
 import pytest
-
 from locator_cases import ALL_LOCATORS, DIRECT_LOCATORS, H_TARGET_TO_SOURCE, need_backend, perturbed_truth
 from photonpano.testing import corner_error_px
 
@@ -63,7 +62,6 @@ def test_pycolmap_keypoints_follow_our_pixel_centres(host):
     """
     need_backend("pycolmap-sift")
     import cv2
-
     from locator_cases import DATA
 
     image = cv2.imread(str(DATA / "source.png"), cv2.IMREAD_GRAYSCALE)
