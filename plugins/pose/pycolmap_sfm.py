@@ -67,6 +67,8 @@ class PycolmapSfMConfig(PoseEstimatorConfig):
     default 16 suits orbits, not a camera travelling a fraction of the scene depth)."""
     attempts: Annotated[int, Field(ge=1)] = 3
     """Level 1: mapping attempts (other seeds) while fewer than ``min_registered`` exposures register."""
+    relocalise: bool = True
+    """Levels >= 3: register against the previous level's bundle-adjusted model (else level 1's)."""
     bundle_adjust: bool = True
     """Levels >= 2: triangulate the registered exposures' matches and bundle-adjust their poses
     and points together (else keep the poses of the single-image registration)."""
@@ -171,6 +173,8 @@ class PycolmapSfM(PoseEstimator):
                     break
                 if cfg.bundle_adjust:
                     final = refined
+                    if cfg.relocalise:  # the next level registers against this sharper model
+                        landmarks = model_landmarks(refined, self._database)
                     row.update(
                         points=int(refined.num_points3D()),
                         reprojection_error_px=float(refined.compute_mean_reprojection_error()),
@@ -341,6 +345,7 @@ class PycolmapSfM(PoseEstimator):
         adjust.ceres.loss_function_type = pycolmap.LossFunctionType.CAUCHY
         pycolmap.bundle_adjustment(model, adjust)
         model.extract_colors_for_all_images(str(image_dir))
+        self._database = database
         return model_poses(model, references), model
 
     def _check_light(self, source: PhotonSource, merged: Any) -> None:
