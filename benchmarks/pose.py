@@ -17,7 +17,7 @@ import time
 from pathlib import Path
 
 from photonpano.host import PluginHost
-from photonpano.pose import run_pose
+from photonpano.pose_run import run_pose
 from photonpano.spec import validate_spec
 
 
@@ -75,8 +75,10 @@ def main() -> None:
             reproj = row.get("reprojection_error_px")
             print(
                 f"| {row['level']}{' (naive)' if row['level'] == 1 else ''} | {row['exposures']} | "
-                f"{row['registered']} | {row.get('points', '')} | {reproj if reproj is None else f'{reproj:.2f}'} | "
-                f"{1e3 * row.get('ate_m', nan):.2f} | {1e3 * row.get('exposure_ate_m', nan):.2f} | "
+                f"{row['registered']} | {row.get('points', '')} | "
+                f"{reproj if reproj is None else f'{reproj:.2f}'} | "
+                f"{1e3 * row.get('ate_m', nan):.2f} | "
+                f"{1e3 * row.get('exposure_ate_m', nan):.2f} | "
                 f"{1e3 * rpe.get('translation_m', nan):.2f} | {rpe.get('percent', nan):.1f} | "
                 f"{rpe.get('rotation_deg', nan):.3f} | {row['timings_s']['register']:.0f} |"
             )

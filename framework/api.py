@@ -105,6 +105,9 @@ def run(spec: str | Path | Mapping[str, Any], out_dir: str | Path | None = None,
         parsed = load_spec(path, host, sets)
     else:
         parsed = validate_spec(apply_overrides(data, sets), host, origin=origin, node=node, overridden=sets)
+    if getattr(parsed, "pose_estimator", None) is not None:
+        raise SpecError(f"{origin}: a spec with a pose_estimator runs with photonpano.pose_run.run_pose "
+                        "(or `photonpano run`), not photonpano.run")
     observer = None
     if progress:
         from .progress import TqdmProgress

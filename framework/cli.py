@@ -211,7 +211,7 @@ def _capture_spec(path: Path, host) -> dict[str, Any]:
 
 
 def _execute_pose(spec, out: Path, force: bool, host) -> dict[str, Any]:
-    from .pose import run_pose
+    from .pose_run import run_pose
 
     with _observed(host):
         return run_pose(spec, out, host, force=force)[0]
@@ -220,7 +220,8 @@ def _execute_pose(spec, out: Path, force: bool, host) -> dict[str, Any]:
 def _report_pose(summary: dict[str, Any], out: Path) -> None:
     last = summary["levels"][-1]
     typer.echo(f"poses for {summary['frames_with_pose']} of {summary['source']['frames']} binary frames "
-               f"written to {out} (level {last['level']}: {last['registered']}/{last['exposures']} virtual exposures "
+               f"written to {out} (level {last['level']}: {last['registered']}/{last['exposures']} "
+               "virtual exposures "
                f"registered, {summary['timings_s']['estimate']:.1f} s)")
     gt = summary.get("ground_truth")
     if gt and "rpe" in gt:

@@ -1,4 +1,4 @@
-"""Experimental 6-DoF pose estimation: records, SE(3) interpolation, metrics, the ``pose`` run.
+"""Experimental 6-DoF pose estimation: records, SE(3) interpolation, metrics, plane homographies.
 
 Poses are camera-to-world 4x4 float64 matrices ``P = [[R, c], [0, 1]]`` in OpenCV camera
 axes (x right, y down, z forward): a point ``X_cam`` in the camera maps to
@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import json
 import math
-import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -26,7 +25,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from .errors import SpecError, StageError
+from .errors import SpecError
 
 __all__ = [
     "Intrinsics",
@@ -38,9 +37,6 @@ __all__ = [
     "relative_pose_error",
     "plane_homographies",
     "dominant_plane",
-    "pose_report",
-    "run_pose",
-    "write_ply",
 ]
 
 
@@ -352,205 +348,3 @@ def plane_homographies(
     d_t = distance - c @ normal
     h = k @ (rot + c[:, :, None] * n_t[:, None, :] / d_t[:, None, None]) @ np.linalg.inv(k)
     return h / h[:, 2:3, 2:3]
-
-
-# --- the run ------------------------------------------------------------------------------------
-
-
-def pose_report(result: PoseResult, truth: NDArray[np.float64], gap: int) -> list[dict[str, Any]]:
-    """Score every level of ``result`` against true poses.
-
-    Args:
-        result: the estimator's result.
-        truth: (T, 4, 4) float64 true camera-to-world poses.
-        gap: frame gap of the relative pose error (frames).
-
-    Returns:
-        One dict per level: ``ate_m``, ``rpe`` (see :func:`relative_pose_error`),
-        ``exposure_ate_m`` (ATE at the registered exposures' centre frames only).
-    """
-    rows = []
-    for frames, poses in result.level_exposures:
-        row: dict[str, Any] = {}
-        ok = np.all(np.isfinite(poses.reshape(len(poses), -1)), axis=1)
-        if ok.sum() >= 3:
-            every = interpolate_poses(frames, poses, len(truth))
-            row["ate_m"] = absolute_trajectory_error(every, truth)
-            row["exposure_ate_m"] = absolute_trajectory_error(poses[ok], truth[frames[ok]])
-            row["rpe"] = relative_pose_error(every, truth, gap)
-        rows.append(row)
-    return rows
-
-
-def write_ply(path: Path, points: NDArray[np.float64], colors: NDArray[np.uint8]) -> None:
-    """Write points with colours as a binary little-endian PLY.
-
-    Args:
-        path: output file.
-        points: (N, 3) float64 positions.
-        colors: (N, 3) uint8 RGB colours.
-    """
-    record = np.empty(
-        len(points),
-        dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("red", "u1"), ("green", "u1"), ("blue", "u1")],
-    )
-    for i, name in enumerate("xyz"):
-        record[name] = points[:, i]
-    for i, name in enumerate(("red", "green", "blue")):
-        record[name] = colors[:, i]
-    header = (
-        "ply\nformat binary_little_endian 1.0\n"
-        f"element vertex {len(points)}\n"
-        "property float x\nproperty float y\nproperty float z\n"
-        "property uchar red\nproperty uchar green\nproperty uchar blue\nend_header\n"
-    )
-    with open(path, "wb") as fh:
-        fh.write(header.encode("ascii"))
-        fh.write(record.tobytes())
-
-
-def _plot(path: Path, result: PoseResult, truth: NDArray[np.float64] | None) -> None:
-    """Top view (x, z), x/y/z over time and, with ground truth, the error over time of the trajectory."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    poses = result.poses
-    if truth is not None:
-        poses = align_to(poses, truth)
-    fig, axes = plt.subplots(1, 3 if truth is not None else 2, figsize=(16 if truth is not None else 11, 4.5))
-    top, time_ax = axes[:2]
-    if truth is not None:
-        top.plot(truth[:, 0, 3], truth[:, 2, 3], "k-", lw=1, label="true")
-    top.plot(
-        poses[:, 0, 3],
-        poses[:, 2, 3],
-        "-",
-        lw=1,
-        label="estimate" + (" (aligned)" if truth is not None else ""),
-    )
-    top.set(xlabel="x (world)", ylabel="z (world)", title="camera centres, top view", aspect="equal")
-    top.legend()
-    t = np.arange(len(poses))
-    for axis, name in enumerate("xyz"):
-        time_ax.plot(t, poses[:, axis, 3], lw=1, label=f"{name} estimate")
-        if truth is not None:
-            time_ax.plot(t, truth[:, axis, 3], "k:", lw=0.8)
-    time_ax.set(xlabel="binary frame", ylabel="camera centre (world)", title="camera centre over time")
-    time_ax.legend(fontsize=8)
-    if truth is not None:
-        error = 1e3 * (poses[:, :3, 3] - truth[:, :3, 3])
-        for axis, name in enumerate("xyz"):
-            axes[2].plot(t, error[:, axis], lw=0.8, label=name)
-        axes[2].set(xlabel="binary frame", ylabel="error (truth units / 1000)", title="centre error, aligned")
-        axes[2].legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-
-
-def run_pose(
-    spec: Any,
-    out_dir: Path | None,
-    host: Any,
-    *,
-    intrinsics: Intrinsics | None = None,
-    force: bool = False,
-    rpe_gap: int | None = None,
-) -> tuple[dict[str, Any], PoseResult]:
-    """Run a spec's ``pose_estimator`` on its source and write the pose outputs.
-
-    Outputs in ``out_dir``: ``poses.npy`` (T, 4, 4), ``exposure_poses.npy`` (E, 4, 4),
-    ``exposure_frames.npy`` (E,), ``points.ply``, ``model/`` (COLMAP model),
-    ``intrinsics.json``, ``trajectory.png``, ``spec.yaml`` and, last, ``run.json``.
-
-    Args:
-        spec: a validated ``PipelineSpec`` whose ``pose_estimator`` is set.
-        out_dir: output folder (must be empty unless ``force``), or None for a run in a
-            temporary folder whose files are discarded.
-        host: the plugin host (progress goes to its hooks).
-        intrinsics: known intrinsics; None: those in the file ``pose_estimator.intrinsics``,
-            or self-calibration if it names none.
-        force: allow writing into a non-empty folder.
-        rpe_gap: frame gap of the relative pose error (default: the group size m).
-
-    Returns:
-        ``(summary, result)``: the ``run.json`` content and the :class:`PoseResult`.
-
-    Raises:
-        PhotonpanoError: bad output folder, unreadable source, failed estimation.
-    """
-    import platform
-    import shutil
-    import tempfile
-
-    from . import __version__
-    from .pipeline import library_versions, prepare_output
-    from .progress import reporting, start_task
-    from .spec import dump_spec
-
-    if getattr(spec, "pose_estimator", None) is None:
-        raise SpecError("spec: no pose_estimator section (e.g. pose_estimator: pycolmap-sfm)")
-    type(spec.source).check_available()
-    type(spec.pose_estimator).check_available()
-    if intrinsics is None and spec.pose_estimator.intrinsics is not None:
-        intrinsics = Intrinsics.load(spec.pose_estimator.intrinsics)
-    if out_dir is not None:
-        prepare_output(out_dir, force)
-        (out_dir / "spec.yaml").write_text(dump_spec(spec))
-    work = Path(tempfile.mkdtemp(prefix="photonpano-pose-")) if out_dir is None else out_dir / "work"
-    timings: dict[str, float] = {}
-    try:
-        with reporting(host):
-            t0 = time.perf_counter()
-            source = spec.source.build()
-            timings["source"] = time.perf_counter() - t0
-            if getattr(source, "kind", "binary") != "binary":
-                raise StageError(
-                    "pose_estimator",
-                    type(spec.pose_estimator).__name__,
-                    f"source {source.name!r} is not a binary capture",
-                )
-            work.mkdir(parents=True, exist_ok=True)
-            t0 = time.perf_counter()
-            result = spec.pose_estimator.build().estimate(source, intrinsics, work, progress=start_task)
-            timings["estimate"] = time.perf_counter() - t0
-        summary: dict[str, Any] = {
-            "photonpano": __version__,
-            "python": platform.python_version(),
-            "versions": library_versions(spec),
-            "plugins": host.versions(),
-            "spec": spec.model_dump(mode="json"),
-            "source": source.describe(),
-            "intrinsics": {
-                "given": intrinsics.as_dict() if intrinsics else None,
-                "used": result.intrinsics.as_dict(),
-            },
-            "frames_with_pose": int(
-                np.all(np.isfinite(result.poses.reshape(len(result.poses), -1)), axis=1).sum()
-            ),
-            "levels": result.levels,
-            "timings_s": timings,
-        }
-        truth = getattr(source, "ground_truth_poses", None)
-        if truth is not None:
-            gap = rpe_gap or int(getattr(spec.pose_estimator, "group_size", 1000))
-            report = pose_report(result, truth, gap)
-            for row, scores in zip(summary["levels"], report):
-                row.update(scores)
-            summary["ground_truth"] = {"rpe_gap_frames": gap, **report[-1]}
-        if out_dir is not None:
-            np.save(out_dir / "poses.npy", result.poses)
-            np.save(out_dir / "exposure_poses.npy", result.exposure_poses)
-            np.save(out_dir / "exposure_frames.npy", result.exposure_frames)
-            write_ply(out_dir / "points.ply", result.points, result.colors)
-            if result.model_dir is not None:
-                shutil.copytree(result.model_dir, out_dir / "model", dirs_exist_ok=True)
-            (out_dir / "intrinsics.json").write_text(json.dumps(result.intrinsics.as_dict(), indent=2))
-            _plot(out_dir / "trajectory.png", result, truth)
-            (out_dir / "run.json").write_text(json.dumps(summary, indent=2))
-        return summary, result
-    finally:
-        if out_dir is None:
-            shutil.rmtree(work, ignore_errors=True)

@@ -136,7 +136,8 @@ def spec_model(host: PluginHost) -> type[BaseModel]:
     for stage in STAGES:
         classes = list(host.registry(stage).values())
         if stage == "pose_estimator":  # optional: a spec with it runs `photonpano pose`
-            slots[stage] = (Annotated[Union[_tagged(classes) if classes else None, None], Field(  # noqa: UP007
+            tagged = _tagged(classes) if classes else None
+            slots[stage] = (Annotated[Union[tagged, None], Field(  # noqa: UP007
                 description="Experimental: estimate 6-DoF camera poses instead of a panorama.")], None)
             continue
         if not classes:

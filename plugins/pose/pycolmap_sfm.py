@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import time
 from pathlib import Path
-from typing import Annotated, Any, Literal, NamedTuple
+from typing import Annotated, Any, Literal
 
 import numpy as np
 from numpy.typing import NDArray
@@ -24,13 +24,7 @@ from photonpano.errors import StageError
 from photonpano.stages import PhotonSource, PoseEstimator, PoseEstimatorConfig
 from pydantic import Field
 
-
-class _Landmarks(NamedTuple):
-    """Level-1 model observations: (K,) int64 frames, (K, 128) float32 unit descriptors, (K, 3) points."""
-
-    frames: NDArray[np.int64]
-    descriptors: NDArray[np.float32]
-    xyz: NDArray[np.float64]
+from ._colmap import model_landmarks, model_poses, write_and_match
 
 
 class PycolmapSfMConfig(PoseEstimatorConfig):
@@ -73,6 +67,8 @@ class PycolmapSfMConfig(PoseEstimatorConfig):
     default 16 suits orbits, not a camera travelling a fraction of the scene depth)."""
     attempts: Annotated[int, Field(ge=1)] = 3
     """Level 1: mapping attempts (other seeds) while fewer than ``min_registered`` exposures register."""
+    relocalise: bool = True
+    """Levels >= 3: register against the previous level's bundle-adjusted model (else level 1's)."""
     bundle_adjust: bool = True
     """Levels >= 2: triangulate the registered exposures' matches and bundle-adjust their poses
     and points together (else keep the poses of the single-image registration)."""
@@ -132,7 +128,7 @@ class PycolmapSfM(PoseEstimator):
                 rec, used = self._map(
                     merged.images, groups.reference, work_dir / "level_1", intrinsics, progress
                 )
-                poses, inliers, final = self._model_poses(rec, groups.reference), None, rec
+                poses, inliers, final = model_poses(rec, groups.reference), None, rec
             else:
                 poses, inliers = self._localise(
                     merged.images, groups.reference, rec, landmarks, progress, level
@@ -167,7 +163,7 @@ class PycolmapSfM(PoseEstimator):
                         "level-1 virtual exposures registered (too dark, too little texture or "
                         "motion, or wrong intrinsics)",
                     )
-                landmarks = self._landmarks(rec, self._database)
+                landmarks = model_landmarks(rec, self._database)
             else:
                 found = inliers[np.isfinite(inliers)]
                 row.update(median_inliers=float(np.median(found)) if len(found) else 0.0)
@@ -177,6 +173,8 @@ class PycolmapSfM(PoseEstimator):
                     break
                 if cfg.bundle_adjust:
                     final = refined
+                    if cfg.relocalise:  # the next level registers against this sharper model
+                        landmarks = model_landmarks(refined, self._database)
                     row.update(
                         points=int(refined.num_points3D()),
                         reprojection_error_px=float(refined.compute_mean_reprojection_error()),
@@ -204,39 +202,6 @@ class PycolmapSfM(PoseEstimator):
             level_exposures=exposures,
             model_dir=model_dir,
         )
-
-    @staticmethod
-    def _model_poses(rec: Any, references: NDArray[np.int64]) -> NDArray[np.float64]:
-        """(G, 4, 4) camera-to-world poses of ``rec``'s images, named by reference frame (NaN if absent)."""
-        poses = np.full((len(references), 4, 4), np.nan)
-        for image in rec.images.values() if rec is not None else ():
-            if image.has_pose:
-                index = np.searchsorted(references, int(Path(image.name).stem))
-                poses[index] = np.vstack([image.cam_from_world().inverse().matrix(), [0, 0, 0, 1]])
-        return poses
-
-    @staticmethod
-    def _landmarks(rec: Any, database: Path) -> _Landmarks:
-        """The level-1 model's 2D-3D observations: per registered image, descriptors and 3D points."""
-        import pycolmap
-
-        frames, descriptors, xyz = [], [], []
-        db = pycolmap.Database.open(str(database))
-        try:
-            for image_id, image in rec.images.items():
-                if not image.has_pose:
-                    continue
-                data = db.read_descriptors(image_id).data
-                for idx, point in enumerate(image.points2D):
-                    if point.has_point3D():
-                        frames.append(int(Path(image.name).stem))
-                        descriptors.append(data[idx])
-                        xyz.append(rec.points3D[point.point3D_id].xyz)
-        finally:
-            db.close()
-        desc = np.asarray(descriptors, np.float32)
-        desc /= np.maximum(np.linalg.norm(desc, axis=1, keepdims=True), 1e-12)
-        return _Landmarks(np.asarray(frames, np.int64), desc, np.asarray(xyz, np.float64))
 
     def _localise(
         self,
@@ -316,7 +281,8 @@ class PycolmapSfM(PoseEstimator):
         import pycolmap
 
         camera = next(iter(rec.cameras.values()))
-        database, image_dir = self._features(
+        database, image_dir = write_and_match(
+            self.config,
             images,
             references,
             folder,
@@ -379,66 +345,8 @@ class PycolmapSfM(PoseEstimator):
         adjust.ceres.loss_function_type = pycolmap.LossFunctionType.CAUCHY
         pycolmap.bundle_adjustment(model, adjust)
         model.extract_colors_for_all_images(str(image_dir))
-        return self._model_poses(model, references), model
-
-    def _features(
-        self,
-        images: NDArray[np.uint8],
-        references: NDArray[np.int64],
-        folder: Path,
-        camera_model: str,
-        camera_params: list[float] | None,
-        progress: Any,
-        level: int,
-        seed: int = 0,
-    ) -> tuple[Path, Path]:
-        """Write the exposures as PNGs named by reference frame, extract SIFT and match (COLMAP database)."""
-        import cv2
-        import pycolmap
-
-        cfg = self.config
-        image_dir = folder / "images"
-        image_dir.mkdir(parents=True, exist_ok=True)
-        names = []
-        for image, ref in zip(images, references):
-            names.append(f"{int(ref):08d}.png")
-            cv2.imwrite(str(image_dir / names[-1]), image)
-        database = folder / f"database_{seed}.db"
-        database.unlink(missing_ok=True)
-        verification = pycolmap.TwoViewGeometryOptions()
-        verification.ransac.random_seed = seed
-        pycolmap.logging.minloglevel = 2
-        pycolmap.set_random_seed(seed)
-        reader = pycolmap.ImageReaderOptions()
-        reader.camera_model = camera_model
-        if camera_params is not None:
-            reader.camera_params = ",".join(f"{v:.12g}" for v in camera_params)
-        extraction = pycolmap.FeatureExtractionOptions()
-        extraction.sift.max_num_features = cfg.max_features
-        advance = progress(f"level {level}: features and matches", 2) if progress else (lambda k: None)
-        pycolmap.extract_features(
-            database,
-            image_dir,
-            image_names=names,
-            camera_mode=pycolmap.CameraMode.SINGLE,
-            reader_options=reader,
-            extraction_options=extraction,
-            device=pycolmap.Device.cpu,
-        )
-        advance(1)
-        if cfg.matching == "exhaustive" or (cfg.matching == "auto" and len(names) <= cfg.exhaustive_max):
-            pycolmap.match_exhaustive(database, verification_options=verification, device=pycolmap.Device.cpu)
-        else:
-            pairing = pycolmap.SequentialPairingOptions()
-            pairing.overlap = cfg.overlap
-            pycolmap.match_sequential(
-                database,
-                pairing_options=pairing,
-                verification_options=verification,
-                device=pycolmap.Device.cpu,
-            )
-        advance(1)
-        return database, image_dir
+        self._database = database
+        return model_poses(model, references), model
 
     def _check_light(self, source: PhotonSource, merged: Any) -> None:
         """Raise StageError if the level-1 exposures hold too few photons to register."""
@@ -478,8 +386,8 @@ class PycolmapSfM(PoseEstimator):
         rec = None
         for attempt in range(cfg.attempts):
             # COLMAP's verification and mapper can settle on a poor initial pair: other seeds
-            database, image_dir = self._features(
-                images, references, folder, model, params, progress, 1, seed=cfg.seed + attempt
+            database, image_dir = write_and_match(
+                self.config, images, references, folder, model, params, progress, 1, seed=cfg.seed + attempt
             )
             options.random_seed = cfg.seed + attempt
             models = pycolmap.incremental_mapping(database, image_dir, folder / f"sparse_{attempt}", options)
