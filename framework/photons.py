@@ -7,6 +7,8 @@ bit-packed along the width, ``(T, H, W/8)`` uint8 with the most significant bit 
 
 from __future__ import annotations
 
+from typing import Callable
+
 import numpy as np
 from numpy.typing import NDArray
 
@@ -16,6 +18,7 @@ __all__ = [
     "sum_packed_ranges",
     "sum_unpacked_ranges",
     "simulate_packed_frames",
+    "draw_binary_frames",
     "flux_mle",
     "srgb_to_linear",
     "linear_to_srgb",
@@ -160,6 +163,43 @@ def simulate_packed_frames(
     out = np.empty((h, w // 8), dtype=np.uint8)
     _simulate_packed(thresholds, np.uint64(seed), np.uint64(frame_index), out)
     return out
+
+
+def draw_binary_frames(out: NDArray[np.uint8], intensity: Callable[[int], NDArray], flux: float, seed: int, *,
+                       task: str = "simulate") -> None:
+    """Draw every binary frame of a simulated capture into ``out``, on several threads.
+
+    Frame t is drawn from paper Eq. 2, ``P(1) = 1 - exp(-flux * intensity(t))``, with
+    :func:`simulate_packed_frames`; frames depend only on ``(seed, t)``, so threads give
+    the same cube as a serial loop (OpenCV and the photon kernel release the GIL).
+    Progress is reported as ``task`` (see :func:`photonpano.progress.start_task`).
+
+    Args:
+        out: (T, H, W/8) uint8 array (or memory map) receiving the bit-packed frames.
+        intensity: ``intensity(t)`` returns frame t's (H, W) linear intensity in [0, 1]
+            (at white, ``flux`` photons per pixel per frame); called from worker threads.
+        flux: mean photons per pixel per binary frame where the intensity is 1.
+        seed: random seed of the photon draws (non-negative int).
+        task: the progress task's name.
+    """
+    import os
+    from concurrent.futures import ThreadPoolExecutor
+
+    from .progress import start_task
+
+    frames = len(out)
+    advance = start_task(task, frames)
+
+    def render(start: int, stop: int) -> None:
+        for t in range(start, stop):
+            out[t] = simulate_packed_frames(-np.expm1(-flux * intensity(t)), seed, t)
+            if (t - start) % 256 == 255 or t == stop - 1:
+                advance((t - start) % 256 + 1)
+
+    workers = max(1, min(os.cpu_count() or 1, frames // 1000))
+    bounds = np.linspace(0, frames, workers * 4 + 1).astype(int)
+    with ThreadPoolExecutor(workers) as pool:
+        list(pool.map(render, bounds[:-1], bounds[1:]))
 
 
 def flux_mle(

@@ -164,12 +164,7 @@ def _run_into(spec: BaseModel, folder, host: PluginHost) -> RunResult:
         folder.adopt_new_files()  # what observers wrote
 
     summary: dict[str, Any] = {
-        "photonpano": __version__,
-        "python": platform.python_version(),
-        "versions": library_versions(spec),
-        "plugins": host.versions(),
-        "spec": spec.model_dump(mode="json"),
-        "source": source.describe(),
+        **run_header(spec, host, source),
         **confidence,
         "panorama": {"height": int(pano.flux.shape[0]), "width": int(pano.flux.shape[1]),
                      "observed_fraction": float(np.isfinite(pano.flux).mean())},
@@ -198,6 +193,17 @@ def _run_into(spec: BaseModel, folder, host: PluginHost) -> RunResult:
 #: distributions whose versions every run.json records (import name -> distribution).
 CORE_LIBRARIES = {"numpy": "numpy", "cv2": "opencv-python-headless", "numba": "numba", "scipy": "scipy",
                   "pluggy": "pluggy", "pydantic": "pydantic"}
+
+
+def run_header(spec: BaseModel, host: PluginHost, source: Any) -> dict[str, Any]:
+    """Return the first keys of every ``run.json``: versions, the resolved spec, the capture.
+
+    Returns:
+        ``{"photonpano", "python", "versions", "plugins", "spec", "source"}`` (see
+        :func:`library_versions` and ``PhotonSource.describe``).
+    """
+    return {"photonpano": __version__, "python": platform.python_version(), "versions": library_versions(spec),
+            "plugins": host.versions(), "spec": spec.model_dump(mode="json"), "source": source.describe()}
 
 
 def library_versions(spec: BaseModel | None = None) -> dict[str, str]:

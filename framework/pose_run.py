@@ -151,12 +151,10 @@ def run_pose(
     Raises:
         PhotonpanoError: bad output folder, unreadable source, failed estimation.
     """
-    import platform
     import shutil
     import tempfile
 
-    from . import __version__
-    from .pipeline import library_versions, prepare_output
+    from .pipeline import prepare_output, run_header
     from .progress import reporting, start_task
     from .spec import dump_spec
 
@@ -187,12 +185,7 @@ def run_pose(
             result = spec.pose_estimator.build().estimate(source, intrinsics, work, progress=start_task)
             timings["estimate"] = time.perf_counter() - t0
         summary: dict[str, Any] = {
-            "photonpano": __version__,
-            "python": platform.python_version(),
-            "versions": library_versions(spec),
-            "plugins": host.versions(),
-            "spec": spec.model_dump(mode="json"),
-            "source": source.describe(),
+            **run_header(spec, host, source),
             "intrinsics": {
                 "given": intrinsics.as_dict() if intrinsics else None,
                 "used": result.intrinsics.as_dict(),

@@ -7,7 +7,6 @@ it, and every binary frame is drawn from Eq. (2), ``P(1) = 1 - exp(-flux * I)``.
 
 from __future__ import annotations
 
-import os
 from contextlib import nullcontext
 from importlib import resources
 from pathlib import Path
@@ -229,31 +228,13 @@ class SimulatedCapture(PhotonSource):
     def _render(self, scene: NDArray[np.float32], to_scene: NDArray[np.float64]) -> None:
         """Draw every binary frame: ``to_scene`` (T, 3, 3) maps frame pixels to scene pixels."""
         import cv2
-        from photonpano.photons import simulate_packed_frames
-        from photonpano.progress import start_task
+        from photonpano.photons import draw_binary_frames
 
         config = self.config
         size = (config.width, config.height)
         flags = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
-
-        advance = start_task("simulate", config.frames)
-
-        def render(start: int, stop: int) -> None:
-            for t in range(start, stop):
-                intensity = cv2.warpPerspective(scene, to_scene[t], size, flags=flags)
-                probability = -np.expm1(-config.flux * intensity)
-                self.cube[t] = simulate_packed_frames(probability, config.seed, t)
-                if (t - start) % 256 == 255 or t == stop - 1:
-                    advance((t - start) % 256 + 1)
-
-        # Frames depend only on (seed, index), so threads give the same cube; OpenCV and
-        # the photon kernel release the GIL.
-        from concurrent.futures import ThreadPoolExecutor
-
-        workers = max(1, min(os.cpu_count() or 1, config.frames // 1000))
-        bounds = np.linspace(0, config.frames, workers * 4 + 1).astype(int)
-        with ThreadPoolExecutor(workers) as pool:
-            list(pool.map(render, bounds[:-1], bounds[1:]))
+        draw_binary_frames(self.cube, lambda t: cv2.warpPerspective(scene, to_scene[t], size, flags=flags),
+                           config.flux, config.seed)
         if isinstance(self.cube, np.memmap):
             self.cube.flush()
 

@@ -11,7 +11,6 @@ z forward; metres) and the intrinsics.
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 from typing import Annotated, Literal
 
@@ -119,11 +118,8 @@ class SimulatedRoom(PhotonSource):
         Raises:
             SourceError: if a photo is unreadable.
         """
-        from concurrent.futures import ThreadPoolExecutor
-
-        from photonpano.photons import simulate_packed_frames
+        from photonpano.photons import draw_binary_frames
         from photonpano.pose import Intrinsics
-        from photonpano.progress import start_task
 
         self.config = config
         self.n_frames, self.height, self.width = config.frames, config.height, config.width
@@ -138,19 +134,7 @@ class SimulatedRoom(PhotonSource):
         self.name = f"simulate3d({', '.join(p.name for p in photos)}, flux {config.flux})"
         self.cube = np.empty((config.frames, config.height, config.width // 8), np.uint8)
 
-        advance = start_task("simulate3d", config.frames)
-
-        def render(start: int, stop: int) -> None:
-            for t in range(start, stop):
-                probability = -np.expm1(-config.flux * self.render(t))
-                self.cube[t] = simulate_packed_frames(probability, config.seed, t)
-                if (t - start) % 256 == 255 or t == stop - 1:
-                    advance((t - start) % 256 + 1)
-
-        workers = max(1, min(os.cpu_count() or 1, config.frames // 1000))
-        bounds = np.linspace(0, config.frames, workers * 4 + 1).astype(int)
-        with ThreadPoolExecutor(workers) as pool:
-            list(pool.map(render, bounds[:-1], bounds[1:]))
+        draw_binary_frames(self.cube, self.render, config.flux, config.seed, task="simulate3d")
 
     def _textures(self, photos: list[Path]) -> list[tuple[NDArray[np.float64], NDArray[np.float32]]]:
         """Cut one texture per plane from the photos (seeded crops), about one texel per frame pixel."""
