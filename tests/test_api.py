@@ -129,3 +129,17 @@ def test_keywords_in_path_fields_and_path_lists_are_kept(tmp_path, host):
     bins = resolve_relative_paths({"source": {"plugin": "swissspad-bin", "path": ["a.bin", "/abs/b.bin"]}},
                                   host, tmp_path)
     assert bins["source"]["path"] == [str(tmp_path / "a.bin"), "/abs/b.bin"]
+
+
+def test_every_numba_kernel_caches_outside_the_package():
+    """A kernel decorated with ``numba.njit(cache=True)`` writes into site-packages (issue 10)."""
+    import re
+
+    offenders = []
+    for path in [*ROOT.joinpath("framework").rglob("*.py"), *ROOT.joinpath("plugins").rglob("*.py")]:
+        if path.name == "jit.py":
+            continue
+        text = path.read_text()
+        if re.search(r"@(numba\.)?n?jit\([^)]*cache\s*=\s*True", text):
+            offenders.append(str(path.relative_to(ROOT)))
+    assert not offenders, f"use photonpano.jit.cached_njit in {offenders}"

@@ -13,24 +13,24 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit
+from photonpano.jit import cached_njit
 
 __all__ = ["splat_point", "splat_square", "splat_gaussian"]
 
 
-@njit(cache=True, nogil=True, fastmath=True)
+@cached_njit(nogil=True, fastmath=True)
 def _project(m, x, y):
     den = m[2, 0] * x + m[2, 1] * y + m[2, 2]
     return (m[0, 0] * x + m[0, 1] * y + m[0, 2]) / den, (m[1, 0] * x + m[1, 1] * y + m[1, 2]) / den
 
 
-@njit(cache=True, nogil=True)
+@cached_njit(nogil=True)
 def _pixel_size(m):
     """Side of a frame pixel on the canvas, in canvas pixels (the affine part's scale)."""
     return math.sqrt(abs(m[0, 0] * m[1, 1] - m[0, 1] * m[1, 0])) / abs(m[2, 2])
 
 
-@njit(cache=True, nogil=True)
+@cached_njit(nogil=True)
 def splat_point(counts, n_frames, homographies, weights, acc):
     """Add each frame pixel to the canvas pixel its centre lands in.
 
@@ -59,7 +59,7 @@ def splat_point(counts, n_frames, homographies, weights, acc):
                     acc[i, j, 1] += nf * wt
 
 
-@njit(cache=True, nogil=True)
+@cached_njit(nogil=True)
 def _add(acc, i, j, c, n, weight):
     """Add one weighted drop to canvas pixel ``(i, j)`` if it lies on the canvas."""
     if 0 <= i < acc.shape[0] and 0 <= j < acc.shape[1] and weight > 0:
@@ -67,7 +67,7 @@ def _add(acc, i, j, c, n, weight):
         acc[i, j, 1] += np.float32(n * weight)
 
 
-@njit(cache=True, nogil=True, fastmath=True)
+@cached_njit(nogil=True, fastmath=True)
 def splat_square(counts, n_frames, homographies, weights, acc, pixfrac):
     """Spread each frame pixel over the canvas pixels a square drop overlaps, by area.
 
@@ -129,7 +129,7 @@ def splat_square(counts, n_frames, homographies, weights, acc, pixfrac):
                             acc[i, j, 1] += np.float32(n * weight)
 
 
-@njit(cache=True, nogil=True)
+@cached_njit(nogil=True)
 def splat_gaussian(counts, n_frames, homographies, weights, acc, pixfrac):
     """Spread each frame pixel with a Gaussian of FWHM ``pixfrac`` frame pixels.
 
