@@ -20,7 +20,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import yaml
 
 from .errors import PhotonpanoError, SpecError
 from .pipeline import RunResult
@@ -39,11 +38,9 @@ def _spec_data(spec: str | Path | Mapping[str, Any]) -> tuple[dict[str, Any], An
             raise SpecError(f"spec file {path} does not exist")
         return {}, None, str(path), path  # read by load_spec (line numbers, relative paths)
     if isinstance(spec, str):
-        try:
-            data = yaml.safe_load(spec)
-            node = yaml.compose(spec)
-        except yaml.YAMLError as exc:
-            raise SpecError(f"spec text: not valid YAML: {getattr(exc, 'problem', exc)}") from None
+        from .yaml_guard import load_yaml
+
+        data, node = load_yaml(spec, "spec text")  # the same guards as spec files (alias bombs, duplicates)
         if not isinstance(data, dict):
             raise SpecError(f"spec text: a spec must be a mapping of stage and setting names, got "
                             f"{type(data).__name__}")

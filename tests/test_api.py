@@ -51,6 +51,13 @@ def test_run_and_load_errors_are_one_line(tmp_path):
         photonpano.run({"source": "simulate", "locator": "opencv-sfit"}, progress=False)
     with pytest.raises(SpecError, match="mapping"):
         photonpano.run("- a list\n- not a spec\n", progress=False)
+    bomb = "a: &a [x, x, x, x, x, x, x, x, x]\n" + "".join(
+        f"{chr(98 + i)}: &{chr(98 + i)} [*{chr(97 + i)}, *{chr(97 + i)}, *{chr(97 + i)}, *{chr(97 + i)}, "
+        f"*{chr(97 + i)}, *{chr(97 + i)}, *{chr(97 + i)}, *{chr(97 + i)}, *{chr(97 + i)}]\n" for i in range(8))
+    with pytest.raises(SpecError, match="spec text"):  # YAML text gets the spec files' guards
+        photonpano.run(bomb, progress=False)
+    with pytest.raises(SpecError, match="duplicate|line 2"):
+        photonpano.run("levels: 2\nlevels: 3\n", progress=False)
     with pytest.raises(PhotonpanoError, match="no run.json"):
         photonpano.load(tmp_path)
 
