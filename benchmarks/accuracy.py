@@ -37,7 +37,8 @@ import time
 from pathlib import Path
 
 from photonpano.host import PluginHost
-from photonpano.pipeline import ground_truth_report, reconstruct
+from photonpano.metrics import ground_truth_report
+from photonpano.pipeline import reconstruct
 from photonpano.spec import apply_overrides, validate_spec
 
 VIBRATION = {"vibration_px": 5.0, "vibration_hz": 30.0}

@@ -76,7 +76,7 @@ def hwm_kb():
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
 base = hwm_kb()
 if mode == "stream":
-    from photonpano.reconstruct import assemble_panorama
+    from photonpano.compose import assemble_panorama
     step = 12 * 128
     total = 0
     for start in range(0, source.n_frames, step):

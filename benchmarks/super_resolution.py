@@ -29,7 +29,8 @@ import argparse
 import time
 
 from photonpano.host import PluginHost
-from photonpano.pipeline import ground_truth_report, reconstruct
+from photonpano.metrics import ground_truth_report
+from photonpano.pipeline import reconstruct
 from photonpano.spec import apply_overrides, validate_spec
 
 CAPTURES = {

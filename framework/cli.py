@@ -324,8 +324,8 @@ def compare(input: Annotated[str, typer.Argument(help="A spec (.yaml), a capture
                 help="Comma-separated locator keys, each optionally key:field=value[:field=value].")],
             set_: SetOption = None, force: ForceOption = False,
             refine: Annotated[bool, typer.Option(
-                "--refine", help="Keep the spec's refine_locator for levels >= 2 (compare whole pipelines "
-                                 "as `run` executes them); default: each locator registers pairs at every level.")
+                "--refine", help="Keep the spec's level_schemes (compare whole pipelines as `run` executes "
+                                 "them); default: each locator registers pairs at every level.")
             ] = False) -> None:
     """Run the same pipeline with each locator; write a table and a plot of error and time.
 

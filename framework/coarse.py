@@ -129,8 +129,7 @@ class CascadeLocator(Locator):
     """A locator whose registrations are checked, and rescued where they fail, on binned frames.
 
     Args:
-        primary: the spec's built locator (attributes not defined here, such as
-            ``cache_stats``, are its own).
+        primary: the spec's built locator (attributes not defined here are its own).
         binning: pixels per side of the binned frames (>= 2 is used for the check).
         min_correlation: the binned correlation a registration must reach.
         min_overlap: fraction of binned pixels both frames must share.
@@ -159,6 +158,14 @@ class CascadeLocator(Locator):
     @executor.setter
     def executor(self, value: Any) -> None:
         self.primary.executor = value
+
+    def cache_stats(self) -> dict[str, int]:
+        """The primary locator's feature-cache counters."""
+        return self.primary.cache_stats()
+
+    def reset_cache_stats(self) -> None:
+        """Zero the primary locator's counters."""
+        self.primary.reset_cache_stats()
 
     def register_pairs(self, merged: MergedFrames, pairs: NDArray[np.int64],
                        initial: NDArray[np.float64]) -> PairRegistrations:

@@ -11,14 +11,15 @@ estimation of one spec once per locator on the *same* opened capture, and writes
 - ``compare.png``: trajectory RMSE and locate time per level, one line per locator;
 - ``<locator>/homographies.npy``: each run's (T, 3, 3) frame-to-panorama homographies.
 
-By default each backend registers pairs of merged frames at *every* level (the paper's
-scheme; the spec's ``refine_locator``, which registers levels >= 2 against the panorama
-with one shared backend, is not used), so the table compares the backends themselves.
-With ``refine=True`` the spec's ``refine_locator`` is kept: the table then compares whole
-pipelines as ``photonpano run`` would execute them (each backend at level 1, the refine
-locator after). Runs use the spec's executor. The panorama is not assembled (it does not
-depend on the locator beyond the homographies); run ``photonpano run`` with the chosen
-locator for it.
+By default each backend registers pairs of merged frames at *every* level (the
+``pairwise`` scheme, the paper's; the ``mosaic`` scheme, which registers levels >= 2
+against the panorama with its own locator, is not used), so the table compares the
+backends themselves. With ``refine=True`` the spec's ``level_schemes`` are kept: the table
+then compares whole pipelines as ``photonpano run`` would execute them (each backend at
+the pairwise levels, the mosaic locator after). The stages are built by the same
+:class:`~photonpano.pipeline.Stages` as ``photonpano run``. Runs use the spec's executor.
+The panorama is not assembled (it does not depend on the locator beyond the
+homographies); run ``photonpano run`` with the chosen locator for it.
 """
 
 from __future__ import annotations
@@ -54,14 +55,14 @@ def compare_locators(base: dict[str, Any], locators: list[str], host: PluginHost
         log: optional callable receiving one progress line per finished level and run.
         on_row: optional callable receiving the rows so far after each locator (to
             write partial results of a long comparison).
-        refine: keep the spec's ``refine_locator`` for levels >= 2 (False: every level
-            registers pairs with the compared locator).
+        refine: keep the spec's ``level_schemes`` (False: every level registers pairs
+            with the compared locator).
 
     Returns:
         One row per locator: ``{"locator", "spec", "status", "levels": [...],
         "trajectory_rmse_px", "failed_pairs", "locate_s", "total_s"}``, where
         ``status`` is ``"ok"`` or the error message; ``levels`` holds per-level
-        statistics (see :meth:`photonpano.reconstruct.LevelResult.statistics`) plus
+        statistics (see :meth:`photonpano.records.LevelResult.statistics`) plus
         ``trajectory_rmse_px`` and ``cache``.
 
     A locator whose spec is invalid, whose extra is missing or whose run fails is
@@ -78,16 +79,18 @@ def compare_locators(base: dict[str, Any], locators: list[str], host: PluginHost
 def _compare_one(item: str, base: dict[str, Any], host: PluginHost, out_dir: Path | None, origin: str,
                  source: Any, log: Any, rows: list[dict[str, Any]], refine: bool) -> Any:
     """Run one locator (see :func:`compare_locators`); append its row; return the source."""
-    from .adaptive import plan_group_size
     from .executor import make_executor
-    from .metrics import trajectory_error
-    from .reconstruct import estimate_motion
+    from .metrics import source_trajectory_error
+    from .pipeline import Stages
     from .spec import apply_overrides, validate_spec
 
     key, *options = item.split(":")
     label = item
     data = apply_overrides({k: v for k, v in base.items() if k != "locator"},
                            [f"locator={key}", *(f"locator.{o}" for o in options)])
+    if not refine:
+        data = {k: v for k, v in data.items() if k != "refine_locator"}
+        data["level_schemes"] = ["pairwise"]
     row: dict[str, Any] = {"locator": label, "status": "ok", "levels": []}
     rows.append(row)
     try:
@@ -97,46 +100,30 @@ def _compare_one(item: str, base: dict[str, Any], host: PluginHost, out_dir: Pat
         row["status"] = str(exc)
         return source
     row["spec"] = spec.locator.model_dump(mode="json")
-    row["refine_locator"] = spec.refine_locator.model_dump(mode="json") if refine and spec.refine_locator else None
+    row["level_schemes"] = list(spec.level_schemes)
     if source is None:
         source = spec.source.build()
-    locator = spec.locator.build()
-    before: dict[str, int] = {}
-
-    def on_level(result, row=row, locator=locator, before=before):
-        stats = result.statistics()
-        if source.ground_truth is not None:
-            stats["trajectory_rmse_px"] = trajectory_error(result.homographies, source.ground_truth,
-                                                           source.width, source.height).rmse_px
-        if hasattr(locator, "cache_stats"):
-            now = locator.cache_stats()
-            stats["cache"] = {k: v - before.get(k, 0) if k != "entries" else v for k, v in now.items()}
-            before.update(now)
-        row["levels"].append(stats)
-        if log:
-            rmse = stats.get("trajectory_rmse_px")
-            log(f"{label}: level {stats['level']}: locate {stats['timings_s'].get('locate', 0):.1f} s, "
-                f"{stats['failed_pairs']} failed pairs" + _rmse_text(rmse))
-
     t0 = time.perf_counter()
-    refine_locator = spec.refine_locator.build if refine and spec.refine_locator else None
     try:
+        stages = Stages(spec, source)
+
+        def on_level(result: Any) -> None:
+            stats = stages.level_statistics(result)
+            stats["cache"] = stats.pop("locator_cache", {})
+            row["levels"].append(stats)
+            if log:
+                log(f"{label}: level {stats['level']}: locate {stats['timings_s'].get('locate', 0):.1f} s, "
+                    f"{stats['failed_pairs']} failed pairs" + _rmse_text(stats.get("trajectory_rmse_px")))
+
         with make_executor(spec.executor, spec.workers) as executor:
-            homographies, _ = estimate_motion(
-                source, spec.resampler.build(), spec.merger.build(), locator, spec.interpolator.build(),
-                levels=spec.levels,
-                group_size=(plan_group_size(spec.group_size, source).group_size if spec.group_size == "auto"
-                            else spec.group_size),
-                pair_offsets=tuple(spec.pair_offsets),
-                executor=executor, refine_locator=refine_locator, on_level=on_level)
+            homographies = stages.estimate_motion(executor, on_level=on_level)
     except PhotonpanoError as exc:
         row["status"] = str(exc)
         return source
     finally:
         row["total_s"] = time.perf_counter() - t0
     if source.ground_truth is not None:
-        row["trajectory_rmse_px"] = trajectory_error(homographies, source.ground_truth,
-                                                     source.width, source.height).rmse_px
+        row["trajectory_rmse_px"] = source_trajectory_error(homographies, source).rmse_px
     row["failed_pairs"] = sum(level["failed_pairs"] for level in row["levels"])
     row["locate_s"] = sum(level["timings_s"].get("locate", 0.0) for level in row["levels"])
     if out_dir is not None:
@@ -144,8 +131,7 @@ def _compare_one(item: str, base: dict[str, Any], host: PluginHost, out_dir: Pat
         folder.mkdir(parents=True, exist_ok=True)
         np.save(folder / "homographies.npy", homographies)
     if log:
-        rmse = row.get("trajectory_rmse_px")
-        log(f"{label}: done in {row['total_s']:.1f} s" + _rmse_text(rmse))
+        log(f"{label}: done in {row['total_s']:.1f} s" + _rmse_text(row.get("trajectory_rmse_px")))
     return source
 
 

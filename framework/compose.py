@@ -11,7 +11,6 @@ frames' pixel grids.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from typing import Callable
 
 import numpy as np
@@ -20,49 +19,11 @@ from numpy.typing import NDArray
 from . import geometry
 from .errors import StageError
 from .executor import Executor, SerialExecutor
-from .stages import Compositor, MergedFrames, PhotonSource
+from .records import Canvas, MergedFrames, Panorama
+from .stages import Compositor, PhotonSource
 
 __all__ = ["Panorama", "Canvas", "canvas_homographies", "compose", "BilinearCompositor", "assemble_panorama",
            "panorama_views"]
-
-
-@dataclass(frozen=True)
-class Panorama:
-    """A panorama canvas.
-
-    Attributes:
-        flux: (Hc, Wc) float32 linear flux in photons/s; NaN where no frame looked
-            ((Hc, Wc, C) from compositors of C channels, e.g. colour).
-        frames: (Hc, Wc) float32 number of binary frames behind each canvas pixel
-            (weighted by the compositor's kernel; (Hc, Wc, C) with channels).
-        homographies: (T, 3, 3) float64 frame-to-canvas homographies (canvas pixels,
-            including the super-resolution scale).
-    """
-
-    flux: NDArray[np.float32]
-    frames: NDArray[np.float32]
-    homographies: NDArray[np.float64]
-
-
-@dataclass(frozen=True)
-class Canvas:
-    """Where a compositor paints.
-
-    Attributes:
-        height: canvas height Hc in pixels.
-        width: canvas width Wc in pixels.
-        homographies: (T, 3, 3) float64 frame-to-canvas homographies of every binary
-            frame (canvas pixel centres at integers, x right, y down).
-    """
-
-    height: int
-    width: int
-    homographies: NDArray[np.float64]
-
-    @property
-    def shape(self) -> tuple[int, int]:
-        """``(height, width)``."""
-        return self.height, self.width
 
 
 def canvas_homographies(homographies: NDArray[np.float64], width: int, height: int, scale: float,

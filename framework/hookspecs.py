@@ -19,7 +19,7 @@ from . import hookspec
 
 if TYPE_CHECKING:
     from .compose import Panorama
-    from .reconstruct import LevelResult
+    from .records import LevelResult
     from .stages import (
         CompositorConfig,
         InterpolatorConfig,

@@ -3,13 +3,16 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
 from . import geometry
 
-__all__ = ["TrajectoryError", "trajectory_error", "psnr", "scene_on_canvas"]
+__all__ = ["TrajectoryError", "trajectory_error", "source_trajectory_error", "psnr", "scene_on_canvas",
+           "ground_truth_report", "plot_trajectory"]
 
 
 @dataclass(frozen=True)
@@ -128,3 +131,120 @@ def scene_on_canvas(source, canvas_from_scene: NDArray[np.float64],
         to_canvas = to_canvas @ geometry.scale_matrix(step)
     return cv2.warpPerspective(scene, to_canvas, shape[::-1], flags=cv2.INTER_LANCZOS4,
                                borderMode=cv2.BORDER_CONSTANT, borderValue=np.nan)
+
+
+def source_trajectory_error(homographies: NDArray[np.float64], source: Any) -> TrajectoryError:
+    """The :func:`trajectory_error` of ``homographies`` against the ground truth of ``source``."""
+    return trajectory_error(homographies, source.ground_truth, source.width, source.height)
+
+
+def ground_truth_report(source, homographies: np.ndarray, pano, subbatch_px: float, *,
+                        compositor: Any = None, references: tuple[Any, ...] = (),
+                        progress: Any = None) -> dict[str, Any]:
+    """Measure a reconstruction against a capture's ground truth.
+
+    The trajectory error is taken after the best global alignment G (the panorama's
+    coordinate frame is arbitrary). For the panorama, the true homographies are carried
+    into the estimated canvas through G and a second panorama is composited with them
+    *on the same canvas* by the same compositor; both are compared with the true scene
+    flux resampled onto that canvas, so the PSNR gap measures only what the estimated
+    motion costs.
+
+    Args:
+        source: a capture with ``ground_truth`` (and ``scene_flux`` for the PSNR;
+            ``scene_pitch`` scene pixels per ground-truth unit, default 1).
+        homographies: (T, 3, 3) float64 estimated frame-to-panorama homographies.
+        pano: the estimated :class:`~photonpano.compose.Panorama`.
+        subbatch_px: sub-batch tolerance used for the reference panorama.
+        compositor: the compositor config that made ``pano`` (built afresh for the
+            reference); None: the bilinear ``flux-canvas`` merge.
+        references: more compositor configs to composite the true motion with on the
+            same canvas, scored on the same pixels (e.g. ``flux-canvas`` to measure
+            what drizzle gains).
+        progress: called with the number of binary frames composited into the true-motion
+            reference.
+
+    Returns:
+        ``{"trajectory_rmse_px", "trajectory_max_px"}`` and, with a scene, ``"psnr_db",
+        "psnr_true_homographies_db", "psnr_gap_db"`` and, with ``references``,
+        ``"psnr_true_homographies_by"``: plugin key -> PSNR in dB.
+    """
+    import cv2
+
+    from .compose import BilinearCompositor, compose
+
+    err = source_trajectory_error(homographies, source)
+    report: dict[str, Any] = {"trajectory_rmse_px": err.rmse_px,
+                              "trajectory_max_px": float(err.per_frame_px.max())}
+    if source.scene_flux is None:
+        return report
+    canvas_from_scene = canvas_from_scene_homography(homographies, pano.homographies, err)
+    shape = pano.flux.shape
+    truths = [compose(source, canvas_from_scene @ source.ground_truth,
+                      config.build() if config is not None else BilinearCompositor(),
+                      subbatch_px=subbatch_px, canvas_shape=shape, progress=progress if config is compositor else None)
+              for config in (compositor, *references)]
+    scene = scene_on_canvas(source, canvas_from_scene, shape)
+    both = np.isfinite(pano.flux) & np.isfinite(scene)
+    for truth in truths:
+        both &= np.isfinite(truth.flux)
+    mask = cv2.erode(both.astype(np.uint8), np.ones((7, 7), np.uint8)).astype(bool)
+    estimated_db, true_db = psnr(pano.flux, scene, mask), psnr(truths[0].flux, scene, mask)
+    report.update(psnr_db=estimated_db, psnr_true_homographies_db=true_db, psnr_gap_db=true_db - estimated_db)
+    if references:
+        report["psnr_true_homographies_by"] = {config.plugin: psnr(truth.flux, scene, mask)
+                                               for config, truth in zip(references, truths[1:])}
+    return report
+
+
+def canvas_from_scene_homography(homographies: np.ndarray, to_canvas: np.ndarray, error) -> np.ndarray:
+    """(3, 3) homography from ground-truth scene coordinates to the panorama canvas.
+
+    ``homographies`` map frames to the middle frame's coordinates, ``to_canvas`` the same
+    frames to the canvas; ``error.alignment`` maps the former to the scene.
+    """
+    canvas_from_pano = to_canvas[0] @ np.linalg.inv(homographies[0])
+    return canvas_from_pano @ np.linalg.inv(error.alignment)
+
+
+def plot_trajectory(path: Path, homographies: np.ndarray, to_canvas: np.ndarray, source, error) -> None:
+    """Plot the frame centres over time in canvas pixels, and the per-frame error if known.
+
+    Args:
+        path: the PNG to write.
+        homographies: (T, 3, 3) frame-to-middle-frame homographies (the estimate's gauge).
+        to_canvas: (T, 3, 3) frame-to-canvas homographies (``homographies.npy``).
+        source: the capture (frame size, frame rate, ground truth).
+        error: the :class:`~photonpano.metrics.TrajectoryError` of the estimate, or None.
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from . import geometry
+
+    centre = np.array([[(source.width - 1) / 2, (source.height - 1) / 2]])
+    t = np.arange(len(to_canvas)) / source.frame_rate_hz
+    panels = 3 if error is not None else 2
+    fig, axes = plt.subplots(panels, 1, figsize=(8, 2.2 * panels + 0.6), sharex=True)
+    est = geometry.apply(to_canvas, centre)[:, 0]
+    truth = None
+    if error is not None:
+        from_scene = canvas_from_scene_homography(homographies, to_canvas, error)
+        truth = geometry.apply(from_scene @ source.ground_truth, centre)[:, 0]
+    for axis, name in enumerate("xy"):
+        if truth is not None:
+            axes[axis].plot(t, truth[:, axis], color="0.6", lw=3, label="true")
+        axes[axis].plot(t, est[:, axis], color="C0", lw=1, label="estimated")
+        axes[axis].set_ylabel(f"centre {name} (canvas px)")
+    axes[0].legend(loc="best")
+    if error is not None:
+        axes[2].plot(t, error.per_frame_px, color="C3", lw=1)
+        axes[2].set_ylabel("error (scene px)")
+        axes[2].set_title(f"per-frame mean corner error after global alignment (RMSE {error.rmse_px:.3f} px)",
+                          fontsize=9)
+    axes[-1].set_xlabel("time (s)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)

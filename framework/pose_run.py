@@ -154,8 +154,9 @@ def run_pose(
     import shutil
     import tempfile
 
-    from .pipeline import prepare_output, run_header
+    from .pipeline import prepare_output
     from .progress import reporting, start_task
+    from .provenance import run_header
     from .spec import dump_spec
 
     if getattr(spec, "pose_estimator", None) is None:

@@ -6,7 +6,7 @@ Photron clip or an MP4 of a high-speed camera, settings that fit a few hundred f
 or fewer that are each already a good exposure, rather than 100 000 binary frames:
 
 - ``merger: mean`` (average linear intensity, not the photon MLE);
-- ``levels: 2`` and pairwise registration at every level (``refine_locator: null``):
+- ``levels: 2`` and pairwise registration at every level (``level_schemes: [pairwise]``):
   footage from a static or slow camera is often dominated by moving objects, which
   registration against the panorama follows (a falling ball dragged a static camera's
   estimate by 52 px), while pairwise feature registration with the per-pair motion
@@ -25,7 +25,7 @@ from .errors import PhotonpanoError
 
 __all__ = ["spec_for_capture", "INTENSITY_SETTINGS"]
 
-INTENSITY_SETTINGS: dict[str, Any] = {"merger": "mean", "levels": 2, "refine_locator": None}
+INTENSITY_SETTINGS: dict[str, Any] = {"merger": "mean", "levels": 2, "level_schemes": ["pairwise"]}
 """Settings ``pano`` gives captures of intensity frames (see the module docstring)."""
 
 

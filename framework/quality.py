@@ -44,7 +44,7 @@ def level_figures(result, plan: GroupPlan, width: int, height: int) -> dict[str,
     """Ground-truth-free figures of one finished level.
 
     Args:
-        result: the :class:`~photonpano.reconstruct.LevelResult`.
+        result: the :class:`~photonpano.records.LevelResult`.
         plan: the capture's :class:`~photonpano.adaptive.GroupPlan`.
         width: frame width in pixels.
         height: frame height in pixels.
@@ -56,21 +56,21 @@ def level_figures(result, plan: GroupPlan, width: int, height: int) -> dict[str,
         the solved keyframes; pairwise levels) or ``"median_correction_px"`` (median
         corner shift of the registrations against the panorama), ``"rejected_fraction"``}.
     """
-    pairs, index = result.pairs, result.pair_index
+    located = result.located
+    pairs, index, primary = located.registrations, located.pair_index, located.primary
     p = plan.probe.photons_per_pixel_per_frame if plan.probe is not None else None
     length = float(np.median(result.groups.stop - result.groups.start))
-    primary = (index[:, 1] - index[:, 0] == 1) | (index[:, 0] < 0)
     out: dict[str, Any] = {
         "photons_per_pixel_per_group": p * length if p is not None else None,
         "failed_fraction": float((~pairs.ok[primary]).mean()) if primary.any() else 0.0,
         "rejected_fraction": result.rejected_keyframes / max(len(result.groups), 1),
     }
     ok = pairs.ok
-    if (index[:, 0] < 0).all():
+    if index is None:
         moved = _corner_distance(pairs.homographies[ok], np.eye(3)[None], width, height)
         out["median_correction_px"] = float(np.median(moved)) if len(moved) else None
     elif ok.any():
-        k = result.keyframes
+        k = located.keyframes
         solved = np.linalg.inv(k[index[ok, 0]]) @ k[index[ok, 1]]
         out["pose_graph_residual_px"] = float(np.median(_corner_distance(pairs.homographies[ok], solved,
                                                                          width, height)))
@@ -83,14 +83,14 @@ def panorama_agreement(source, merger, homographies: NDArray[np.float64], panora
 
     ``samples`` groups of ``group_size`` frames spread over the capture are merged with
     the final homographies, the panorama is resampled into each reference frame's grid
-    (:func:`~photonpano.reconstruct.panorama_views`), and both are binned by ``factor``
+    (:func:`~photonpano.compose.panorama_views`), and both are binned by ``factor``
     (square-root flux, see :func:`~photonpano.coarse.binned_frame`) and correlated.
 
     Args:
         source: the capture.
         merger: the built merger.
         homographies: (T, 3, 3) float64 final frame-to-panorama homographies.
-        panorama: the final :class:`~photonpano.reconstruct.Panorama`.
+        panorama: the final :class:`~photonpano.records.Panorama`.
         group_size: frames per sampled group.
         factor: binning of the comparison (pixels per side).
         samples: groups compared.
@@ -100,7 +100,7 @@ def panorama_agreement(source, merger, homographies: NDArray[np.float64], panora
         offset, about 0 for photon noise).
     """
     from .coarse import binned_frame
-    from .reconstruct import panorama_views
+    from .compose import panorama_views
 
     n = source.n_frames
     m = min(group_size, n)

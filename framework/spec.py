@@ -18,7 +18,6 @@ built at run time from the plugins installed, so third-party plugins validate ex
 
 from __future__ import annotations
 
-import difflib
 import typing
 from pathlib import Path
 from typing import Annotated, Any, Literal, Union
@@ -38,11 +37,12 @@ from pydantic import (
 from .errors import PluginError, SpecError
 from .faults import short_repr
 from .host import PluginHost
+from .spec_errors import PLUGIN_SLOTS, blame_set, describe_loc, listing, plugin_of, section_at, unknown_plugin, where
 from .stages import STAGES
 from .yaml_guard import load_yaml
 
 __all__ = ["DEFAULT_PLUGINS", "OutputsConfig", "spec_model", "load_spec", "validate_spec", "resolve_relative_paths",
-           "apply_overrides", "dump_spec", "read_spec_file", "check_available"]
+           "apply_overrides", "dump_spec", "read_spec_file", "check_available", "level_schemes", "plugin_configs"]
 
 DEFAULT_PLUGINS: dict[str, str] = {
     "resampler": "midpoint",
@@ -54,12 +54,10 @@ DEFAULT_PLUGINS: dict[str, str] = {
 }
 """The paper's choice for each stage, used when a spec omits the stage."""
 
-REFINE_DEFAULTS: dict[str, Any] = {"pyramid_levels": 2, "finest_level": 1, "iterations": 10, "blur": 5}
-"""Settings of the default ``refine_locator`` (``opencv-ecc``): the residual motion at
-levels >= 2 is about a pixel, so two pyramid levels and a few iterations suffice, and
-against a low-noise template half resolution is enough (0.14 vs 0.13 px trajectory
-RMSE at 100k frames, 2.5x less ECC time). A ``refine_locator`` mapping without
-``plugin`` starts from these."""
+MOSAIC_PLUGINS: dict[str, str] = {"locator": "opencv-ecc", "template": "flux-canvas"}
+"""Defaults of the ``mosaic`` scheme's locator and template compositor. A locator used
+there starts from its config's ``template_defaults`` (settings for registering against a
+low-noise panorama)."""
 
 
 class OutputsConfig(BaseModel):
@@ -101,18 +99,36 @@ class _SpecBase(BaseModel):
         """The compositor's super-resolution scale (canvas pixels per frame pixel)."""
         return self.compositor.scale
 
-    @field_validator(*STAGES, "refine_locator", mode="before", check_fields=False)
+    @field_validator(*STAGES, mode="before", check_fields=False)
     @classmethod
     def _plugin_shorthand(cls, value: Any) -> Any:
         return {"plugin": value} if isinstance(value, str) else value
 
-    @field_validator("refine_locator", mode="before", check_fields=False)
+    @model_validator(mode="before")
     @classmethod
-    def _refine_defaults(cls, value: Any) -> Any:
-        # a mapping without a plugin adjusts the default refine locator
-        if isinstance(value, dict) and "plugin" not in value:
-            return {"plugin": "opencv-ecc", **REFINE_DEFAULTS, **value}
-        return value
+    def _refine_locator_to_schemes(cls, data: Any) -> Any:
+        # before level schemes were named: ``refine_locator: X`` is the mosaic scheme's
+        # locator, ``refine_locator: null`` means pairwise at every level
+        if not isinstance(data, dict) or "refine_locator" not in data:
+            return data
+        data = dict(data)
+        refine = data.pop("refine_locator")
+        if refine is None:
+            if data.setdefault("level_schemes", ["pairwise"]) != ["pairwise"]:
+                raise ValueError("refine_locator: null and level_schemes are both given; write level_schemes only")
+            return data
+        mosaic = dict(data.get("mosaic") or {})
+        if "locator" in mosaic:
+            raise ValueError("refine_locator and mosaic.locator are both given; write mosaic.locator only")
+        data["mosaic"] = {**mosaic, "locator": refine}
+        return data
+
+    @model_validator(mode="after")
+    def _level_one_is_pairwise(self) -> Any:
+        if self.level_schemes[0] != "pairwise":
+            raise ValueError("level_schemes: level 1 must be pairwise (the mosaic scheme refines an existing "
+                             "estimate)")
+        return self
 
 
 def _group_size(value: Any) -> Any:
@@ -147,17 +163,8 @@ def spec_model(host: PluginHost) -> type[BaseModel]:
         else:
             default_cls = host.registry(stage).get(DEFAULT_PLUGINS[stage], classes[0])
             slots[stage] = (_tagged(classes), Field(default_factory=default_cls))
-    locators = host.registry("locator")
-    ecc = locators.get("opencv-ecc")
-    refine_default = (lambda: ecc(**REFINE_DEFAULTS)) if ecc is not None else (lambda: None)
-    slots["refine_locator"] = (Annotated[Union[_tagged(list(locators.values())), None],  # noqa: UP007
-                                          Field(description=(
-                                              "Locator of levels >= 2, which register each merged frame "
-                                              "against the panorama of the current estimate (frame-to-mosaic, "
-                                              "no drift, one registration per group); null: every level "
-                                              "registers pairs of merged frames with `locator` (the paper's "
-                                              "scheme, slower)."))],
-                               Field(default_factory=refine_default))
+    slots["mosaic"] = (_mosaic_model(host), Field(default_factory=lambda: _mosaic_model(host)(),
+                                                  description="Settings of the mosaic level scheme."))
     model = create_model(
         "PipelineSpec",
         __base__=_SpecBase,
@@ -174,6 +181,11 @@ def spec_model(host: PluginHost) -> type[BaseModel]:
             "paper's chain, more offsets are solved jointly against chaining drift.")], [1, 2, 4, 8, 16, 32, 64]),
         panorama_subbatch_px=(Annotated[float, Field(gt=0, le=2, description="Frames whose canvas "
                               "warps differ by less than this (canvas pixels) are warped together.")], 0.25),
+        level_schemes=(Annotated[list[Literal["pairwise", "mosaic"]], Field(
+            min_length=1, description="Scheme of each level, the last repeated for the levels after: pairwise "
+            "(the paper's: pairs of merged frames and a pose graph; level 1 is always pairwise) or mosaic (each "
+            "merged frame against the panorama of the current estimate: no drift, one registration per "
+            "group).")], ["pairwise", "mosaic"]),
         executor=(Literal["serial", "threads"], Field("threads", description="Where independent work "
                   "(groups, chunks) runs: the calling thread, or a pool of threads.")),
         workers=(Annotated[int, Field(ge=0, description="Threads of the executor (0 = one per CPU core).")], 0),
@@ -181,6 +193,55 @@ def spec_model(host: PluginHost) -> type[BaseModel]:
     )
     model.__doc__ = "A photonpano pipeline: one plugin per stage and the method's settings."
     return model
+
+
+def _mosaic_model(host: PluginHost) -> type[BaseModel]:
+    """The model of the ``mosaic`` section (locator and template compositor of the mosaic scheme)."""
+    locators, compositors = host.registry("locator"), host.registry("compositor")
+
+    def locator(value: Any) -> Any:
+        value = {"plugin": value} if isinstance(value, str) else value
+        if isinstance(value, dict):
+            key = value.get("plugin", MOSAIC_PLUGINS["locator"])
+            value = {**getattr(locators.get(key), "template_defaults", {}), **value, "plugin": key}
+        return value
+
+    def compositor(value: Any) -> Any:
+        value = {"plugin": value} if isinstance(value, str) else value
+        return {"plugin": MOSAIC_PLUGINS["template"], **value} if isinstance(value, dict) else value
+
+    def default(registry: dict[str, Any], slot: str, shorthand: Any) -> Any:
+        return Field(default_factory=lambda: registry[MOSAIC_PLUGINS[slot]](**shorthand({})))
+
+    return create_model(
+        "MosaicSpec", __config__=ConfigDict(extra="forbid", frozen=True),
+        locator=(Annotated[_tagged(list(locators.values())), BeforeValidator(locator), Field(
+            description="Locator registering each merged frame against the panorama view at its pose.")],
+            default(locators, "locator", lambda v: {k: x for k, x in locator(v).items() if k != "plugin"})),
+        template=(Annotated[_tagged(list(compositors.values())), BeforeValidator(compositor), Field(
+            description="Compositor of the panorama registered against (when the previous level did not "
+            "leave one).")], default(compositors, "template", lambda v: {})),
+        subbatch_px=(Annotated[float, Field(gt=0, le=2, description="Sub-batch tolerance of that panorama, "
+                                            "in canvas pixels.")], 0.5),
+    )
+
+
+def level_schemes(spec: BaseModel) -> list[str]:
+    """The scheme of each of the spec's levels (``level_schemes``, its last entry repeated)."""
+    names = list(spec.level_schemes)
+    return [names[min(i, len(names) - 1)] for i in range(spec.levels)]
+
+
+def plugin_configs(spec: BaseModel) -> dict[str, Any]:
+    """The plugin configs a spec uses: ``{"locator": ..., "mosaic.locator": ..., ...}``.
+
+    Every stage slot that is set, and the mosaic scheme's locator and template when a
+    level uses that scheme.
+    """
+    configs = {stage: getattr(spec, stage) for stage in STAGES if getattr(spec, stage, None) is not None}
+    if "mosaic" in level_schemes(spec):
+        configs.update({"mosaic.locator": spec.mosaic.locator, "mosaic.template": spec.mosaic.template})
+    return configs
 
 
 def load_spec(path: Path, host: PluginHost, overrides: list[str] = ()) -> BaseModel:
@@ -309,7 +370,7 @@ def apply_overrides(data: dict[str, Any], overrides: list[str]) -> dict[str, Any
             if isinstance(child, str):  # plugin shorthand: "locator: opencv-sift"
                 child = {"plugin": child}
             if not isinstance(child, dict):
-                child = {"plugin": DEFAULT_PLUGINS[key]} if key in DEFAULT_PLUGINS else {}
+                child = {"plugin": DEFAULT_PLUGINS[key]} if target is out and key in DEFAULT_PLUGINS else {}
             target[key] = child
             target = child
         target[keys[-1]] = value
@@ -338,22 +399,22 @@ def validate_spec(data: dict[str, Any], host: PluginHost, *, origin: str = "spec
         SpecError: listing every problem.
     """
     problems: list[str] = []
-    for slot in (*STAGES, "refine_locator"):
-        stage = "locator" if slot == "refine_locator" else slot
-        key = _plugin_of(data.get(slot))
+    for path, stage in PLUGIN_SLOTS.items():
+        key = plugin_of(section_at(data, path))
         if not isinstance(key, str):
             continue
         registry = host.registry(stage)
-        where = _blame_set(overridden, (slot,), data) or _where(node, (slot,), origin)
+        slot = ".".join(path)
+        place = blame_set(overridden, path, data) or where(node, path, origin)
         if key not in registry:
-            problems.append(f"{where}{slot}: {_unknown_plugin(stage, key, host)}")
+            problems.append(f"{place}{slot}: {unknown_plugin(stage, key, host)}")
         else:
             missing = registry[key].missing_requirements()
             if missing:
-                problems.append(f"{where}{slot} ({key}): needs {', '.join(missing)}: "
+                problems.append(f"{place}{slot} ({key}): needs {', '.join(missing)}: "
                                 f"{registry[key].install_hint}")
     if problems:
-        raise SpecError(_listing(origin, problems))
+        raise SpecError(listing(origin, problems))
     model = spec_model(host)
     try:
         return model.model_validate(data)
@@ -361,102 +422,22 @@ def validate_spec(data: dict[str, Any], host: PluginHost, *, origin: str = "spec
         lines = []
         for err in exc.errors():
             loc = tuple(err["loc"])
-            where = _blame_set(overridden, loc, data) or _where(node, loc, origin, data)
-            lines.append(f"{where}{_describe_loc(loc, data)}: {str(err['msg'])[:200]}"
+            place = blame_set(overridden, loc, data) or where(node, loc, origin, data)
+            lines.append(f"{place}{describe_loc(loc, data)}: {str(err['msg'])[:200]}"
                          + (f" (got {short_repr(err['input'])})" if err["type"] not in ("missing",) and
                             not isinstance(err["input"], dict) else ""))
-        raise SpecError(_listing(origin, lines)) from None
+        raise SpecError(listing(origin, lines)) from None
 
 
 def check_available(spec: BaseModel) -> None:
-    """Check that every plugin ``spec`` selects, ``refine_locator`` included, is usable.
+    """Check that every plugin ``spec`` uses (:func:`plugin_configs`) is usable.
 
     Raises:
         MissingDependency: naming the first plugin whose optional requirement is missing
             and the command that installs it.
     """
-    for slot in (*STAGES, "refine_locator"):
-        config = getattr(spec, slot, None)
-        if config is not None:
-            type(config).check_available()
-
-
-def _listing(origin: str, problems: list[str], most: int = 20) -> str:
-    """One line for one problem, else a header line and one indented line per problem (``most`` shown)."""
-    if len(problems) == 1:
-        return f"{origin}: {problems[0]}"
-    more = [f"... and {len(problems) - most} more"] if len(problems) > most else []
-    return (f"{origin}: invalid pipeline spec ({len(problems)} problems)\n  "
-            + "\n  ".join(problems[:most] + more))
-
-
-def _blame_set(overrides: list[str], loc: tuple, data: dict[str, Any]) -> str:
-    """``"--set 'a.b=v': "`` for the last override that set the field at ``loc`` (or a parent), or ``""``."""
-    parts = [str(p) for p in loc]
-    if len(parts) > 1 and parts[0] in STAGES and _plugin_of(data.get(parts[0])) == parts[1]:
-        del parts[1]  # the discriminator tag pydantic inserts
-    dotted = ".".join(parts)
-    for item in reversed(list(overrides)):
-        key = item.partition("=")[0].strip()
-        if key and (dotted == key or dotted.startswith(key + ".") or key.startswith(dotted + ".")):
-            return f"--set {short_repr(item)}: "
-    return ""
-
-
-def _unknown_plugin(stage: str, key: str, host: PluginHost) -> str:
-    names = sorted(host.registry(stage))
-    close = difflib.get_close_matches(key, names, n=1)
-    hint = f"; did you mean {close[0]!r}?" if close else ""
-    broken = [f"{n} is broken ({r})" for n, r in host.broken.items() if key in n]
-    extra = f"; {broken[0]}" if broken else ""
-    return f"unknown plugin {short_repr(key)}{hint} (installed {stage}s: {', '.join(names) or 'none'}){extra}"
-
-
-def _describe_loc(loc: tuple, data: dict[str, Any]) -> str:
-    """``('locator', 'opencv-sift', 'ratio')`` -> ``locator (opencv-sift).ratio``."""
-    if not loc:
-        return "spec"
-    head, rest = str(loc[0]), list(loc[1:])
-    if head in STAGES and rest and isinstance(rest[0], str) and _plugin_of(data.get(head)) == rest[0]:
-        head = f"{head} ({rest.pop(0)})"
-    text = ".".join([head, *map(str, rest)])
-    return text if len(text) <= 120 else f"{text[:117]}..."
-
-
-def _plugin_of(section: Any) -> str | None:
-    if isinstance(section, str):
-        return section
-    return section.get("plugin") if isinstance(section, dict) else None
-
-
-def _where(node: Any, loc: tuple, origin: str, data: dict[str, Any] | None = None) -> str:
-    """Return ``"line N: "`` for the YAML node at ``loc`` (skipping union tags), or ``""``."""
-    if node is None:
-        return ""
-    line = None
-    current = node
-    for i, part in enumerate(loc):
-        if not isinstance(current, yaml.MappingNode):
-            break
-        match = next((v for k, v in current.value if k.value == str(part)), None)
-        if match is None:
-            key_node = next((k for k, _ in current.value if k.value == "plugin"), None)
-            if i > 0 and key_node is not None and str(part) == _plugin_value(current):
-                continue  # the discriminator tag pydantic inserts into the location
-            break
-        key = next(k for k, v in current.value if v is match)
-        line = key.start_mark.line + 1
-        current = match
-    if line is None and loc:
-        return ""
-    return f"line {line}: " if line is not None else ""
-
-
-def _plugin_value(node: Any) -> str | None:
-    for k, v in node.value:
-        if k.value == "plugin":
-            return v.value
-    return None
+    for config in plugin_configs(spec).values():
+        type(config).check_available()
 
 
 def dump_spec(spec: BaseModel) -> str:

@@ -2,7 +2,8 @@
 
 A plugin registers *config classes* (cheap pydantic models, importable without heavy
 dependencies). The pipeline validates a spec into those configs and calls ``build()`` on
-each to get the working stage object. Stages exchange the frozen records defined here.
+each to get the working stage object. Stages exchange the frozen records of
+:mod:`photonpano.records` (re-exported here).
 
 Stage kinds, in pipeline order: source, resampler, merger, locator, interpolator,
 compositor; and the experimental pose_estimator (6-DoF camera poses instead of
@@ -13,7 +14,6 @@ from __future__ import annotations
 
 import abc
 import importlib.util
-from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Any, ClassVar
 
@@ -22,10 +22,10 @@ from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator
 
 from .errors import MissingDependency
-from .types import check_shape
+from .records import Groups, MergedFrames, PairRegistrations
 
 if TYPE_CHECKING:
-    from .compose import Canvas, Panorama
+    from .records import Canvas, Panorama
 
 __all__ = [
     "StageConfig",
@@ -179,38 +179,6 @@ class ResamplerConfig(StageConfig):
     stage: ClassVar[str] = "resampler"
 
 
-@dataclass(frozen=True)
-class Groups:
-    """The virtual exposures of one level.
-
-    Attributes:
-        start: (G,) int64 first binary frame of each group.
-        stop: (G,) int64 one past the last frame of each group.
-        reference: (G,) int64 frame whose pixel grid the group is merged into and whose
-            homography the locator estimates; strictly increasing.
-    """
-
-    start: NDArray[np.int64]
-    stop: NDArray[np.int64]
-    reference: NDArray[np.int64]
-
-    def __post_init__(self) -> None:
-        g = check_shape(self.reference, "G", name="Groups.reference")["G"]
-        check_shape(self.start, "G", name="Groups.start", G=g)
-        check_shape(self.stop, "G", name="Groups.stop", G=g)
-        if g and not (np.all(self.start <= self.reference) and np.all(self.reference < self.stop)):
-            raise ValueError("Groups: each reference frame must lie inside its group")
-        if np.any(np.diff(self.reference) <= 0):
-            raise ValueError("Groups: reference frames must be strictly increasing")
-
-    def __len__(self) -> int:
-        return len(self.reference)
-
-    def select(self, index: NDArray[np.int64]) -> "Groups":
-        """Return the groups ``index`` ((K,) int64, increasing) as a new :class:`Groups`."""
-        return Groups(self.start[index], self.stop[index], self.reference[index])
-
-
 class Resampler(abc.ABC):
     """Chooses the groups of binary frames (virtual exposures) of each level."""
 
@@ -235,26 +203,6 @@ class MergerConfig(StageConfig):
     """Config base of mergers; ``build()`` returns a :class:`Merger`."""
 
     stage: ClassVar[str] = "merger"
-
-
-@dataclass(frozen=True)
-class MergedFrames:
-    """Merged virtual exposures, each in the pixel grid of its group's reference frame.
-
-    Attributes:
-        flux: (G, H, W) float32 linear flux in photons/s; NaN where unobserved.
-        frames: (G, H, W) float32 number of binary frames behind each pixel.
-        images: (G, H, W) uint8 tone-mapped sRGB images for the locator.
-        masks: (G, H, W) bool pixels observed by enough frames to be trusted.
-    """
-
-    flux: NDArray[np.float32]
-    frames: NDArray[np.float32]
-    images: NDArray[np.uint8]
-    masks: NDArray[np.bool_]
-
-    def __len__(self) -> int:
-        return len(self.flux)
 
 
 class Merger(abc.ABC):
@@ -285,30 +233,9 @@ class LocatorConfig(StageConfig):
     """Config base of locators; ``build()`` returns a :class:`Locator`."""
 
     stage: ClassVar[str] = "locator"
-
-
-@dataclass(frozen=True)
-class PairRegistrations:
-    """Homographies between pairs of merged frames.
-
-    Attributes:
-        homographies: (P, 3, 3) float64; entry p maps pixel coordinates of merged frame
-            ``pairs[p, 1]`` to those of merged frame ``pairs[p, 0]``.
-        matches: (P,) int64 tentative correspondences (0 for direct methods).
-        inliers: (P,) int64 correspondences consistent with the homography.
-        ok: (P,) bool False where the pair failed to register (its homography is then
-            meaningless and is bridged by the framework).
-    """
-
-    homographies: NDArray[np.float64]
-    matches: NDArray[np.int64]
-    inliers: NDArray[np.int64]
-    ok: NDArray[np.bool_]
-
-    def __post_init__(self) -> None:
-        p = check_shape(self.homographies, "P 3 3", name="PairRegistrations.homographies")["P"]
-        for name in ("matches", "inliers", "ok"):
-            check_shape(getattr(self, name), "P", name=f"PairRegistrations.{name}", P=p)
+    template_defaults: ClassVar[dict[str, Any]] = {}
+    """Settings suggested for registering against a low-noise panorama (the ``mosaic``
+    scheme's locator starts from them; fields the spec gives win)."""
 
 
 class Locator(abc.ABC):
@@ -340,6 +267,13 @@ class Locator(abc.ABC):
             One result per pair. A pair that cannot be registered is returned with
             ``ok=False``; raising is reserved for programming errors.
         """
+
+    def cache_stats(self) -> dict[str, int]:
+        """Return feature-cache counters (``{"hits", "misses", "entries", ...}``); {} if none is kept."""
+        return {}
+
+    def reset_cache_stats(self) -> None:
+        """Zero the counters of :meth:`cache_stats` (a locator without a cache does nothing)."""
 
 
 # --- interpolator: homographies for every binary frame ---------------------------

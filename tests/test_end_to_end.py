@@ -6,7 +6,8 @@ spec.
 """
 
 import pytest
-from photonpano.pipeline import ground_truth_report, reconstruct
+from photonpano.metrics import ground_truth_report
+from photonpano.pipeline import reconstruct
 from photonpano.spec import validate_spec
 
 pytestmark = pytest.mark.slow
@@ -48,7 +49,7 @@ def test_super_resolution_canvas(host):
     """Scale 2: a canvas twice as large whose 2x2 averages match the scale-1 panorama."""
     import cv2
     import numpy as np
-    from photonpano.reconstruct import assemble_panorama
+    from photonpano.compose import assemble_panorama
 
     spec = validate_spec({"source": {"plugin": "simulate", "frames": 3000, "height": 128, "width": 248},
                           "group_size": 300, "levels": 2}, host)

@@ -21,7 +21,7 @@ that land on trusted pixels of frame a (its weight in the framework's pose graph
 
 from __future__ import annotations
 
-from typing import Annotated, Literal
+from typing import Annotated, Any, ClassVar, Literal
 
 import numpy as np
 from numpy.typing import NDArray
@@ -38,6 +38,12 @@ class OpenCVEccConfig(LocatorConfig):
     """Direct homography by ECC maximisation over an image pyramid, from the current estimate."""
 
     plugin: Literal["opencv-ecc"] = "opencv-ecc"
+    template_defaults: ClassVar[dict[str, Any]] = {"pyramid_levels": 2, "finest_level": 1, "iterations": 10,
+                                                   "blur": 5}
+    """Against the panorama (the ``mosaic`` scheme) the residual motion is about a pixel, so
+    two pyramid levels and a few iterations suffice, and half resolution is enough against
+    a low-noise template (0.14 vs 0.13 px trajectory RMSE at 100k frames, 2.5x less ECC
+    time)."""
     pyramid_levels: Annotated[int, Field(ge=1, le=6)] = 3
     """Pyramid levels (1 = full resolution only); each level halves the image, so the
     coarsest level tolerates an initial error of about 2**(levels-1) times a few pixels."""

@@ -1,8 +1,8 @@
-"""The level-1 pose graph (reconstruct.refine_keyframes) on a long synthetic pan."""
+"""The level-1 pose graph (posegraph.refine_keyframes) on a long synthetic pan."""
 
 import numpy as np
 from photonpano import geometry
-from photonpano.reconstruct import pairs_at_offsets, refine_keyframes
+from photonpano.posegraph import pairs_at_offsets, refine_keyframes
 from photonpano.stages import PairRegistrations
 
 

@@ -4,7 +4,9 @@ import numpy as np
 import pytest
 from photonpano import geometry
 from photonpano.errors import StageError
-from photonpano.reconstruct import chain_keyframes, locate_keyframes, pairs_at_offsets, plausible
+from photonpano.guards import plausible
+from photonpano.posegraph import chain_keyframes, pairs_at_offsets
+from photonpano.schemes import locate_keyframes
 from photonpano.stages import Locator, MergedFrames, PairRegistrations
 
 W, H = 200, 100

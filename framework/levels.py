@@ -1,0 +1,132 @@
+"""The level loop of stratified temporal re-sampling (the paper's Sec. 4), top-down.
+
+Each level: **re-sample** the capture into groups, let the level's scheme **merge** and
+**locate** them (:mod:`photonpano.schemes`), **guard** the keyframe updates, and
+**interpolate** the keyframe corrections to every binary frame; then emit the level's
+frozen :class:`~photonpano.records.LevelResult`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from typing import Callable, Sequence
+
+import numpy as np
+from numpy.typing import NDArray
+
+from . import geometry
+from .errors import StageError
+from .executor import Executor, SerialExecutor
+from .guards import guard_keyframes, plausible
+from .records import Groups, LevelResult, Panorama
+from .schemes import LevelScheme, LevelTask
+from .stages import Interpolator, Merger, PhotonSource, Resampler
+
+__all__ = ["estimate_motion"]
+
+
+def estimate_motion(source: PhotonSource, resampler: Resampler, merger: Merger, interpolator: Interpolator,
+                    schemes: Sequence[LevelScheme], *, group_size: int, executor: Executor | None = None,
+                    keep_merged: bool = False, on_level: Callable[[LevelResult], None] | None = None,
+                    progress: Callable[[str, int], Callable[[int], None]] | None = None, start_level: int = 1,
+                    initial: NDArray[np.float64] | None = None,
+                    template: Panorama | None = None) -> NDArray[np.float64]:
+    """Estimate a homography for every binary frame by stratified re-sampling.
+
+    One level per scheme. Each level re-samples groups, has its scheme merge them with
+    the current homographies (relative to each group's reference frame) and register
+    them into keyframe homographies, and interpolates the keyframe *corrections*
+    ``K_g @ inv(H[ref_g])`` to every frame, so that detail resolved at earlier, denser
+    levels is kept (at level 1, where ``H`` is the identity, this is the paper's plain
+    interpolation of the keyframe homographies).
+
+    Args:
+        source: the capture.
+        resampler: the built resampler (groups of each level).
+        merger: the built merger (virtual exposures).
+        interpolator: the built interpolator (homographies for every binary frame).
+        schemes: the scheme of each level (its length is the number of levels); the
+            first must not need an estimate (``pairwise``).
+        group_size: binary frames per group m.
+        executor: runs independent work (None: serially).
+        keep_merged: keep each level's merged frames in its result (for dumps).
+        on_level: called with each finished level.
+        progress: ``progress(description, total)`` returns an ``advance(n)`` callable.
+        start_level: resume with this level (the result equals that of an uninterrupted run).
+        initial: (T, 3, 3) float64 homographies after level ``start_level - 1`` (that
+            :class:`~photonpano.records.LevelResult`'s); None: identities.
+        template: that level's :attr:`~photonpano.records.LevelResult.template`.
+
+    Returns:
+        (T, 3, 3) float64 frame-to-panorama homographies, where panorama coordinates are
+        the pixel coordinates of the middle binary frame ``T // 2`` (its homography is
+        the identity); each level's result is in the same coordinates.
+
+    Raises:
+        StageError: if a level cannot register anything, or its update is implausible.
+        ValueError: if the first scheme needs an estimate.
+    """
+    n = source.n_frames
+    homographies = np.repeat(np.eye(3)[None], n, axis=0) if initial is None else np.array(initial, np.float64)
+    executor = executor or SerialExecutor()
+    if start_level == 1 and schemes and schemes[0].needs_estimate:
+        raise ValueError(f"level 1 cannot use the {schemes[0].name} scheme: it refines an existing estimate")
+    for level in range(start_level, len(schemes) + 1):
+        scheme, t0 = schemes[level - 1], time.perf_counter()
+        groups = _resample(resampler, n, group_size, level)
+        t1 = time.perf_counter()
+        task = LevelTask(level, source, merger, groups, homographies, group_size, executor, keep_merged, template,
+                         next_template=level < len(schemes) and schemes[level].needs_estimate,
+                         progress=progress(f"level {level}: merge + locate", len(groups)) if progress else None)
+        located = scheme.locate(task)
+        t2 = time.perf_counter()
+        keyframes, rejected = guard_keyframes(task.current, located.keyframes, source.width, source.height)
+        updated = _interpolate(interpolator, groups, task.current, keyframes, homographies, source, level)
+        homographies, template = _gauge(updated, homographies, located.template)
+        t3 = time.perf_counter()
+        timings = {"resample": t1 - t0, "merge": located.merge_s, "locate": t2 - t1 - located.merge_s,
+                   "interpolate": t3 - t2}
+        if on_level is not None:
+            on_level(LevelResult(level, scheme.name, groups, dataclasses.replace(located, template=template),
+                                 homographies, timings, rejected))
+    return homographies
+
+
+def _resample(resampler: Resampler, n: int, group_size: int, level: int) -> Groups:
+    """The level's groups; a capture too short for them is the resampler's error."""
+    try:
+        return resampler.groups(n, group_size, level)
+    except ValueError as exc:
+        raise StageError("resampler", type(resampler).__name__, str(exc)) from None
+
+
+def _interpolate(interpolator: Interpolator, groups: Groups, current: NDArray[np.float64],
+                 keyframes: NDArray[np.float64], homographies: NDArray[np.float64], source: PhotonSource,
+                 level: int) -> NDArray[np.float64]:
+    """Interpolate the keyframe corrections to every frame and apply them (refusing folds)."""
+    correction = keyframes @ np.linalg.inv(current)
+    update = interpolator.interpolate(groups.reference, correction, len(homographies), groups)
+    updated = geometry.normalize(update @ homographies)
+    if not plausible(np.linalg.inv(homographies) @ updated, source.width, source.height).all():
+        raise StageError("interpolator", type(interpolator).__name__,
+                         f"level {level}: the interpolated update folds or rescales some frames")
+    return updated
+
+
+def _gauge(updated: NDArray[np.float64], previous: NDArray[np.float64],
+           template: Panorama | None) -> tuple[NDArray[np.float64], Panorama | None]:
+    """Fix panorama coordinates to the middle frame's pixels, and carry a template along.
+
+    The panorama has the middle frame's scale and perspective (as a stitching reference
+    image in the middle of the sequence keeps distortion low). A template built on the
+    previous estimate maps frames to its canvas by ``C @ previous``; it keeps its canvas
+    and maps them by the same ``C`` applied to the updated estimate.
+    """
+    gauge = np.linalg.inv(updated[len(updated) // 2])
+    homographies = geometry.normalize(gauge @ updated)
+    if template is None:
+        return homographies, None
+    canvas_from_panorama = template.homographies[0] @ np.linalg.inv(previous[0]) @ np.linalg.inv(gauge)
+    return homographies, Panorama(template.flux, template.frames,
+                                  geometry.normalize(canvas_from_panorama @ homographies))

@@ -1,0 +1,90 @@
+"""The level scheme seam: how one level turns its groups into keyframe homographies.
+
+A level re-samples the capture into groups, then hands them to its scheme, which merges
+them (with the current estimate) and registers the merged frames: this is the paper's
+*locate* step (Sec. 4). Two schemes are built in (:mod:`photonpano.schemes`):
+``pairwise`` (the paper's: pairs of merged frames and a pose graph) and ``mosaic``
+(each merged frame against the panorama of the current estimate). A scheme owns its
+locators, its windows over the groups and the work it sends to the executor.
+"""
+
+from __future__ import annotations
+
+import abc
+from dataclasses import dataclass
+from typing import Callable, ClassVar
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ..executor import Executor
+from ..records import Groups, LocateResult, Panorama
+from ..stages import Merger, PhotonSource
+
+__all__ = ["LevelTask", "LevelScheme"]
+
+
+@dataclass(frozen=True)
+class LevelTask:
+    """One level's locate work, as the level loop hands it to a scheme.
+
+    Attributes:
+        level: 1-based level number.
+        source: the capture.
+        merger: the built merger.
+        groups: the level's G groups (virtual exposures).
+        homographies: (T, 3, 3) float64 current frame-to-panorama homographies (panorama
+            coordinates: pixels of the middle binary frame).
+        group_size: binary frames per group m (the trust threshold of template pixels).
+        executor: where independent work runs.
+        keep_merged: return the merged frames in the result (``outputs.merged_frames``).
+        template: the panorama of the current estimate, if the previous level built it
+            (its ``homographies`` map frames to its canvas); None: build it if needed.
+        next_template: the next level registers against a panorama: build it too if
+            that can be had without another pass over the photons.
+        progress: called with the number of groups done, or None.
+    """
+
+    level: int
+    source: PhotonSource
+    merger: Merger
+    groups: Groups
+    homographies: NDArray[np.float64]
+    group_size: int
+    executor: Executor
+    keep_merged: bool = False
+    template: Panorama | None = None
+    next_template: bool = False
+    progress: Callable[[int], None] | None = None
+
+    @property
+    def current(self) -> NDArray[np.float64]:
+        """(G, 3, 3) float64 current homographies of the groups' reference frames."""
+        return self.homographies[self.groups.reference]
+
+
+class LevelScheme(abc.ABC):
+    """Merges and registers one level's groups into keyframe homographies.
+
+    Subclasses set :attr:`name` and implement :meth:`locate`. A scheme may be used for
+    several levels of one run; it must not keep per-level state between calls.
+    """
+
+    name: ClassVar[str]
+    needs_estimate: ClassVar[bool] = False
+    """True if the scheme refines an existing estimate (it cannot run at level 1)."""
+
+    @abc.abstractmethod
+    def locate(self, task: LevelTask) -> LocateResult:
+        """Merge the task's groups and register them.
+
+        Args:
+            task: the level's :class:`LevelTask`.
+
+        Returns:
+            The :class:`~photonpano.records.LocateResult`: G keyframe homographies in the
+            coordinates of ``task.homographies``, and the registrations behind them.
+
+        Raises:
+            StageError: if nothing could be registered (naming the locator).
+        """

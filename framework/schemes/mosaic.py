@@ -1,0 +1,179 @@
+"""The ``mosaic`` level scheme: each merged frame against the panorama of the current estimate.
+
+Frame-to-mosaic alignment (Szeliski, "Image Alignment and Stitching", 2006, Sec. 6.2;
+Sawhney and Kumar, 1999): once an estimate exists, every binary frame is composited onto
+one canvas (the *template*, through a compositor), and each merged frame is registered
+against that panorama resampled into its reference frame's grid
+(:func:`~photonpano.compose.panorama_views`). The template is a low-noise average over
+the whole capture, so registrations do not chain (no drift, no pose graph) and each group
+is registered once.
+
+Groups go to the executor in windows; each window is a pure task (it builds its own
+locator and returns what it found), so the windows can run on threads or processes.
+The next level's template can be had without another pass over the photons: the merged
+frames are also accumulated onto the canvas at their registered positions (a flux
+average weighted by frames), each task returning the crop of the canvas it touched.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from typing import Any, Callable
+
+import numpy as np
+from numpy.typing import NDArray
+
+from .. import geometry
+from ..compose import compose, panorama_views
+from ..errors import StageError
+from ..guards import bridge, plausible
+from ..records import LocateResult, MergedFrames, PairRegistrations, Panorama
+from ..stages import Compositor, Locator
+from .base import LevelScheme, LevelTask
+
+__all__ = ["MosaicScheme"]
+
+
+@dataclass(frozen=True)
+class _WindowResult:
+    """What one window of groups returns (see :meth:`MosaicScheme.locate`)."""
+
+    registrations: PairRegistrations
+    cache: dict[str, int]
+    merge_s: float
+    total_s: float
+    merged: MergedFrames | None
+    crop: tuple[int, int, NDArray[np.float32], NDArray[np.float32]] | None
+
+
+class MosaicScheme(LevelScheme):
+    """Register every merged frame of a level against the panorama of the current estimate.
+
+    Args:
+        make_locator: builds a locator (called once per window of groups).
+        make_compositor: builds the compositor of the template, when the previous level
+            did not leave one (e.g. ``flux-canvas``'s config ``build``).
+        subbatch_px: sub-batch tolerance of that template, in canvas pixels.
+        window: groups merged and registered per task.
+    """
+
+    name = "mosaic"
+    needs_estimate = True
+
+    def __init__(self, make_locator: Callable[[], Locator], make_compositor: Callable[[], Compositor], *,
+                 subbatch_px: float = 0.5, window: int = 16) -> None:
+        """Create the scheme from factories of its locator and template compositor."""
+        self.make_locator = make_locator
+        self.make_compositor = make_compositor
+        self.subbatch_px = subbatch_px
+        self.window = window
+
+    def template(self, task: LevelTask) -> Panorama:
+        """The panorama the task's merged frames are registered against (built if not given)."""
+        if task.template is not None:
+            return task.template
+        return compose(task.source, task.homographies, self.make_compositor(), subbatch_px=self.subbatch_px,
+                       executor=task.executor)
+
+    def locate(self, task: LevelTask) -> LocateResult:
+        """Register each merged frame against the template (see the module).
+
+        Returns:
+            G registrations (merged frame pixels to panorama-view pixels), keyframes
+            (failed registrations bridged from their neighbours), and, with
+            ``task.next_template``, the merged frames' panorama on the template's canvas
+            (its ``homographies`` still those of the input estimate).
+
+        Raises:
+            StageError: if no merged frame could be registered.
+        """
+        source, groups = task.source, task.groups
+        template = self.template(task)
+        to_canvas = template.homographies[groups.reference]
+        shape = template.flux.shape
+
+        def run(index: NDArray[np.int64]) -> _WindowResult:
+            start = time.perf_counter()
+            locator = self.make_locator()
+            merged = task.merger.merge(source, task.homographies, groups.select(index))
+            merge_s = time.perf_counter() - start
+            views = panorama_views(template, to_canvas[index], source.height, source.width, task.group_size)
+            n = len(index)
+            pairs = np.stack([np.arange(n), np.arange(n, 2 * n)], axis=1)
+            found = locator.register_pairs(MergedFrames.concat(views, merged), pairs,
+                                           np.repeat(np.eye(3)[None], n, axis=0))
+            crop = _accumulate(merged, to_canvas[index] @ found.homographies, found.ok, shape) \
+                if task.next_template else None
+            if task.progress is not None:
+                task.progress(n)
+            return _WindowResult(found, locator.cache_stats(), merge_s, time.perf_counter() - start,
+                                 merged if task.keep_merged else None, crop)
+
+        windows = [np.arange(s, min(s + self.window, len(groups))) for s in range(0, len(groups), self.window)]
+        started = time.perf_counter()
+        parts: list[_WindowResult] = task.executor.map(run, windows)
+        wall = time.perf_counter() - started
+        regs = PairRegistrations.concat(*(part.registrations for part in parts))
+        ok = regs.ok & plausible(regs.homographies, source.width, source.height)
+        if not ok.any():
+            raise StageError("locator", "mosaic", f"level {task.level}: none of the {len(ok)} merged frames "
+                             "registered against the panorama of the current estimate")
+        regs = regs.with_ok(ok)
+        current = task.current
+        keyframes = bridge(current, geometry.normalize(current @ regs.homographies), ok)
+        cache: dict[str, int] = {}
+        for part in parts:
+            for key, value in part.cache.items():
+                cache[key] = cache.get(key, 0) + value
+        # merging and registering interleave on the workers: apportion the wall time
+        busy = sum(part.total_s for part in parts)
+        merge_s = wall * sum(part.merge_s for part in parts) / busy if busy else 0.0
+        following = None
+        if task.next_template:
+            following = _template_from_crops([part.crop for part in parts], shape, template.homographies)
+        merged = MergedFrames.concat(*(part.merged for part in parts)) if task.keep_merged else None
+        return LocateResult(keyframes, regs, None, merged=merged, merge_s=merge_s, locator_cache=cache or None,
+                            template=following)
+
+
+def _accumulate(merged: MergedFrames, placed: NDArray[np.float64], ok: NDArray[np.bool_],
+                shape: tuple[int, int]) -> tuple[int, int, NDArray[np.float32], NDArray[np.float32]] | None:
+    """Warp the registered merged frames onto the canvas crop they cover.
+
+    Returns:
+        ``(y0, x0, flux sums, frame weights)``: the crop's top-left canvas pixel and two
+        float32 images of the crop, or None if no frame registered.
+    """
+    from ..warping import WarpAccumulator
+
+    if not ok.any():
+        return None
+    h, w = merged.flux.shape[1:]
+    x0, y0, x1, y1 = geometry.footprint_bounds(placed[ok], w, h)
+    x0, y0 = max(int(np.floor(x0)) - 1, 0), max(int(np.floor(y0)) - 1, 0)
+    x1, y1 = min(int(np.ceil(x1)) + 2, shape[1]), min(int(np.ceil(y1)) + 2, shape[0])
+    if x1 <= x0 or y1 <= y0:
+        return None
+    shift = geometry.translation(-x0, -y0)
+    sums, weights = WarpAccumulator(y1 - y0, x1 - x0), WarpAccumulator(y1 - y0, x1 - x0)
+    for i in np.flatnonzero(ok):
+        weight = np.where(merged.masks[i], merged.frames[i], 0).astype(np.float32)
+        sums.add(np.nan_to_num(merged.flux[i]) * weight, 1, shift @ placed[i])
+        weights.add(weight, 1, shift @ placed[i])
+    return y0, x0, sums.counts, weights.counts
+
+
+def _template_from_crops(crops: list[Any], shape: tuple[int, int],
+                         homographies: NDArray[np.float64]) -> Panorama:
+    """Sum the windows' crops into the next template: frame-weighted mean flux, NaN where unseen."""
+    sums, weights = np.zeros(shape, np.float32), np.zeros(shape, np.float32)
+    for crop in crops:
+        if crop is None:
+            continue
+        y0, x0, s, w = crop
+        sums[y0:y0 + s.shape[0], x0:x0 + s.shape[1]] += s
+        weights[y0:y0 + w.shape[0], x0:x0 + w.shape[1]] += w
+    with np.errstate(divide="ignore", invalid="ignore"):
+        flux = np.where(weights > 0, sums / weights, np.nan).astype(np.float32)
+    return Panorama(flux=flux, frames=weights, homographies=homographies)

@@ -1,0 +1,221 @@
+"""The ``pairwise`` level scheme: pairs of merged frames, chained and solved as a pose graph.
+
+The paper's locate step (Sec. 4): consecutive merged frames are registered and chained;
+longer-offset pairs that the chain predicts to overlap are registered too and all pairs
+are solved jointly (:mod:`photonpano.posegraph`), so that a wrong consecutive link is
+outvoted. Merged frames stream through a ring (:func:`locate_keyframes`), so memory does
+not grow with the capture.
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Callable
+
+import numpy as np
+from numpy.typing import NDArray
+
+from .. import geometry
+from ..errors import StageError
+from ..guards import plausible
+from ..posegraph import chain_keyframes, corner_disagreement, pairs_at_offsets, refine_keyframes
+from ..records import LocateResult, MergedFrames, PairRegistrations
+from ..stages import Locator
+from .base import LevelScheme, LevelTask
+
+__all__ = ["PairwiseScheme", "locate_keyframes"]
+
+
+class _MergedRing:
+    """Merged frames of the last ``capacity`` groups, group j in slot ``j % capacity``."""
+
+    def __init__(self, capacity: int) -> None:
+        self.capacity = capacity
+        self.frames: MergedFrames | None = None
+
+    def put(self, index: NDArray[np.int64], merged: MergedFrames) -> None:
+        if self.frames is None:
+            shape = (self.capacity,) + merged.flux.shape[1:]
+            self.frames = MergedFrames(*(np.zeros(shape, getattr(merged, f).dtype)
+                                         for f in ("flux", "frames", "images", "masks")))
+        slots = index % self.capacity
+        for f in ("flux", "frames", "images", "masks"):
+            getattr(self.frames, f)[slots] = getattr(merged, f)
+
+    def register(self, locator: Locator, pairs: NDArray[np.int64], initial: NDArray[np.float64],
+                 width: int, height: int) -> PairRegistrations:
+        """Register group pairs held in the ring; implausible results count as failed."""
+        found = locator.register_pairs(self.frames, pairs % self.capacity, initial)
+        return found.with_ok(found.ok & plausible(found.homographies, width, height))
+
+
+def _overlapping(pairs: NDArray[np.int64], keyframes: NDArray[np.float64], width: int, height: int,
+                 min_overlap: float) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
+    """Keep the pairs whose frames ``keyframes`` predict to overlap by ``min_overlap``; return them and their maps."""
+    expected = np.linalg.inv(keyframes[pairs[:, 0]]) @ keyframes[pairs[:, 1]]
+    centre = np.array([[(width - 1) / 2, (height - 1) / 2]])
+    shift = geometry.apply(expected, centre)[:, 0] - centre
+    overlap = np.clip(1 - np.abs(shift[:, 0]) / width, 0, 1) * np.clip(1 - np.abs(shift[:, 1]) / height, 0, 1)
+    keep = overlap >= min_overlap
+    return pairs[keep], expected[keep]
+
+
+def locate_keyframes(locator: Locator, merge: Callable[[NDArray[np.int64]], MergedFrames],
+                     current: NDArray[np.float64], pair_offsets: tuple[int, ...], width: int, height: int, *,
+                     window: int = 32, min_overlap: float = 0.5, outlier_px: float = 1.0
+                     ) -> tuple[NDArray[np.float64], NDArray[np.int64], PairRegistrations]:
+    """Register merged frames pairwise and solve for the homographies of their reference frames.
+
+    1. Consecutive pairs are registered and chained (:func:`chain_keyframes`), failed
+       or implausible pairs bridged.
+    2. For each offset k > 1, pairs ``(g - k, g)`` that the chain predicts to overlap by
+       at least ``min_overlap`` are registered too.
+    3. All plausible pairs are solved jointly (:func:`refine_keyframes`, robust loss);
+       pairs whose corners disagree with that solution by more than
+       ``max(outlier_px, 4 x median disagreement)`` are rejected and the graph is
+       solved again. A wrong consecutive link is thereby outvoted by the longer pairs
+       spanning it.
+
+    Merged frames stream: ``merge`` is called on consecutive windows of ``window``
+    groups and steps 1 and 2 run as they arrive (one ``register_pairs`` call per
+    window), keeping only the merged frames that later pairs reach back to. Memory is
+    thus bounded by ``2 x window + max(pair_offsets)`` merged frames whatever the
+    capture length; the pose graph (step 3) holds only the pair homographies.
+
+    Args:
+        locator: the built locator.
+        merge: ``merge(index)`` returns the merged frames of groups ``index`` ((K,)
+            int64, consecutive and increasing).
+        current: (G, 3, 3) float64 current homographies of the reference frames.
+        pair_offsets: offsets k (1 is always used).
+        width: frame width in pixels.
+        height: frame height in pixels.
+        window: groups merged and registered at a time.
+        min_overlap: predicted overlap (fraction of the frame) needed to try a pair.
+        outlier_px: smallest rejection threshold, in pixels (corner distance).
+
+    Returns:
+        ``(keyframes, pair_index, pairs)``: (G, 3, 3) float64 homographies, (P, 2)
+        int64 pairs tried (the G - 1 consecutive pairs first) and their registrations
+        (``ok`` False where failed or rejected).
+
+    Raises:
+        StageError: if every consecutive pair failed.
+    """
+    g = len(current)
+    offsets = tuple(k for k in sorted(set(pair_offsets)) if 1 < k < g)
+    windows = [np.arange(s, min(s + window, g)) for s in range(0, g, window)]
+    ring = _MergedRing(min(g, 2 * window + max(offsets, default=0)))
+    predicted = np.linalg.inv(current[:-1]) @ current[1:]
+    chain_parts: list[PairRegistrations] = []
+    extra_parts: list[tuple[NDArray[np.int64], PairRegistrations]] = []
+    # One locator call per window: its consecutive pairs, and the longer pairs ending in the
+    # previous window, whose overlap the chain up to there predicts. A frame is thus used
+    # by consecutive calls only, and a locator's per-call cache describes it once.
+    for w in range(len(windows) + 1):
+        index, initial = [np.zeros((0, 2), np.int64)], [np.zeros((0, 3, 3))]
+        if w < len(windows):
+            new = windows[w]
+            ring.put(new, merge(new))
+            index.append(np.stack([new - 1, new], axis=1)[new > 0])
+            initial.append(predicted[index[-1][:, 0]])
+        n_chain = len(index[-1])
+        if offsets and w > 0:
+            done = windows[w - 1]
+            chained = PairRegistrations.concat(*chain_parts)
+            try:
+                so_far = chain_keyframes(current[:done[-1] + 1], chained)
+            except StageError:  # every consecutive pair so far failed
+                so_far = current[:done[-1] + 1]
+            reach = np.concatenate([np.stack([done - k, done], axis=1)[done >= k] for k in offsets])
+            reach, expected = _overlapping(reach, so_far, width, height, min_overlap)
+            index.append(reach)
+            initial.append(expected)
+        index_all = np.concatenate(index)
+        if not len(index_all):
+            continue
+        found = ring.register(locator, index_all, np.concatenate(initial), width, height)
+        chain_parts.append(found.take(slice(0, n_chain)))
+        if len(index_all) > n_chain:
+            extra_parts.append((index_all[n_chain:], found.take(slice(n_chain, None))))
+    chain_index = pairs_at_offsets(g, (1,))
+    chain = PairRegistrations.concat(*chain_parts)
+    keyframes = chain_keyframes(current, chain)
+    if not extra_parts:
+        return keyframes, chain_index, chain
+    extra = np.concatenate([index for index, _ in extra_parts])
+    found = PairRegistrations.concat(*(found for _, found in extra_parts))
+    pair_index = np.concatenate([chain_index, extra])
+    # Bridged consecutive pairs enter the solve with a token weight (one inlier) so
+    # that the pose graph stays connected across registration failures.
+    steps = np.linalg.inv(keyframes[:-1]) @ keyframes[1:]
+    bridged = PairRegistrations(steps, chain.matches, np.where(chain.ok, chain.inliers, 1),
+                                np.ones(len(steps), bool))
+    graph = PairRegistrations.concat(bridged, found)
+    solved = refine_keyframes(keyframes, pair_index, graph, width, height)
+    # A wrong registration that looked plausible disagrees with the joint solution of
+    # all the others: drop such pairs and solve again.
+    measured = PairRegistrations.concat(chain, found).ok
+    residual = corner_disagreement(graph.homographies,
+                                    np.linalg.inv(solved[pair_index[:, 0]]) @ solved[pair_index[:, 1]], width, height)
+    limit = max(outlier_px, 4 * float(np.median(residual[measured]))) if measured.any() else np.inf
+    outliers = measured & (residual > limit)
+    if outliers.any():
+        graph = graph.with_ok(graph.ok & ~outliers)
+        solved = refine_keyframes(solved, pair_index, graph, width, height)
+    pairs = PairRegistrations.concat(chain, found)
+    pairs = pairs.with_ok(pairs.ok & ~outliers)
+    # Safety net: a joint solve that agrees with the trusted pairs worse than the chain
+    # does (it did not converge) is discarded for the chain.
+    trusted = pairs.ok
+    if trusted.any():
+        def disagreement(k: NDArray[np.float64]) -> float:
+            relative = np.linalg.inv(k[pair_index[trusted, 0]]) @ k[pair_index[trusted, 1]]
+            return float(np.median(corner_disagreement(graph.homographies[trusted], relative, width, height)))
+
+        if not np.isfinite(disagreement(solved)) or disagreement(solved) > disagreement(keyframes):
+            solved = keyframes
+    return solved, pair_index, pairs
+
+
+
+class PairwiseScheme(LevelScheme):
+    """Register pairs of merged frames and solve the pose graph (the paper's scheme).
+
+    Args:
+        locator: the built locator (its :attr:`~photonpano.stages.Locator.executor` is set
+            to the task's executor for its per-pair work).
+        pair_offsets: register merged frames g and g + k for each k (1 is always used).
+    """
+
+    name = "pairwise"
+
+    def __init__(self, locator: Locator, pair_offsets: tuple[int, ...] = (1,)) -> None:
+        """Create the scheme around a built locator."""
+        self.locator = locator
+        self.pair_offsets = tuple(pair_offsets)
+
+    def locate(self, task: LevelTask) -> LocateResult:
+        """Stream-merge the groups, register pairs, solve (see :func:`locate_keyframes`)."""
+        kept: list[MergedFrames] = []
+        merge_s = 0.0
+
+        def merge(index: NDArray[np.int64]) -> MergedFrames:
+            nonlocal merge_s
+            start = time.perf_counter()
+            part = task.merger.merge(task.source, task.homographies, task.groups.select(index),
+                                     progress=task.progress, executor=task.executor)
+            merge_s += time.perf_counter() - start
+            if task.keep_merged:
+                kept.append(part)
+            return part
+
+        self.locator.executor = task.executor
+        self.locator.reset_cache_stats()
+        try:
+            keyframes, pair_index, pairs = locate_keyframes(self.locator, merge, task.current, self.pair_offsets,
+                                                            task.source.width, task.source.height)
+        except StageError as err:
+            raise StageError("locator", type(self.locator).__name__, f"level {task.level}: {err.reason}") from None
+        return LocateResult(keyframes, pairs, pair_index, merged=MergedFrames.concat(*kept) if kept else None,
+                            merge_s=merge_s, locator_cache=self.locator.cache_stats() or None)
