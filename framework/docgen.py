@@ -162,17 +162,19 @@ def _field_rows(model: type[BaseModel], skip: tuple[str, ...] = (), **texts: str
 
 
 def _top_level_markdown(host: PluginHost) -> list[str]:
-    """The spec's own fields (stages, levels, group size, outputs...) and ``outputs``."""
+    """The spec's own fields (stages, levels, group size, outputs...), ``mosaic`` and ``outputs``."""
     model = spec_model(host)
     stages = {stage: f"The {stage} plugin: its key as a string, or a mapping with `plugin` and "
                      f"the fields of that plugin (see [{stage}](#{stage}))." for stage in STAGES}
-    outputs = model.model_fields["outputs"].annotation
+    sections = []
+    for name in ("mosaic", "outputs"):
+        section = model.model_fields[name].annotation
+        sections += ["", f"### `{name}`", "", rst_inline_to_markdown(inspect.cleandoc(section.__doc__ or "")), "",
+                     "| field | default | meaning |", "| --- | --- | --- |", *_field_rows(section)]
     return ["## Top level", "", inspect.cleandoc(model.__doc__ or ""), "",
             "| field | default | meaning |", "| --- | --- | --- |",
             *_field_rows(model, version="Spec format version; 1 is the only one.",
-                         outputs="Optional outputs (see [outputs](#outputs)).", **stages),
-            "", "### `outputs`", "", rst_inline_to_markdown(inspect.cleandoc(outputs.__doc__ or "")), "",
-            "| field | default | meaning |", "| --- | --- | --- |", *_field_rows(outputs), ""]
+                         outputs="Optional outputs (see [outputs](#outputs)).", **stages), *sections, ""]
 
 
 def main(argv: list[str] | None = None) -> None:

@@ -164,7 +164,7 @@ def spec_model(host: PluginHost) -> type[BaseModel]:
             default_cls = host.registry(stage).get(DEFAULT_PLUGINS[stage], classes[0])
             slots[stage] = (_tagged(classes), Field(default_factory=default_cls))
     slots["mosaic"] = (_mosaic_model(host), Field(default_factory=lambda: _mosaic_model(host)(),
-                                                  description="Settings of the mosaic level scheme."))
+                                                  description="Locator and template of the levels whose scheme is mosaic (see [mosaic](#mosaic))."))
     model = create_model(
         "PipelineSpec",
         __base__=_SpecBase,
@@ -213,7 +213,7 @@ def _mosaic_model(host: PluginHost) -> type[BaseModel]:
     def default(registry: dict[str, Any], slot: str, shorthand: Any) -> Any:
         return Field(default_factory=lambda: registry[MOSAIC_PLUGINS[slot]](**shorthand({})))
 
-    return create_model(
+    model = create_model(
         "MosaicSpec", __config__=ConfigDict(extra="forbid", frozen=True),
         locator=(Annotated[_tagged(list(locators.values())), BeforeValidator(locator), Field(
             description="Locator registering each merged frame against the panorama view at its pose.")],
@@ -224,6 +224,12 @@ def _mosaic_model(host: PluginHost) -> type[BaseModel]:
         subbatch_px=(Annotated[float, Field(gt=0, le=2, description="Sub-batch tolerance of that panorama, "
                                             "in canvas pixels.")], 0.5),
     )
+    model.__doc__ = ("The mosaic level scheme registers each merged frame against the panorama of the current "
+                     "estimate (frame-to-mosaic alignment): `locator` registers, `template` composites that "
+                     "panorama. A locator here starts from its `template_defaults` (opencv-ecc: 2 pyramid levels "
+                     "down to half resolution, 10 iterations). The former `refine_locator: X` is read as "
+                     "`mosaic: {locator: X}`, and `refine_locator: null` as `level_schemes: [pairwise]`.")
+    return model
 
 
 def level_schemes(spec: BaseModel) -> list[str]:
