@@ -5,7 +5,7 @@ Runs exactly the tutorial's commands in a scratch folder:
 1. ``photonpano demo`` with ``source.cube_path`` set, so the simulated photon cube is
    also written as a bit-packed ``.npy`` file;
 2. ``photonpano pano`` on that cube with every level's merged frames dumped (the
-   paper's pairwise registration at every level, ``refine_locator: null``);
+   paper's pairwise registration at every level, ``level_schemes: [pairwise]``);
 
 then writes small 8-bit PNGs into ``docs/img/``: one binary frame of the cube, the
 virtual exposure around the middle frame at level 1 and at the last level, the demo's
@@ -82,7 +82,7 @@ def main() -> None:
         cube = work / "capture.npy"
         photonpano("demo", "-o", str(work / "demo-out"), "--set", f"source.cube_path={cube}")
         photonpano("pano", str(cube), "-o", str(work / "levels-out"),
-                   "--set", "outputs.merged_frames=true", "--set", "refine_locator=null")
+                   "--set", "outputs.merged_frames=true", "--set", "level_schemes=[pairwise]")
 
         frames = np.load(cube, mmap_mode="r")
         middle = frames.shape[0] // 2

@@ -265,7 +265,7 @@ def test_real_photron_clip_of_a_static_camera():
 
     spec = validate_spec({"source": {"plugin": "photron-mraw", "path": str(HIGHSPEED / "ball_12bit.mraw")},
                           "merger": "mean", "locator": {"plugin": "opencv-ecc", "motion": "translation"},
-                          "refine_locator": None,  # pairwise at both levels (the template holds the ball)
+                          "level_schemes": ["pairwise"],  # pairwise at both levels (the template holds the ball)
                           "group_size": 3, "levels": 2}, PluginHost())
     source = spec.source.build()
     h, _, pano, _ = reconstruct(spec, source)
@@ -282,7 +282,7 @@ def test_real_photron_clip_static_within_one_pixel_with_the_default_locator():
     The default ``opencv-sift`` picks its motion model per pair by GRIC: a homography
     would bend to fit the band's keypoints and the ball's few keypoints at once (92 px of
     drift over the clip before). Pairwise registration at both levels: registering
-    against the panorama (the default ``refine_locator``, ECC on every pixel) follows
+    against the panorama (the default ``mosaic`` scheme, ECC on every pixel) follows
     the ball, which the panorama holds smeared along its fall.
     """
     _pymraw()
@@ -292,7 +292,8 @@ def test_real_photron_clip_static_within_one_pixel_with_the_default_locator():
     from photonpano.spec import validate_spec
 
     spec = validate_spec({"source": {"plugin": "photron-mraw", "path": str(HIGHSPEED / "ball_12bit.mraw")},
-                          "merger": "mean", "group_size": 3, "levels": 2, "refine_locator": None}, PluginHost())
+                          "merger": "mean", "group_size": 3, "levels": 2, "level_schemes": ["pairwise"]},
+                         PluginHost())
     h, _, _, _ = reconstruct(spec, spec.source.build())
     c = apply(h, corners(384, 384))
     assert np.abs(c - c[:1]).max() < 1.0

@@ -62,13 +62,31 @@ def test_validating_a_kornia_spec_imports_no_torch(tmp_path):
     assert out.strip().endswith("[]"), out
 
 
-def test_refine_locator_with_a_missing_extra_fails_at_validation(tmp_path, without_backends):
+@pytest.mark.parametrize("section, where", [
+    ("mosaic: {locator: {plugin: kornia-direct}}", "line 2: mosaic.locator (kornia-direct)"),
+    ("mosaic:\n  locator: kornia-direct", "line 3: mosaic.locator (kornia-direct)"),
+    ("refine_locator: {plugin: kornia-direct}", "line 2: refine_locator (kornia-direct)"),  # its former name
+])
+def test_mosaic_locator_with_a_missing_extra_fails_at_validation(tmp_path, without_backends, section, where):
     """Issue 12: a refine_locator whose extra is missing passed `validate` and failed at level 2."""
     from photonpano.cli import app
 
     spec = tmp_path / "spec.yaml"
-    spec.write_text("source: {plugin: npy-cube, path: x.npy}\nrefine_locator: {plugin: kornia-direct}\n")
+    spec.write_text(f"source: {{plugin: npy-cube, path: x.npy}}\n{section}\n")
     result = CliRunner().invoke(app, ["validate", str(spec)])
     assert result.exit_code == 1
-    assert "line 2: refine_locator (kornia-direct): needs torch, kornia: pip install 'photonpano[kornia]'" \
-        in result.output
+    assert f"{where}: needs torch, kornia: pip install 'photonpano[kornia]'" in result.output
+
+
+def test_plugin_configs_name_the_mosaic_slots_only_when_a_level_uses_them():
+    from photonpano.host import PluginHost
+    from photonpano.spec import plugin_configs, validate_spec
+
+    host = PluginHost()
+    pairwise = validate_spec({"source": {"plugin": "simulate"}, "level_schemes": ["pairwise"]}, host)
+    assert set(plugin_configs(pairwise)) == {"source", "resampler", "merger", "locator", "interpolator",
+                                             "compositor"}
+    mosaic = validate_spec({"source": {"plugin": "simulate"}, "levels": 2}, host)
+    assert plugin_configs(mosaic)["mosaic.locator"].plugin == "opencv-ecc"
+    assert validate_spec({"source": {"plugin": "simulate"}, "levels": 1}, host).level_schemes == ["pairwise", "mosaic"]
+    assert "mosaic.locator" not in plugin_configs(validate_spec({"source": {"plugin": "simulate"}, "levels": 1}, host))

@@ -1,0 +1,87 @@
+"""Level schemes: the spec's level_schemes / mosaic section, and the level loop's records."""
+
+import dataclasses
+
+import numpy as np
+import pytest
+from photonpano.errors import SpecError
+from photonpano.host import PluginHost
+from photonpano.spec import apply_overrides, dump_spec, level_schemes, validate_spec
+
+HOST = PluginHost()
+SOURCE = {"source": {"plugin": "simulate"}}
+
+
+def _spec(**fields):
+    return validate_spec({**SOURCE, **fields}, HOST)
+
+
+def test_default_schemes_are_pairwise_then_mosaic():
+    spec = _spec(levels=4)
+    assert level_schemes(spec) == ["pairwise", "mosaic", "mosaic", "mosaic"]
+    assert spec.mosaic.locator.plugin == "opencv-ecc" and spec.mosaic.locator.iterations == 10
+    assert spec.mosaic.template.plugin == "flux-canvas"
+
+
+def test_refine_locator_keeps_working_under_its_new_names():
+    assert level_schemes(_spec(refine_locator=None, levels=3)) == ["pairwise"] * 3
+    spec = _spec(refine_locator={"plugin": "opencv-ecc", "iterations": 5})
+    # fields given win, the rest start from the locator's template defaults
+    assert spec.mosaic.locator.iterations == 5 and spec.mosaic.locator.pyramid_levels == 2
+    assert _spec(refine_locator={"iterations": 7}).mosaic.locator.iterations == 7
+    assert "refine_locator" not in dump_spec(spec)
+    assert validate_spec({**SOURCE, **_reloaded(spec)}, HOST).model_dump() == spec.model_dump()  # spec.yaml round trip
+
+
+def _reloaded(spec):
+    import yaml
+
+    data = yaml.safe_load(dump_spec(spec))
+    data.pop("source")
+    return data
+
+
+@pytest.mark.parametrize("fields, message", [
+    ({"level_schemes": ["mosaic"]}, "level 1 must be pairwise"),
+    ({"level_schemes": []}, "level_schemes"),
+    ({"level_schemes": ["pairwise", "fancy"]}, "level_schemes.1"),
+    ({"refine_locator": None, "level_schemes": ["pairwise", "mosaic"]}, "write level_schemes only"),
+    ({"refine_locator": "opencv-ecc", "mosaic": {"locator": "opencv-orb"}}, "write mosaic.locator only"),
+    ({"mosaic": {"locator": {"plugin": "opencv-ecc", "iterations": 0}}}, "mosaic.locator (opencv-ecc).iterations"),
+])
+def test_bad_schemes_get_one_clear_message(fields, message):
+    with pytest.raises(SpecError) as err:
+        _spec(**fields)
+    assert message in str(err.value)
+
+
+def test_set_reaches_the_mosaic_locator():
+    data = apply_overrides(SOURCE, ["mosaic.locator.iterations=3", "level_schemes=[pairwise, mosaic, pairwise]"])
+    spec = validate_spec(data, HOST)
+    assert spec.mosaic.locator.plugin == "opencv-ecc" and spec.mosaic.locator.iterations == 3
+    assert level_schemes(spec.model_copy(update={"levels": 4})) == ["pairwise", "mosaic", "pairwise", "pairwise"]
+
+
+def test_levels_emit_frozen_records_in_panorama_coordinates():
+    """Each level's record is frozen, names its scheme, and its homographies are in the
+    final gauge (middle frame = identity), so observers see output coordinates."""
+    from photonpano.pipeline import Stages
+    from photonpano.executor import SerialExecutor
+
+    spec = _spec(source={"plugin": "simulate", "frames": 2400, "height": 128, "width": 248, "vibration_px": 2},
+                 group_size=300, levels=3, outputs={"merged_frames": True})
+    source = spec.source.build()
+    seen = []
+    homographies = Stages(spec, source).estimate_motion(SerialExecutor(), on_level=seen.append)
+    assert [r.scheme for r in seen] == ["pairwise", "mosaic", "mosaic"]
+    for result in seen:
+        np.testing.assert_allclose(result.homographies[len(result.homographies) // 2], np.eye(3), atol=1e-12)
+        assert result.merged is not None and len(result.merged) == len(result.groups)  # dumps at every level
+        with pytest.raises(dataclasses.FrozenInstanceError):
+            result.level = 0
+    assert seen[0].located.pair_index is not None and seen[1].located.pair_index is None
+    assert seen[1].template is not None  # built for level 3 from level 2's merged frames
+    assert seen[2].template is None
+    np.testing.assert_array_equal(seen[-1].homographies, homographies)
+    stats = seen[1].statistics()
+    assert stats["scheme"] == "mosaic" and stats["pairs"] == len(seen[1].groups)
