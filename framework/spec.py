@@ -163,8 +163,9 @@ def spec_model(host: PluginHost) -> type[BaseModel]:
         else:
             default_cls = host.registry(stage).get(DEFAULT_PLUGINS[stage], classes[0])
             slots[stage] = (_tagged(classes), Field(default_factory=default_cls))
-    slots["mosaic"] = (_mosaic_model(host), Field(default_factory=lambda: _mosaic_model(host)(),
-                                                  description="Locator and template of the levels whose scheme is mosaic (see [mosaic](#mosaic))."))
+    mosaic = _mosaic_model(host)
+    slots["mosaic"] = (mosaic, Field(default_factory=mosaic, description="Locator and template of the levels "
+                                     "whose scheme is mosaic (see [mosaic](#mosaic))."))
     model = create_model(
         "PipelineSpec",
         __base__=_SpecBase,

@@ -63,10 +63,12 @@ def test_set_reaches_the_mosaic_locator():
 
 
 def test_levels_emit_frozen_records_in_panorama_coordinates():
-    """Each level's record is frozen, names its scheme, and its homographies are in the
-    final gauge (middle frame = identity), so observers see output coordinates."""
-    from photonpano.pipeline import Stages
+    """Each level's record is frozen, names its scheme, and is in the final gauge.
+
+    The middle frame's homography is the identity, so observers see output coordinates.
+    """
     from photonpano.executor import SerialExecutor
+    from photonpano.pipeline import Stages
 
     spec = _spec(source={"plugin": "simulate", "frames": 2400, "height": 128, "width": 248, "vibration_px": 2},
                  group_size=300, levels=3, outputs={"merged_frames": True})
