@@ -13,15 +13,14 @@ homographies, see :mod:`photonpano.pose`).
 from __future__ import annotations
 
 import abc
-import importlib.util
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Any, ClassVar
 
 import numpy as np
 from numpy.typing import NDArray
-from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator
+from pydantic import Field
 
-from .errors import MissingDependency
+from .config import StageConfig
 from .records import Groups, MergedFrames, PairRegistrations
 
 if TYPE_CHECKING:
@@ -48,62 +47,6 @@ __all__ = [
     "PoseEstimator",
     "STAGES",
 ]
-
-
-class StageConfig(BaseModel):
-    """Base of every plugin config: a validated, immutable, documented record.
-
-    Subclasses pin ``plugin`` to a ``Literal`` key (kebab-case, e.g. ``"opencv-sift"``),
-    document each field with a docstring on the line below it (units in the text and,
-    where ambiguous, in the name), and implement :meth:`build`.
-
-    Class attributes:
-        stage: the stage kind, set by the stage base classes.
-        requires: import names of optional packages the plugin needs.
-        install_hint: the command that installs them, e.g. ``pip install 'photonpano[kornia]'``.
-    """
-
-    model_config = ConfigDict(extra="forbid", frozen=True, use_attribute_docstrings=True)
-
-    plugin: str
-    stage: ClassVar[str] = ""
-    requires: ClassVar[tuple[str, ...]] = ()
-    install_hint: ClassVar[str] = ""
-
-    @field_validator("*", mode="after")
-    @classmethod
-    def _absolute_paths(cls, value: Any, info: ValidationInfo) -> Any:
-        """Make relative paths absolute, against ``context["base_dir"]`` or the working directory.
-
-        Specs are saved with absolute paths, so a saved ``spec.yaml`` runs from anywhere;
-        :func:`photonpano.spec.load_spec` resolves a spec file's own relative paths
-        against the file's folder before this runs.
-        """
-        base = Path((info.context or {}).get("base_dir") or Path.cwd())
-        if isinstance(value, Path):
-            return value if value.is_absolute() else base / value
-        if isinstance(value, list) and value and all(isinstance(v, Path) for v in value):
-            return [v if v.is_absolute() else base / v for v in value]
-        return value
-
-    @classmethod
-    def missing_requirements(cls) -> list[str]:
-        """Return the import names in ``requires`` that are not installed (no import)."""
-        return [name for name in cls.requires if importlib.util.find_spec(name) is None]
-
-    @classmethod
-    def check_available(cls) -> None:
-        """Raise :class:`MissingDependency` if an optional requirement is missing."""
-        missing = cls.missing_requirements()
-        if missing:
-            key = cls.model_fields["plugin"].default
-            raise MissingDependency(
-                f"{cls.stage} {key!r} needs {', '.join(missing)}: {cls.install_hint or 'install it'}"
-            )
-
-    def build(self) -> Any:
-        """Return the working stage object configured by this record."""
-        raise NotImplementedError(f"{type(self).__name__}.build")
 
 
 # --- source: where binary frames come from -----------------------------------------
