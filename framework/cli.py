@@ -1,7 +1,9 @@
 """The ``photonpano`` command line.
 
 ``run`` a spec, ``pano`` an input with the paper's default spec, ``demo`` on the bundled
-photograph, list ``plugins``, ``validate`` a spec and print its JSON ``schema``.
+photograph, list ``plugins``, ``validate`` a spec and print its JSON ``schema``; the
+commands beside the main job (``pose``, ``convert``, ``compare``) are in
+:mod:`photonpano.cli_tools`.
 Expected failures (bad input, bad spec, broken plugin) print one line and exit 1.
 """
 
@@ -162,7 +164,9 @@ def run(spec: Annotated[Path, typer.Argument(help="Pipeline spec (YAML).")], out
         host = _host()
         parsed = load_spec(spec, host, set_ or [])
         if getattr(parsed, "pose_estimator", None) is not None:  # experimental: camera poses
-            _report_pose(_execute_pose(parsed, output, force, host), output)
+            from .cli_tools import execute_pose
+
+            execute_pose(parsed, output, force, host)
             return
         _report(_execute(parsed, output, force, host, resume), output)
     except PhotonpanoError as exc:
@@ -210,91 +214,6 @@ def _capture_spec(path: Path, host) -> dict[str, Any]:
         raise _plugin_failure(exc, host) from exc
 
 
-def _execute_pose(spec, out: Path, force: bool, host) -> dict[str, Any]:
-    from .pose_run import run_pose
-
-    with _observed(host):
-        return run_pose(spec, out, host, force=force)[0]
-
-
-def _report_pose(summary: dict[str, Any], out: Path) -> None:
-    last = summary["levels"][-1]
-    typer.echo(f"poses for {summary['frames_with_pose']} of {summary['source']['frames']} binary frames "
-               f"written to {out} (level {last['level']}: {last['registered']}/{last['exposures']} "
-               "virtual exposures "
-               f"registered, {summary['timings_s']['estimate']:.1f} s)")
-    gt = summary.get("ground_truth")
-    if gt and "rpe" in gt:
-        typer.echo(f"vs ground truth: ATE {1e3 * gt['ate_m']:.2f} mm, RPE over {gt['rpe_gap_frames']} frames "
-                   f"{1e3 * gt['rpe']['translation_m']:.2f} mm ({gt['rpe']['percent']:.1f} % of the true "
-                   "motion)")
-
-
-@app.command()
-def pose(input: Annotated[str, typer.Argument(
-             help="A capture (.npy photon cube, SwissSPAD folder, ...) or 'simulate3d' (a simulated room "
-                  "with ground-truth poses).")],
-         output: OutOption,
-         intrinsics: Annotated[Optional[Path], typer.Option(
-             help="JSON file with fx, fy, cx, cy in pixels (OpenCV convention); omitted: "
-                  "self-calibration.")] = None,
-         set_: SetOption = None, force: ForceOption = False) -> None:
-    """Experimental: estimate a 6-DoF camera pose for every binary frame (pycolmap-sfm)."""
-    from .pose import Intrinsics
-    from .spec import apply_overrides, validate_spec
-
-    try:
-        host = _host()
-        if intrinsics is not None:
-            Intrinsics.load(intrinsics)  # a bad file fails before any work
-        if input == "simulate3d":
-            source = {"plugin": "simulate3d"}
-        else:
-            source = _capture_spec(Path(input), host)["source"]
-        data = {"source": source, "pose_estimator": {"plugin": "pycolmap-sfm"}}
-        if intrinsics is not None:
-            data["pose_estimator"]["intrinsics"] = str(intrinsics)
-        parsed = validate_spec(apply_overrides(data, set_ or []), host, origin="pose")
-        _report_pose(_execute_pose(parsed, output, force, host), output)
-    except PhotonpanoError as exc:
-        _fail(str(exc))
-
-
-@app.command()
-def convert(inputs: Annotated[list[Path], typer.Argument(help="A folder of SwissSPAD2 .bin readout files, or "
-                                                         ".bin files in frame order.")],
-            output: Annotated[Path, typer.Option("--output", "-o", help="The .npy cube to write (must not exist).")],
-            layout: Annotated[str, typer.Option(help="Readout layout: half (512 frames of 256x512 per file) or "
-                                                "full (256 frames of 512x512).")] = "half",
-            check_layout: Annotated[bool, typer.Option(help="Refuse a layout the data does not fit.")] = True) -> None:
-    """Convert SwissSPAD2 raw readouts to a bit-packed .npy photon cube, streaming.
-
-    The cube holds the raw frames, (T, 256, 64) or (T, 512, 64) uint8 packed MSB first;
-    read it with `photonpano pano cube.npy --set source.fix=colorspad` (or grayspad).
-    """
-    try:
-        if layout not in ("half", "full"):
-            raise PhotonpanoError(f"convert: --layout must be half or full, got {layout!r}")
-        for path in inputs:
-            if not path.exists():
-                raise PhotonpanoError(f"input {path} does not exist")
-        from photonpano.plugins.sources.swissspad import convert_bin_to_npy
-
-        from .progress import RichProgress
-
-        bars = RichProgress()
-        with bars.bars as bar:
-            task = bar.add_task("convert", total=None)
-            frames, notes = convert_bin_to_npy(inputs, output, layout, check_layout=check_layout,
-                                               progress=lambda done, total: bar.update(task, completed=done,
-                                                                                       total=total))
-        for note in notes:
-            typer.secho(f"warning: {note}", fg=typer.colors.YELLOW, err=True)
-        typer.echo(f"wrote {output}: {frames} {layout}-array frames")
-    except PhotonpanoError as exc:
-        _fail(str(exc))
-
-
 @app.command()
 def demo(output: OutOption, set_: SetOption = None, force: ForceOption = False, resume: ResumeOption = False,
          frames: Annotated[int, typer.Option(help="Binary frames to simulate.")] = 20_000) -> None:
@@ -313,54 +232,6 @@ def demo(output: OutOption, set_: SetOption = None, force: ForceOption = False, 
         _report(_execute(parsed, output, force, host, resume), output)
     except PhotonpanoError as exc:
         _fail(str(exc))
-
-
-@app.command()
-def compare(input: Annotated[str, typer.Argument(help="A spec (.yaml), a capture (.npy, ...) or 'simulate' "
-                                                  "(the demo's simulated capture, with ground truth).")],
-            output: OutOption,
-            locators: Annotated[str, typer.Option(
-                "--locators", "-l",
-                help="Comma-separated locator keys, each optionally key:field=value[:field=value].")],
-            set_: SetOption = None, force: ForceOption = False,
-            refine: Annotated[bool, typer.Option(
-                "--refine", help="Keep the spec's level_schemes (compare whole pipelines as `run` executes "
-                                 "them); default: each locator registers pairs at every level.")
-            ] = False) -> None:
-    """Run the same pipeline with each locator; write a table and a plot of error and time.
-
-    Writes compare.md, compare.json, compare.png and <locator>/homographies.npy into OUTPUT.
-    """
-    from .compare import compare_locators, markdown_table, write_comparison
-    from .pipeline import prepare_output
-    from .spec import apply_overrides
-
-    try:
-        host = _host()
-        path = Path(input)
-        if input == "simulate":
-            data: dict[str, Any] = {"source": {"plugin": "simulate"}}
-        elif path.suffix in (".yaml", ".yml"):
-            from .spec import read_spec_file
-
-            if not path.exists():
-                raise PhotonpanoError(f"spec {input} does not exist")
-            data = read_spec_file(path)[0] or {}
-        else:
-            data = _capture_spec(path, host)
-        data = apply_overrides(data, set_ or [])
-        keys = [k.strip() for k in locators.split(",") if k.strip()]
-        if not keys:
-            raise PhotonpanoError("--locators: give at least one locator key")
-        prepare_output(output, force)
-        with _observed(host):
-            rows = compare_locators(data, keys, host, output, origin=input, log=typer.echo,
-                                    on_row=lambda done: write_comparison(done, output, data), refine=refine)
-    except PhotonpanoError as exc:
-        _fail(str(exc))
-    typer.echo(markdown_table(rows))
-    if not any(row["status"] == "ok" for row in rows):
-        _fail("no locator completed (see the table)")
 
 
 @app.command()
@@ -416,6 +287,8 @@ def main() -> None:
         typer.echo("interrupted", err=True)
         sys.exit(130)
 
+
+from . import cli_tools  # noqa: E402, F401  (registers pose, convert and compare on ``app``)
 
 if __name__ == "__main__":  # pragma: no cover
     main()

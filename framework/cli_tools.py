@@ -1,0 +1,151 @@
+"""Commands beside the main job: ``pose`` (experimental 6-DoF poses), ``convert``, ``compare``.
+
+Registered on :data:`photonpano.cli.app`; expected failures print one line and exit 1.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated, Any, Optional
+
+import typer
+
+from .cli import ForceOption, OutOption, SetOption, _capture_spec, _fail, _host, _observed, app
+from .errors import PhotonpanoError
+
+__all__ = ["execute_pose", "pose", "convert", "compare"]
+
+
+def execute_pose(spec: Any, out: Path, force: bool, host: Any) -> None:
+    """Run a spec with a ``pose_estimator`` into ``out`` and print its summary."""
+    from .pose_run import run_pose
+
+    with _observed(host):
+        summary = run_pose(spec, out, host, force=force)[0]
+    _report_pose(summary, out)
+
+
+def _report_pose(summary: dict[str, Any], out: Path) -> None:
+    last = summary["levels"][-1]
+    typer.echo(f"poses for {summary['frames_with_pose']} of {summary['source']['frames']} binary frames "
+               f"written to {out} (level {last['level']}: {last['registered']}/{last['exposures']} "
+               "virtual exposures "
+               f"registered, {summary['timings_s']['estimate']:.1f} s)")
+    gt = summary.get("ground_truth")
+    if gt and "rpe" in gt:
+        typer.echo(f"vs ground truth: ATE {1e3 * gt['ate_m']:.2f} mm, RPE over {gt['rpe_gap_frames']} frames "
+                   f"{1e3 * gt['rpe']['translation_m']:.2f} mm ({gt['rpe']['percent']:.1f} % of the true "
+                   "motion)")
+
+
+@app.command()
+def pose(input: Annotated[str, typer.Argument(
+             help="A capture (.npy photon cube, SwissSPAD folder, ...) or 'simulate3d' (a simulated room "
+                  "with ground-truth poses).")],
+         output: OutOption,
+         intrinsics: Annotated[Optional[Path], typer.Option(
+             help="JSON file with fx, fy, cx, cy in pixels (OpenCV convention); omitted: "
+                  "self-calibration.")] = None,
+         set_: SetOption = None, force: ForceOption = False) -> None:
+    """Experimental: estimate a 6-DoF camera pose for every binary frame (pycolmap-sfm)."""
+    from .pose import Intrinsics
+    from .spec import apply_overrides, validate_spec
+
+    try:
+        host = _host()
+        if intrinsics is not None:
+            Intrinsics.load(intrinsics)  # a bad file fails before any work
+        if input == "simulate3d":
+            source = {"plugin": "simulate3d"}
+        else:
+            source = _capture_spec(Path(input), host)["source"]
+        data = {"source": source, "pose_estimator": {"plugin": "pycolmap-sfm"}}
+        if intrinsics is not None:
+            data["pose_estimator"]["intrinsics"] = str(intrinsics)
+        parsed = validate_spec(apply_overrides(data, set_ or []), host, origin="pose")
+        execute_pose(parsed, output, force, host)
+    except PhotonpanoError as exc:
+        _fail(str(exc))
+
+
+@app.command()
+def convert(inputs: Annotated[list[Path], typer.Argument(help="A folder of SwissSPAD2 .bin readout files, or "
+                                                         ".bin files in frame order.")],
+            output: Annotated[Path, typer.Option("--output", "-o", help="The .npy cube to write (must not exist).")],
+            layout: Annotated[str, typer.Option(help="Readout layout: half (512 frames of 256x512 per file) or "
+                                                "full (256 frames of 512x512).")] = "half",
+            check_layout: Annotated[bool, typer.Option(help="Refuse a layout the data does not fit.")] = True) -> None:
+    """Convert SwissSPAD2 raw readouts to a bit-packed .npy photon cube, streaming.
+
+    The cube holds the raw frames, (T, 256, 64) or (T, 512, 64) uint8 packed MSB first;
+    read it with `photonpano pano cube.npy --set source.fix=colorspad` (or grayspad).
+    """
+    try:
+        if layout not in ("half", "full"):
+            raise PhotonpanoError(f"convert: --layout must be half or full, got {layout!r}")
+        for path in inputs:
+            if not path.exists():
+                raise PhotonpanoError(f"input {path} does not exist")
+        from photonpano.plugins.sources.swissspad import convert_bin_to_npy
+
+        from .progress import RichProgress
+
+        bars = RichProgress()
+        with bars.bars as bar:
+            task = bar.add_task("convert", total=None)
+            frames, notes = convert_bin_to_npy(inputs, output, layout, check_layout=check_layout,
+                                               progress=lambda done, total: bar.update(task, completed=done,
+                                                                                       total=total))
+        for note in notes:
+            typer.secho(f"warning: {note}", fg=typer.colors.YELLOW, err=True)
+        typer.echo(f"wrote {output}: {frames} {layout}-array frames")
+    except PhotonpanoError as exc:
+        _fail(str(exc))
+
+
+@app.command()
+def compare(input: Annotated[str, typer.Argument(help="A spec (.yaml), a capture (.npy, ...) or 'simulate' "
+                                                  "(the demo's simulated capture, with ground truth).")],
+            output: OutOption,
+            locators: Annotated[str, typer.Option(
+                "--locators", "-l",
+                help="Comma-separated locator keys, each optionally key:field=value[:field=value].")],
+            set_: SetOption = None, force: ForceOption = False,
+            refine: Annotated[bool, typer.Option(
+                "--refine", help="Keep the spec's level_schemes (compare whole pipelines as `run` executes "
+                                 "them); default: each locator registers pairs at every level.")
+            ] = False) -> None:
+    """Run the same pipeline with each locator; write a table and a plot of error and time.
+
+    Writes compare.md, compare.json, compare.png and <locator>/homographies.npy into OUTPUT.
+    """
+    from .compare import compare_locators, markdown_table, write_comparison
+    from .pipeline import prepare_output
+    from .spec import apply_overrides
+
+    try:
+        host = _host()
+        path = Path(input)
+        if input == "simulate":
+            data: dict[str, Any] = {"source": {"plugin": "simulate"}}
+        elif path.suffix in (".yaml", ".yml"):
+            from .spec import read_spec_file
+
+            if not path.exists():
+                raise PhotonpanoError(f"spec {input} does not exist")
+            data = read_spec_file(path)[0] or {}
+        else:
+            data = _capture_spec(path, host)
+        data = apply_overrides(data, set_ or [])
+        keys = [k.strip() for k in locators.split(",") if k.strip()]
+        if not keys:
+            raise PhotonpanoError("--locators: give at least one locator key")
+        prepare_output(output, force)
+        with _observed(host):
+            rows = compare_locators(data, keys, host, output, origin=input, log=typer.echo,
+                                    on_row=lambda done: write_comparison(done, output, data), refine=refine)
+    except PhotonpanoError as exc:
+        _fail(str(exc))
+    typer.echo(markdown_table(rows))
+    if not any(row["status"] == "ok" for row in rows):
+        _fail("no locator completed (see the table)")
