@@ -150,3 +150,18 @@ def test_every_numba_kernel_caches_outside_the_package():
         if re.search(r"@(numba\.)?n?jit\([^)]*cache\s*=\s*True", text):
             offenders.append(str(path.relative_to(ROOT)))
     assert not offenders, f"use photonpano.jit.cached_njit in {offenders}"
+
+
+def test_every_subpackage_is_listed_for_the_wheel():
+    """A subpackage missing from pyproject's list installs fine editable and is absent from
+    the wheel that README command 1 installs."""
+    import tomllib
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    listed = set(tomllib.loads((root / "pyproject.toml").read_text())["tool"]["setuptools"]["packages"])
+    found = set()
+    for top, name in (("framework", "photonpano"), ("plugins", "photonpano.plugins")):
+        for init in (root / top).rglob("__init__.py"):
+            found.add(".".join([name, *init.parent.relative_to(root / top).parts]))
+    assert found <= listed, f"add to [tool.setuptools] packages: {sorted(found - listed)}"
