@@ -5,7 +5,7 @@ significant bit first (exactly ``np.packbits(frames, axis=-1)``); unpacked ``(T,
 bool or uint8 0/1 cubes are accepted too. Only the frames being merged are read, with
 plain file reads into a bounded buffer (``chunk_mb``), so captures larger than memory
 work and the resident memory does not grow with the capture. The SwissSPAD sensor
-corrections of :mod:`photonpano.sensor` (``fix``, ``inpaint_mask``, ``cfa``,
+corrections of :mod:`photonpano.plugins.sources._swissspad_sensor` (``fix``, ``inpaint_mask``, ``cfa``,
 ``transforms``) apply to raw cubes, e.g. those written by ``photonpano convert``.
 """
 
@@ -18,7 +18,7 @@ import numpy as np
 from numpy.typing import NDArray
 from photonpano import hookimpl
 from photonpano.errors import SourceError
-from photonpano.sensor import SwissSpadCorrections
+from photonpano.plugins.sources._swissspad_sensor import SwissSpadCorrections
 from photonpano.stages import PhotonSource, SourceConfig
 from pydantic import Field
 
@@ -90,7 +90,7 @@ class NpyCube(PhotonSource):
                               f"which holds {total} frames")
         if np.isfortran(cube):
             raise SourceError(f"source (npy-cube): {path} is stored in Fortran order; expected a C-ordered cube")
-        from photonpano.sensor import SensorCorrector
+        from photonpano.plugins.sources._swissspad_sensor import SensorCorrector
         from photonpano.streaming import FrameFiles, FrameSegment
 
         self.offset = config.start

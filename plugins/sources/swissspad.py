@@ -3,7 +3,7 @@
 A capture is a folder (searched recursively, natural file-name order) or a list of
 headerless 8 MiB readout files, least significant bit first: 512 frames of 256x512 per
 file for the half array, 256 frames of 512x512 for the full array (see
-:mod:`photonpano.sensor` for the exact layouts). Frames stream in order across files;
+:mod:`photonpano.plugins.sources._swissspad_readout` for the exact layouts). Frames stream in order across files;
 only the frames being merged are read, a bounded chunk at a time. A truncated last
 file is reported (a warning, and ``describe()["notes"]``) and its whole frames used.
 
@@ -22,7 +22,8 @@ import numpy as np
 from numpy.typing import NDArray
 from photonpano import hookimpl
 from photonpano.errors import SourceError
-from photonpano.sensor import BIN_FILE_BYTES, LAYOUTS, SwissSpadCorrections
+from photonpano.plugins.sources._swissspad_readout import BIN_FILE_BYTES, LAYOUTS
+from photonpano.plugins.sources._swissspad_sensor import SwissSpadCorrections
 from photonpano.stages import PhotonSource, SourceConfig
 from pydantic import Field
 
@@ -63,7 +64,7 @@ class SwissSpadBinConfig(SwissSpadCorrections):
 
 
 def _files_of(config_path: Path | list[Path]) -> tuple[list[Path], str]:
-    from photonpano.sensor import list_bin_files
+    from photonpano.plugins.sources._swissspad_readout import list_bin_files
 
     if isinstance(config_path, list):
         if not config_path:
@@ -88,8 +89,8 @@ class SwissSpadBin(PhotonSource):
 
     Attributes:
         files: the readout files in frame order.
-        layout: the :class:`~photonpano.sensor.RawLayout`.
-        corrector: the :class:`~photonpano.sensor.SensorCorrector` applied to counts.
+        layout: the :class:`~photonpano.plugins.sources._swissspad_readout.RawLayout`.
+        corrector: the :class:`~photonpano.plugins.sources._swissspad_sensor.SensorCorrector` applied to counts.
         notes: caveats found while indexing (a truncated last file).
     """
 
@@ -101,7 +102,7 @@ class SwissSpadBin(PhotonSource):
                 (every file but the last must be 8 MiB), a layout that does not fit
                 the data, or a frame range outside the capture; messages name the file.
         """
-        from photonpano.sensor import SensorCorrector
+        from photonpano.plugins.sources._swissspad_sensor import SensorCorrector
         from photonpano.streaming import FrameFiles, FrameSegment
 
         self.config = config
@@ -153,7 +154,7 @@ class SwissSpadBin(PhotonSource):
         self.name = f"swissspad-bin({label}, {len(self.files)} files, {self.layout.name} array, fix {config.fix})"
 
     def _check_layout(self, first) -> None:
-        from photonpano.sensor import layout_scores
+        from photonpano.plugins.sources._swissspad_readout import layout_scores
 
         n_bytes = min(first.n_frames * self.layout.frame_bytes, BIN_FILE_BYTES)
         n_bytes -= n_bytes % LAYOUTS["full"].frame_bytes
@@ -178,7 +179,7 @@ class SwissSpadBin(PhotonSource):
         Returns:
             (K, H_raw, W_raw/8) uint8 frames bit-packed MSB first (``np.packbits`` layout).
         """
-        from photonpano.sensor import decode_frames
+        from photonpano.plugins.sources._swissspad_readout import decode_frames
 
         if not 0 <= start <= stop <= self.n_frames:
             raise ValueError(f"frames {start}:{stop} leave the capture of {self.n_frames} frames")
@@ -199,7 +200,7 @@ class SwissSpadBin(PhotonSource):
             (B, H_raw, W_raw) uint16 counts.
         """
         from photonpano.photons import sum_packed_ranges
-        from photonpano.sensor import record_counts_to_frame
+        from photonpano.plugins.sources._swissspad_readout import record_counts_to_frame
 
         edges = np.asarray(edges, dtype=np.int64)
         if len(edges) and (edges[0] < 0 or edges[-1] > self.n_frames):
