@@ -16,16 +16,16 @@ from __future__ import annotations
 
 import warnings
 from pathlib import Path
-from typing import Annotated, Any, Callable, Literal
+from typing import Any, Callable, Literal
 
 import numpy as np
 from numpy.typing import NDArray
 from photonpano import hookimpl
 from photonpano.errors import SourceError
+from photonpano.plugins.sources._capture_config import BinaryCaptureConfig
 from photonpano.plugins.sources._swissspad_readout import BIN_FILE_BYTES, LAYOUTS
 from photonpano.plugins.sources._swissspad_sensor import SwissSpadCorrections
 from photonpano.stages import PhotonSource, SourceConfig
-from pydantic import Field
 
 __all__ = ["SwissSpadBinConfig", "SwissSpadBin", "convert_bin_to_npy", "SourceWarning"]
 
@@ -34,7 +34,7 @@ class SourceWarning(UserWarning):
     """A capture was read with a caveat (e.g. a truncated last file)."""
 
 
-class SwissSpadBinConfig(SwissSpadCorrections):
+class SwissSpadBinConfig(SwissSpadCorrections, BinaryCaptureConfig):
     """SwissSPAD2 raw readouts: a folder or list of headerless 8 MiB ``.bin`` files."""
 
     plugin: Literal["swissspad-bin"] = "swissspad-bin"
@@ -47,16 +47,6 @@ class SwissSpadBinConfig(SwissSpadCorrections):
     check_layout: bool = True
     """Refuse a layout whose decoded frames show the seams of the other layout (sharp
     steps at columns 128 and 384 of the mean image of the first file)."""
-    start: Annotated[int, Field(ge=0)] = 0
-    """First binary frame to use."""
-    stop: Annotated[int, Field(ge=1)] | None = None
-    """One past the last frame to use (default: every whole frame)."""
-    frame_rate_hz: Annotated[float, Field(gt=0)] = 100_000.0
-    """Binary frames per second of the capture (SwissSPAD2: up to ~100 kHz)."""
-    exposure_s: Annotated[float, Field(gt=0)] | None = None
-    """Exposure time of one binary frame in seconds (default: 1 / frame_rate_hz)."""
-    chunk_mb: Annotated[float, Field(gt=0)] = 32.0
-    """Largest read buffer in MiB (bounds the memory used while streaming)."""
 
     def build(self) -> SwissSpadBin:
         """Index the files and check their sizes and layout (reads one file's worth)."""
@@ -139,13 +129,9 @@ class SwissSpadBin(PhotonSource):
                                  chunk_bytes=int(config.chunk_mb * 2**20))
         if config.check_layout:
             self._check_layout(segments[0])
-        total = self.frames.n_frames
-        stop = total if config.stop is None else config.stop
-        if not config.start < stop <= total:
-            raise SourceError(f"source (swissspad-bin): frames {config.start}:{stop} are outside {label}, "
-                              f"which holds {total} whole frames")
-        self.offset = config.start
-        self.n_frames = stop - config.start
+        start, stop = config.frame_range(self.frames.n_frames, label, "whole frames")
+        self.offset = start
+        self.n_frames = stop - start
         self.corrector = SensorCorrector(config, (self.layout.height, self.layout.width), self.layout.name,
                                          f"swissspad-bin({label})")
         self.height, self.width = self.corrector.shape
