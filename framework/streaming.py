@@ -119,19 +119,10 @@ class FrameFiles:
                    out_shape: tuple[int, ...], out_dtype=np.uint16) -> NDArray:
         """Sum frames over consecutive ranges, reading one bounded chunk at a time.
 
-        Args:
-            edges: (B + 1,) strictly increasing frame indices within ``[0, n_frames]``.
-            count: ``count(block, local_edges) -> (b, *out_shape)`` sums an in-memory
-                block of frames over the ranges ``local_edges`` (e.g.
-                :func:`photonpano.photons.sum_packed_ranges`).
-            out_shape: shape of one range's sum, e.g. ``(H, W)``.
-            out_dtype: dtype of the sums.
-
-        Returns:
-            (B, *out_shape) sums; range ``b`` covers frames ``edges[b]:edges[b+1]``.
-
-        Raises:
-            ValueError: if the edges are not increasing or leave the frames.
+        :func:`sum_ranges_by_blocks` over this file's frames and chunks: ``edges``,
+        ``count`` (e.g. :func:`photonpano.photons.sum_packed_ranges`), ``out_shape`` and
+        ``out_dtype`` as there; (B, *out_shape) sums; ValueError for edges that are not
+        increasing or leave the frames.
         """
         return sum_ranges_by_blocks(edges, self.n_frames, self.blocks, count, out_shape, out_dtype)
 

@@ -2,7 +2,7 @@
 
 The SwissSPAD2 colour half array has red, green or blue filters on one pixel in four
 (``cfa``). For registration and the main panorama those pixels are treated as missing
-(inpainted, see :mod:`photonpano.sensor`). With ``source: {colour_panorama: true}``
+(inpainted, see :mod:`photonpano.plugins.sources._swissspad_sensor`). With ``source: {colour_panorama: true}``
 this observer then composites each colour channel from the pixels behind that filter
 only, with the spec's compositor (:class:`CfaChannels`), the run's homographies and
 canvas, from the capture still open (``photonpano_panorama_finished``): the dense
@@ -39,7 +39,7 @@ class CfaChannels(Compositor):
     Args:
         make: builds one (unprepared) compositor per channel, e.g. a compositor
             config's ``build``.
-        corrector: the source's :class:`~photonpano.sensor.SensorCorrector`, whose
+        corrector: the source's :class:`~photonpano.plugins.sources._swissspad_sensor.SensorCorrector`, whose
             ``cfa`` holds colour codes (0 R, 1 G, 2 B) and ``hot`` the pixels to drop.
     """
 

@@ -5,25 +5,25 @@ significant bit first (exactly ``np.packbits(frames, axis=-1)``); unpacked ``(T,
 bool or uint8 0/1 cubes are accepted too. Only the frames being merged are read, with
 plain file reads into a bounded buffer (``chunk_mb``), so captures larger than memory
 work and the resident memory does not grow with the capture. The SwissSPAD sensor
-corrections of :mod:`photonpano.sensor` (``fix``, ``inpaint_mask``, ``cfa``,
+corrections of :mod:`photonpano.plugins.sources._swissspad_sensor` (``fix``, ``inpaint_mask``, ``cfa``,
 ``transforms``) apply to raw cubes, e.g. those written by ``photonpano convert``.
 """
 
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated, Any, Literal
+from typing import Any, Literal
 
 import numpy as np
 from numpy.typing import NDArray
 from photonpano import hookimpl
 from photonpano.errors import SourceError
-from photonpano.sensor import SwissSpadCorrections
+from photonpano.plugins.sources._capture_config import BinaryCaptureConfig
+from photonpano.plugins.sources._swissspad_sensor import SwissSpadCorrections
 from photonpano.stages import PhotonSource, SourceConfig
-from pydantic import Field
 
 
-class NpyCubeConfig(SwissSpadCorrections):
+class NpyCubeConfig(SwissSpadCorrections, BinaryCaptureConfig):
     """A SwissSPAD ``.npy`` photon cube, bit-packed or unpacked, memory-mapped."""
 
     plugin: Literal["npy-cube"] = "npy-cube"
@@ -34,16 +34,6 @@ class NpyCubeConfig(SwissSpadCorrections):
     ``auto``: bool is unpacked; uint8 is packed if frames sampled across the whole
     capture hold a byte above 1, or, for all-dark samples, if the sensor ``fix``
     expects 8 times the stored width."""
-    start: Annotated[int, Field(ge=0)] = 0
-    """First binary frame to use."""
-    stop: Annotated[int, Field(ge=1)] | None = None
-    """One past the last frame to use (default: the end of the cube)."""
-    frame_rate_hz: Annotated[float, Field(gt=0)] = 100_000.0
-    """Binary frames per second of the capture (SwissSPAD2: up to ~100 kHz)."""
-    exposure_s: Annotated[float, Field(gt=0)] | None = None
-    """Exposure time of one binary frame in seconds (default: 1 / frame_rate_hz)."""
-    chunk_mb: Annotated[float, Field(gt=0)] = 32.0
-    """Largest read buffer in MiB (bounds the memory used while streaming)."""
 
     def build(self) -> NpyCube:
         """Open the cube (memory-mapped, read-only)."""
@@ -84,19 +74,16 @@ class NpyCube(PhotonSource):
         self.cube = cube
         self.packed = _is_packed(cube, config.layout, path, _expected_width(config))
         total = len(cube)
-        stop = total if config.stop is None else config.stop
-        if not config.start < stop <= total:
-            raise SourceError(f"source (npy-cube): frames {config.start}:{stop} are outside {path}, "
-                              f"which holds {total} frames")
+        start, stop = config.frame_range(total, path)
         if np.isfortran(cube):
             raise SourceError(f"source (npy-cube): {path} is stored in Fortran order; expected a C-ordered cube")
-        from photonpano.sensor import SensorCorrector
+        from photonpano.plugins.sources._swissspad_sensor import SensorCorrector
         from photonpano.streaming import FrameFiles, FrameSegment
 
-        self.offset = config.start
-        self.n_frames = stop - config.start
+        self.offset = start
+        self.n_frames = stop - start
         frame_bytes = int(np.prod(cube.shape[1:])) * cube.dtype.itemsize
-        self.frames = FrameFiles([FrameSegment(path, int(cube.offset) + config.start * frame_bytes, self.n_frames)],
+        self.frames = FrameFiles([FrameSegment(path, int(cube.offset) + start * frame_bytes, self.n_frames)],
                                  cube.shape[1:], cube.dtype, chunk_bytes=int(config.chunk_mb * 2**20))
         raw_shape = (cube.shape[1], cube.shape[2] * (8 if self.packed else 1))
         self.corrector = SensorCorrector(config, raw_shape, None, f"npy-cube({path.name})")

@@ -15,25 +15,25 @@ from __future__ import annotations
 
 import warnings
 from pathlib import Path
-from typing import Annotated, Any, ClassVar, Literal
+from typing import Annotated, Any, Literal
 
 import numpy as np
 from numpy.typing import NDArray
 from photonpano import hookimpl
 from photonpano.errors import SourceError
 from photonpano.intensity import IntensitySource, response_lut
+from photonpano.plugins.sources._capture_config import IntensityCaptureConfig
 from photonpano.stages import SourceConfig
 from pydantic import Field
 
 __all__ = ["PhotronMrawConfig", "PhotronMraw", "header_and_data", "unpack_uint12"]
 
 
-class PhotronMrawConfig(SourceConfig):
+class PhotronMrawConfig(IntensityCaptureConfig):
     """A Photron FASTCAM ``.mraw`` recording and its ``.cih``/``.cihx`` header (pyMRAW)."""
 
     plugin: Literal["photron-mraw"] = "photron-mraw"
     requires = ("pyMRAW",)
-    kind: ClassVar[str] = "intensity"  # frames are intensities: merge with ``mean``
     install_hint = "pip install 'photonpano[mraw]'"
 
     path: Path
@@ -43,16 +43,10 @@ class PhotronMrawConfig(SourceConfig):
     """Frames per second (default: the header's record rate)."""
     response: Literal["linear", "srgb", "gamma"] = "linear"
     """How code values encode intensity (raw FASTCAM data is linear)."""
-    gamma: Annotated[float, Field(gt=0, le=5)] = 2.2
-    """Exponent of the ``gamma`` response."""
     black_level: Annotated[float, Field(ge=0)] = 0.0
     """Code value of zero light (after shifting ``Higher``-side data down)."""
     white_level: Annotated[float, Field(gt=0)] | None = None
     """Code value of full scale (default: 2**effective_bits - 1)."""
-    start: Annotated[int, Field(ge=0)] = 0
-    """First frame to use."""
-    stop: Annotated[int, Field(ge=1)] | None = None
-    """One past the last frame to use (default: the end)."""
     chunk_mb: Annotated[float, Field(gt=0)] = 32.0
     """Largest read buffer in MiB."""
 
@@ -169,11 +163,8 @@ class PhotronMraw(IntensitySource):
         shape, dtype = ((frame_bytes,), np.uint8) if bits == 12 else ((h, w), frame_dtype)
         self.frames = FrameFiles([FrameSegment(mraw, 0, n)], shape, dtype, chunk_bytes=int(config.chunk_mb * 2**20))
         self.chunk_frames = max(1, min(self.frames.chunk_frames, 64))
-        stop = n if config.stop is None else config.stop
-        if not config.start < stop <= n:
-            raise SourceError(f"source (photron-mraw): frames {config.start}:{stop} are outside {mraw}, which "
-                              f"holds {n} frames")
-        self.offset, self.n_frames = config.start, stop - config.start
+        start, stop = config.frame_range(n, mraw)
+        self.offset, self.n_frames = start, stop - start
         self.height, self.width = h, w
         rate = config.frame_rate_hz or float(cih.get("Record Rate(fps)") or 0)
         if not rate > 0:

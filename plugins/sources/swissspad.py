@@ -3,7 +3,7 @@
 A capture is a folder (searched recursively, natural file-name order) or a list of
 headerless 8 MiB readout files, least significant bit first: 512 frames of 256x512 per
 file for the half array, 256 frames of 512x512 for the full array (see
-:mod:`photonpano.sensor` for the exact layouts). Frames stream in order across files;
+:mod:`photonpano.plugins.sources._swissspad_readout` for the exact layouts). Frames stream in order across files;
 only the frames being merged are read, a bounded chunk at a time. A truncated last
 file is reported (a warning, and ``describe()["notes"]``) and its whole frames used.
 
@@ -16,15 +16,16 @@ from __future__ import annotations
 
 import warnings
 from pathlib import Path
-from typing import Annotated, Any, Callable, Literal
+from typing import Any, Callable, Literal
 
 import numpy as np
 from numpy.typing import NDArray
 from photonpano import hookimpl
 from photonpano.errors import SourceError
-from photonpano.sensor import BIN_FILE_BYTES, LAYOUTS, SwissSpadCorrections
+from photonpano.plugins.sources._capture_config import BinaryCaptureConfig
+from photonpano.plugins.sources._swissspad_readout import BIN_FILE_BYTES, LAYOUTS
+from photonpano.plugins.sources._swissspad_sensor import SwissSpadCorrections
 from photonpano.stages import PhotonSource, SourceConfig
-from pydantic import Field
 
 __all__ = ["SwissSpadBinConfig", "SwissSpadBin", "convert_bin_to_npy", "SourceWarning"]
 
@@ -33,7 +34,7 @@ class SourceWarning(UserWarning):
     """A capture was read with a caveat (e.g. a truncated last file)."""
 
 
-class SwissSpadBinConfig(SwissSpadCorrections):
+class SwissSpadBinConfig(SwissSpadCorrections, BinaryCaptureConfig):
     """SwissSPAD2 raw readouts: a folder or list of headerless 8 MiB ``.bin`` files."""
 
     plugin: Literal["swissspad-bin"] = "swissspad-bin"
@@ -46,16 +47,6 @@ class SwissSpadBinConfig(SwissSpadCorrections):
     check_layout: bool = True
     """Refuse a layout whose decoded frames show the seams of the other layout (sharp
     steps at columns 128 and 384 of the mean image of the first file)."""
-    start: Annotated[int, Field(ge=0)] = 0
-    """First binary frame to use."""
-    stop: Annotated[int, Field(ge=1)] | None = None
-    """One past the last frame to use (default: every whole frame)."""
-    frame_rate_hz: Annotated[float, Field(gt=0)] = 100_000.0
-    """Binary frames per second of the capture (SwissSPAD2: up to ~100 kHz)."""
-    exposure_s: Annotated[float, Field(gt=0)] | None = None
-    """Exposure time of one binary frame in seconds (default: 1 / frame_rate_hz)."""
-    chunk_mb: Annotated[float, Field(gt=0)] = 32.0
-    """Largest read buffer in MiB (bounds the memory used while streaming)."""
 
     def build(self) -> SwissSpadBin:
         """Index the files and check their sizes and layout (reads one file's worth)."""
@@ -63,7 +54,7 @@ class SwissSpadBinConfig(SwissSpadCorrections):
 
 
 def _files_of(config_path: Path | list[Path]) -> tuple[list[Path], str]:
-    from photonpano.sensor import list_bin_files
+    from photonpano.plugins.sources._swissspad_readout import list_bin_files
 
     if isinstance(config_path, list):
         if not config_path:
@@ -88,8 +79,8 @@ class SwissSpadBin(PhotonSource):
 
     Attributes:
         files: the readout files in frame order.
-        layout: the :class:`~photonpano.sensor.RawLayout`.
-        corrector: the :class:`~photonpano.sensor.SensorCorrector` applied to counts.
+        layout: the :class:`~photonpano.plugins.sources._swissspad_readout.RawLayout`.
+        corrector: the :class:`~photonpano.plugins.sources._swissspad_sensor.SensorCorrector` applied to counts.
         notes: caveats found while indexing (a truncated last file).
     """
 
@@ -101,7 +92,7 @@ class SwissSpadBin(PhotonSource):
                 (every file but the last must be 8 MiB), a layout that does not fit
                 the data, or a frame range outside the capture; messages name the file.
         """
-        from photonpano.sensor import SensorCorrector
+        from photonpano.plugins.sources._swissspad_sensor import SensorCorrector
         from photonpano.streaming import FrameFiles, FrameSegment
 
         self.config = config
@@ -138,13 +129,9 @@ class SwissSpadBin(PhotonSource):
                                  chunk_bytes=int(config.chunk_mb * 2**20))
         if config.check_layout:
             self._check_layout(segments[0])
-        total = self.frames.n_frames
-        stop = total if config.stop is None else config.stop
-        if not config.start < stop <= total:
-            raise SourceError(f"source (swissspad-bin): frames {config.start}:{stop} are outside {label}, "
-                              f"which holds {total} whole frames")
-        self.offset = config.start
-        self.n_frames = stop - config.start
+        start, stop = config.frame_range(self.frames.n_frames, label, "whole frames")
+        self.offset = start
+        self.n_frames = stop - start
         self.corrector = SensorCorrector(config, (self.layout.height, self.layout.width), self.layout.name,
                                          f"swissspad-bin({label})")
         self.height, self.width = self.corrector.shape
@@ -153,7 +140,7 @@ class SwissSpadBin(PhotonSource):
         self.name = f"swissspad-bin({label}, {len(self.files)} files, {self.layout.name} array, fix {config.fix})"
 
     def _check_layout(self, first) -> None:
-        from photonpano.sensor import layout_scores
+        from photonpano.plugins.sources._swissspad_readout import layout_scores
 
         n_bytes = min(first.n_frames * self.layout.frame_bytes, BIN_FILE_BYTES)
         n_bytes -= n_bytes % LAYOUTS["full"].frame_bytes
@@ -178,7 +165,7 @@ class SwissSpadBin(PhotonSource):
         Returns:
             (K, H_raw, W_raw/8) uint8 frames bit-packed MSB first (``np.packbits`` layout).
         """
-        from photonpano.sensor import decode_frames
+        from photonpano.plugins.sources._swissspad_readout import decode_frames
 
         if not 0 <= start <= stop <= self.n_frames:
             raise ValueError(f"frames {start}:{stop} leave the capture of {self.n_frames} frames")
@@ -199,7 +186,7 @@ class SwissSpadBin(PhotonSource):
             (B, H_raw, W_raw) uint16 counts.
         """
         from photonpano.photons import sum_packed_ranges
-        from photonpano.sensor import record_counts_to_frame
+        from photonpano.plugins.sources._swissspad_readout import record_counts_to_frame
 
         edges = np.asarray(edges, dtype=np.int64)
         if len(edges) and (edges[0] < 0 or edges[-1] > self.n_frames):

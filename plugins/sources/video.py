@@ -24,13 +24,14 @@ import threading
 import warnings
 from collections import OrderedDict
 from pathlib import Path
-from typing import Annotated, Any, ClassVar, Literal
+from typing import Annotated, Any, Literal
 
 import numpy as np
 from numpy.typing import NDArray
 from photonpano import hookimpl
 from photonpano.errors import SourceError
 from photonpano.intensity import IntensitySource, read_cih_frame_rate, response_lut
+from photonpano.plugins.sources._capture_config import IntensityCaptureConfig
 from photonpano.stages import SourceConfig
 from pydantic import Field
 
@@ -42,12 +43,11 @@ IMAGE_SUFFIXES = (".png", ".tif", ".tiff", ".jpg", ".jpeg", ".bmp", ".pgm", ".pp
 """Image suffixes of image-sequence folders."""
 
 
-class VideoConfig(SourceConfig):
+class VideoConfig(IntensityCaptureConfig):
     """A high-speed video file (PyAV) or a folder of images, as intensity frames."""
 
     plugin: Literal["video"] = "video"
     requires = ("av",)
-    kind: ClassVar[str] = "intensity"  # frames are intensities: merge with ``mean``
     install_hint = "pip install 'photonpano[video]'"
 
     path: Path
@@ -59,19 +59,8 @@ class VideoConfig(SourceConfig):
     30 fps) and an error for an image folder."""
     cih: Path | None = None
     """The recording's ``.cih`` file, if not next to the video under the same name."""
-    response: Literal["srgb", "gamma", "linear"] = "srgb"
-    """How code values encode intensity: the sRGB curve (usual for exported video),
-    ``value ** gamma``, or linear (raw sensor data)."""
-    gamma: Annotated[float, Field(gt=0, le=5)] = 2.2
-    """Exponent of the ``gamma`` response."""
-    black_level: Annotated[float, Field(ge=0)] = 0.0
-    """Code value of zero light."""
     white_level: Annotated[float, Field(gt=0)] | None = None
     """Code value of full scale (default: 255 for 8-bit, 65535 for 16-bit frames)."""
-    start: Annotated[int, Field(ge=0)] = 0
-    """First frame to use."""
-    stop: Annotated[int, Field(ge=1)] | None = None
-    """One past the last frame to use (default: the end)."""
     exposure_s: Annotated[float, Field(gt=0)] | None = None
     """Exposure time of one frame in seconds (default: 1 / frame rate)."""
     cache_mb: Annotated[float, Field(gt=0)] = 256.0
@@ -311,12 +300,8 @@ class VideoSource(IntensitySource):
                                   "recording's .cih file next to it")
         self.frame_rate_hz, self.frame_rate_source = float(rate), how
         self.exposure_s = config.exposure_s or 1.0 / self.frame_rate_hz
-        total = self.frames.n_frames
-        stop = total if config.stop is None else config.stop
-        if not config.start < stop <= total:
-            raise SourceError(f"source (video): frames {config.start}:{stop} are outside {path}, which holds "
-                              f"{total} frames")
-        self.offset, self.n_frames = config.start, stop - config.start
+        start, stop = config.frame_range(self.frames.n_frames, path)
+        self.offset, self.n_frames = start, stop - start
         self.height, self.width = self.frames.shape
         bits = 8 if self.frames.dtype == np.uint8 else 16
         self.lut = response_lut(config.response, bits, gamma=config.gamma, black_level=config.black_level,

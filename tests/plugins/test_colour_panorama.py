@@ -8,8 +8,8 @@ from capture_helpers import embed_colorspad
 from photonpano.compose import Panorama
 from photonpano.plugins.compositors.drizzle import DrizzleConfig
 from photonpano.plugins.observers.colour_panorama import colour_panorama, photonpano_panorama_finished
+from photonpano.plugins.sources._swissspad_sensor import bundled_sensor_file, load_cfa
 from photonpano.plugins.sources.npy_cube import NpyCubeConfig
-from photonpano.sensor import bundled_sensor_file, load_cfa
 
 P_WHITE, P_RGB = 0.4, (0.1, 0.2, 0.05)  # detection probability per frame behind each filter
 

@@ -1,6 +1,6 @@
 """SwissSPAD2 raw readouts: ``swissspad-bin``, ``convert``, corrections on ``npy-cube``.
 
-Readout files are written in the documented layouts (``tests/framework/test_sensor.py``
+Readout files are written in the documented layouts (``tests/plugins/test_swissspad_sensor.py``
 checks those writers against an independent implementation), read back and compared
 bit for bit; the optional cross-check reads the same files with the sensor authors'
 ``photoncube`` package.
@@ -15,9 +15,9 @@ import pytest
 from capture_helpers import simulate_raw_half
 from photonpano.cli import app
 from photonpano.errors import SourceError
+from photonpano.plugins.sources._swissspad_readout import LAYOUTS, write_bin_files
 from photonpano.plugins.sources.npy_cube import NpyCubeConfig
 from photonpano.plugins.sources.swissspad import SourceWarning, SwissSpadBinConfig
-from photonpano.sensor import LAYOUTS, write_bin_files
 from typer.testing import CliRunner
 
 runner = CliRunner()

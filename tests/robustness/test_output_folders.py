@@ -177,7 +177,7 @@ def test_full_disk_is_one_line_and_leaves_nothing(tmp_path, monkeypatch, victim)
             raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
         return real(src, dst)
 
-    monkeypatch.setattr(outputs.os, "replace", full)
+    monkeypatch.setattr(os, "replace", full)
     out = tmp_path / "out"
     assert_one_line_error(invoke("demo", "-o", out, *TINY), victim, "No space left on device")
     assert not out.exists() or not [p for p in out.rglob("*") if p.is_file()]

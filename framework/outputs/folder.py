@@ -1,23 +1,4 @@
-"""Output folders a run can be trusted with: atomic files, a manifest, a lock, checkpoints.
-
-Guarantees (see ``docs/outputs.md``):
-
-- **Atomic files**: every file is written under a temporary name in the output folder
-  (``.partial-<pid>-<name>``), flushed to disk and renamed into place (``os.replace``),
-  so a file under its final name is always complete.
-- **run.json last**: it is written only when every other output is complete; its
-  presence means the run is complete.
-- **Manifest**: ``manifest.json`` lists every file the run wrote; a name is added
-  *before* its file appears, so after a crash the manifest covers every file present.
-  ``--force`` removes exactly the previous run's manifest files (never other files).
-- **Lock**: ``.photonpano.lock`` (holding the writer's pid) keeps a second run out of
-  the folder; a lock left by a killed process is taken over.
-- **Nothing before the run can start**: the folder gets its first file when the spec
-  is valid and the source is open (:meth:`RunFolder.begin`); a run that fails removes
-  what it wrote (an interrupted one keeps its checkpoints for ``--resume``).
-- **Checkpoints**: after each level, ``checkpoints/level_<k>.npz`` holds what the next
-  level needs (:class:`Checkpoint`), for ``--resume``.
-"""
+"""The output folder of one run: a lock, a manifest, atomic writes, cleanup, checkpoints."""
 
 from __future__ import annotations
 
@@ -26,139 +7,24 @@ import json
 import os
 import shutil
 import socket
-from collections.abc import Callable, Iterator, Sequence
-from dataclasses import dataclass
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 from numpy.typing import NDArray
 
-from .errors import OutputError
+from ..errors import OutputError
+from .checkpoint import CHECKPOINTS, Checkpoint
+from .files import PARTIAL, atomic_path, oserror, save_npy, write_text
 
-__all__ = ["MANIFEST", "LOCK", "CHECKPOINTS", "RUN_JSON", "atomic_path", "save_npy", "write_text",
-           "json_default", "Checkpoint", "RunFolder"]
+__all__ = ["MANIFEST", "LOCK", "RUN_JSON", "RunFolder"]
 
 MANIFEST = "manifest.json"
 """The list of files a run wrote (JSON: ``{"files": [...], "complete": bool}``)."""
 LOCK = ".photonpano.lock"
 """Held (created exclusively) while a run writes into the folder."""
-CHECKPOINTS = "checkpoints"
-"""Sub-folder of the per-level checkpoints ``level_<k>.npz``."""
 RUN_JSON = "run.json"
 """Written last; its presence means the run is complete."""
-_PARTIAL = ".partial-"
-
-
-def _fsync_dir(folder: Path) -> None:
-    with contextlib.suppress(OSError):  # not every file system can sync a folder
-        fd = os.open(folder, os.O_RDONLY)
-        try:
-            os.fsync(fd)
-        finally:
-            os.close(fd)
-
-
-def _oserror(path: Path, exc: OSError) -> OutputError:
-    return OutputError(f"cannot write {path}: {exc.strerror or type(exc).__name__}")
-
-
-@contextlib.contextmanager
-def atomic_path(path: Path) -> Iterator[Path]:
-    """Yield a temporary path next to ``path``; on success it is synced and renamed to ``path``.
-
-    The temporary name keeps the suffix (writers such as ``cv2.imwrite`` choose the format
-    from it). If the block raises, the temporary file is removed and ``path`` is untouched.
-
-    Raises:
-        OutputError: an OS error (read-only folder, full disk, a file as parent), as one
-            line naming ``path``.
-    """
-    path = Path(path)
-    tmp = path.with_name(f"{_PARTIAL}{os.getpid()}-{path.name}")
-    try:
-        yield tmp
-        with open(tmp, "rb+") as handle:
-            os.fsync(handle.fileno())
-        os.replace(tmp, path)
-        _fsync_dir(path.parent)
-    except OSError as exc:
-        raise _oserror(path, exc) from None
-    finally:
-        with contextlib.suppress(OSError):
-            tmp.unlink()
-
-
-def save_npy(path: Path, array: NDArray) -> None:
-    """Write ``array`` to the ``.npy`` file ``path`` atomically (see :func:`atomic_path`)."""
-    with atomic_path(path) as tmp, open(tmp, "wb") as handle:
-        np.save(handle, array, allow_pickle=False)
-
-
-def write_text(path: Path, text: str) -> None:
-    """Write ``text`` (UTF-8) to ``path`` atomically (see :func:`atomic_path`)."""
-    with atomic_path(path) as tmp:
-        tmp.write_text(text, encoding="utf-8")
-
-
-@dataclass
-class Checkpoint:
-    """The state after a finished level, from which the next level starts.
-
-    Attributes:
-        level: the last finished level (1-based).
-        homographies: (T, 3, 3) float64 per-frame homographies after that level, in the
-            level loop's working coordinates (before the final middle-frame gauge).
-        statistics: the ``run.json`` statistics rows of levels 1..level.
-        template: ``(flux, frames, homographies)`` of the panorama the next level
-            registers against ((Hc, Wc) float32, (Hc, Wc) float32, (T, 3, 3) float64), or
-            None where the next level does not need one.
-    """
-
-    level: int
-    homographies: NDArray[np.float64]
-    statistics: list[dict[str, Any]]
-    template: tuple[NDArray[np.float32], NDArray[np.float32], NDArray[np.float64]] | None = None
-
-    def save(self, path: Path) -> None:
-        """Write the checkpoint atomically as an uncompressed ``.npz``."""
-        arrays = {"level": np.int64(self.level), "homographies": self.homographies,
-                  "statistics": np.frombuffer(json.dumps(self.statistics, default=json_default).encode(),
-                                              dtype=np.uint8)}
-        if self.template is not None:
-            arrays.update(template_flux=self.template[0], template_frames=self.template[1],
-                          template_homographies=self.template[2])
-        with atomic_path(path) as tmp, open(tmp, "wb") as handle:
-            np.savez(handle, **arrays)
-
-    @classmethod
-    def load(cls, path: Path) -> Checkpoint:
-        """Read a checkpoint written by :meth:`save`.
-
-        Raises:
-            OutputError: an unreadable or incomplete checkpoint, naming ``path``.
-        """
-        try:
-            with np.load(path, allow_pickle=False) as data:
-                template = None
-                if "template_flux" in data:
-                    template = (data["template_flux"], data["template_frames"], data["template_homographies"])
-                return cls(int(data["level"]), data["homographies"],
-                           json.loads(data["statistics"].tobytes().decode()), template)
-        except (OSError, ValueError, KeyError, EOFError) as exc:
-            raise OutputError(f"checkpoint {path} is not readable ({type(exc).__name__}); "
-                              "rerun with --force") from None
-
-
-def json_default(value: Any) -> Any:
-    """``json.dumps`` fallback for numpy scalars and arrays and paths."""
-    if isinstance(value, (np.integer, np.floating)):
-        return value.item()
-    if isinstance(value, np.ndarray):
-        return value.tolist()
-    if isinstance(value, Path):
-        return str(value)
-    raise TypeError(f"not JSON serialisable: {type(value).__name__}")
 
 
 class RunFolder:
@@ -208,7 +74,7 @@ class RunFolder:
             self._created = not root.exists()
             root.mkdir(parents=True, exist_ok=True)
         except OSError as exc:
-            raise _oserror(root, exc) from None
+            raise oserror(root, exc) from None
         self._lock()
         try:
             self._inspect()
@@ -235,7 +101,7 @@ class RunFolder:
                 raise OutputError(f"output folder {self.root} is in use by another run (pid {holder[0]}, "
                                   f"lock {lock}); wait for it or choose another folder") from None
             except OSError as exc:
-                raise _oserror(lock, exc) from None
+                raise oserror(lock, exc) from None
             with os.fdopen(fd, "w") as handle:
                 handle.write(stamp)
             self._locked = True
@@ -295,7 +161,7 @@ class RunFolder:
             try:
                 target.parent.mkdir(parents=True, exist_ok=True)
             except OSError as exc:
-                raise _oserror(target.parent, exc) from None
+                raise oserror(target.parent, exc) from None
         return target
 
     def save_npy(self, name: str, array: NDArray) -> Path:
@@ -328,7 +194,7 @@ class RunFolder:
         known = set(self.files) | self._existing | {MANIFEST, LOCK}
         names = [p.relative_to(self.root).as_posix() for p in sorted(self.root.rglob("*")) if p.is_file()]
         return [n for n in names if n not in known and n.split("/")[0] not in self._existing
-                and not Path(n).name.startswith(_PARTIAL)]
+                and not Path(n).name.startswith(PARTIAL)]
 
     # -- checkpoints -----------------------------------------------------------------
     def save_checkpoint(self, checkpoint: Checkpoint) -> None:
@@ -397,7 +263,7 @@ class RunFolder:
                 folder = folder.parent
 
     def _remove_partials(self) -> None:
-        for leftover in self.root.rglob(f"{_PARTIAL}*"):
+        for leftover in self.root.rglob(f"{PARTIAL}*"):
             with contextlib.suppress(OSError):
                 leftover.unlink()
 

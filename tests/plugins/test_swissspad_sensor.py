@@ -1,6 +1,6 @@
 """SwissSPAD2 readout layouts and sensor corrections, checked bit for bit.
 
-The expected layouts are written here independently of :mod:`photonpano.sensor`,
+The expected layouts are written here independently of :mod:`photonpano.plugins.sources._swissspad_readout`,
 straight from the documented format (SOURCES.md): LSB first within a byte; full-array
 records of 1024 pixels alternating quarter-rows of the top half and of the flipped
 bottom half.
@@ -10,17 +10,19 @@ import numpy as np
 import pytest
 from photonpano.errors import SourceError
 from photonpano.photons import sum_packed_ranges
-from photonpano.sensor import (
+from photonpano.plugins.sources._swissspad_readout import (
     LAYOUTS,
-    SensorCorrector,
-    SwissSpadCorrections,
-    bundled_sensor_file,
     decode_frames,
     encode_frames,
     layout_scores,
+    record_counts_to_frame,
+)
+from photonpano.plugins.sources._swissspad_sensor import (
+    SensorCorrector,
+    SwissSpadCorrections,
+    bundled_sensor_file,
     load_cfa,
     load_mask,
-    record_counts_to_frame,
     transform_matrix,
     transform_shape,
 )

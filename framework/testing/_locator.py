@@ -1,0 +1,134 @@
+"""The locator contract (public through :mod:`photonpano.testing`)."""
+
+from __future__ import annotations
+
+from typing import Any, ClassVar
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ..stages import MergedFrames
+from ._captures import corner_error_px, merged_frames, synthetic_pair
+from ._plugin import PluginContract
+
+
+class LocatorContract(PluginContract):
+    """The locator contract (see :meth:`photonpano.stages.Locator.register_pairs`).
+
+    Class attributes (besides :class:`PluginContract`'s):
+        motion: the warps the locator must recover on synthetic frames: ``"translation"``
+            (a sub-pixel shift), ``"similarity"`` (shift, rotation, scale) or
+            ``"homography"`` (adds perspective).
+        tolerance_px: largest accepted mean corner error in pixels.
+        direct: True for methods that refine ``initial`` (they get a start about 1.5 px
+            off the truth); False for methods that ignore it (they get the identity).
+        size: ``(height, width)`` of the synthetic frames in pixels.
+    """
+
+    motion: ClassVar[str] = "homography"
+    tolerance_px: ClassVar[float] = 0.5
+    direct: ClassVar[bool] = False
+    size: ClassVar[tuple[int, int]] = (160, 240)
+
+    def truth(self) -> NDArray[np.float64]:
+        """Return the b-to-a homography of the synthetic pair for :attr:`motion`."""
+        h, w = self.size
+        cx, cy = (w - 1) / 2, (h - 1) / 2
+        move = np.array([[1, 0, 3.3], [0, 1, -2.4], [0, 0, 1]], np.float64)
+        if self.motion == "translation":
+            return move
+        angle, scale = np.deg2rad(2.0), 1.03
+        c, s = scale * np.cos(angle), scale * np.sin(angle)
+        rot = np.array([[c, -s, cx - c * cx + s * cy], [s, c, cy - s * cx - c * cy], [0, 0, 1]])
+        out = move @ rot
+        if self.motion == "homography":
+            out = out @ np.array([[1, 0, 0], [0, 1, 0], [1.5e-4, -1e-4, 1]])
+        return out / out[2, 2]
+
+    def start(self, truth: NDArray[np.float64]) -> NDArray[np.float64]:
+        """Return the ``initial`` estimate given to the locator for the pair with ``truth``."""
+        if not self.direct:
+            return np.eye(3)
+        from photonpano import geometry
+
+        h, w = self.size
+        c = geometry.corners(w, h).astype(np.float32)
+        off = np.array([[1.2, -0.8], [-1.0, 1.1], [0.9, 1.3], [-1.3, -0.7]], np.float32)
+        import cv2
+
+        start = cv2.getPerspectiveTransform(c, (geometry.apply(truth, c) + off).astype(np.float32))
+        return start / start[2, 2]
+
+    def _run(self, locator: Any, merged: MergedFrames, pairs: Any, initial: Any):
+        from photonpano.stages import Locator, PairRegistrations
+
+        assert isinstance(locator, Locator), f"build() returned {type(locator).__name__}, not a Locator"
+        result = locator.register_pairs(merged, np.asarray(pairs, np.int64).reshape(-1, 2),
+                                        np.asarray(initial, np.float64).reshape(-1, 3, 3))
+        assert isinstance(result, PairRegistrations)
+        return result
+
+    def test_returns_documented_shapes_and_dtypes(self, built: Any) -> None:
+        """(P, 3, 3) float64 normalised homographies, (P,) int64 counts and bool flags."""
+        truth = self.truth()
+        merged = synthetic_pair(truth, *self.size)
+        inv = np.linalg.inv(truth)
+        result = self._run(built, merged, [[0, 1], [1, 0], [0, 1]],
+                           [self.start(truth), self.start(inv / inv[2, 2]), self.start(truth)])
+        assert result.homographies.shape == (3, 3, 3) and result.homographies.dtype == np.float64
+        for name in ("matches", "inliers"):
+            arr = getattr(result, name)
+            assert arr.shape == (3,) and arr.dtype == np.int64 and (arr >= 0).all(), name
+        assert result.ok.shape == (3,) and result.ok.dtype == np.bool_
+        ok_h = result.homographies[result.ok]
+        assert np.all(np.isfinite(ok_h))
+        np.testing.assert_allclose(ok_h[:, 2, 2], 1.0, atol=1e-9)
+
+    def test_recovers_a_known_warp_in_the_right_direction(self, built: Any) -> None:
+        """Pair (a, b) gives the map of b's pixels to a's, pixel centres at integers."""
+        truth = self.truth()
+        merged = synthetic_pair(truth, *self.size)
+        result = self._run(built, merged, [[0, 1]], [self.start(truth)])
+        assert result.ok[0], "the synthetic pair failed to register"
+        h, w = self.size
+        error = corner_error_px(result.homographies[0], truth, w, h)
+        inverse_error = corner_error_px(result.homographies[0], np.linalg.inv(truth), w, h)
+        assert error <= self.tolerance_px, (
+            f"mean corner error {error:.3f} px > {self.tolerance_px} px "
+            f"(against the inverse warp: {inverse_error:.3f} px; direction swapped?)")
+
+    def test_reversed_pair_gives_the_inverse(self, built: Any) -> None:
+        """Registering (b, a) gives (about) the inverse of registering (a, b)."""
+        truth = self.truth()
+        inv = np.linalg.inv(truth)
+        merged = synthetic_pair(truth, *self.size)
+        result = self._run(built, merged, [[0, 1], [1, 0]], [self.start(truth), self.start(inv / inv[2, 2])])
+        assert result.ok.all()
+        h, w = self.size
+        loop = result.homographies[0] @ result.homographies[1]
+        assert corner_error_px(loop, np.eye(3), w, h) <= 2 * self.tolerance_px
+
+    def test_no_pairs_gives_empty_typed_result(self, built: Any) -> None:
+        """Zero pairs give zero-length arrays of the documented shapes."""
+        merged = synthetic_pair(self.truth(), *self.size)
+        result = self._run(built, merged, np.zeros((0, 2), np.int64), np.zeros((0, 3, 3)))
+        assert result.homographies.shape == (0, 3, 3) and result.ok.shape == (0,)
+
+    def test_featureless_frame_is_flagged_not_raised(self, built: Any) -> None:
+        """A pair with a blank (uniform) frame comes back ``ok=False`` without an exception."""
+        pair = synthetic_pair(self.truth(), *self.size)
+        blank = np.full(self.size, 0.5, np.float32)
+        frames = [pair.flux[0] / np.float32(1e5), blank]
+        merged = merged_frames(frames, [pair.masks[0], np.ones(self.size, bool)])
+        result = self._run(built, merged, [[0, 1]], [np.eye(3)])
+        assert result.homographies.shape == (1, 3, 3)
+        assert not result.ok[0], "a blank frame cannot be registered; flag it with ok=False"
+
+    def test_repeatable(self, built: Any) -> None:
+        """The same call twice gives the same homographies (caches must not change results)."""
+        truth = self.truth()
+        merged = synthetic_pair(truth, *self.size)
+        first = self._run(built, merged, [[0, 1]], [self.start(truth)])
+        second = self._run(built, merged, [[0, 1]], [self.start(truth)])
+        np.testing.assert_allclose(first.homographies, second.homographies, atol=1e-6)
+        np.testing.assert_array_equal(first.ok, second.ok)

@@ -1,0 +1,32 @@
+"""The core (``framework/``) depends on no built-in plugin: it reaches them through the plugin host."""
+
+import ast
+from pathlib import Path
+
+FRAMEWORK = Path(__file__).parents[2] / "framework"
+ALLOWED = {"cli.py"}
+"""Modules still importing a built-in plugin (``convert`` calls the swissspad-bin converter; issue 12)."""
+
+
+def plugin_imports(path: Path) -> list[str]:
+    """Return the ``photonpano.plugins...`` modules that ``path`` imports (at any depth)."""
+    found = []
+    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        names = [a.name for a in node.names] if isinstance(node, ast.Import) else \
+            [node.module or ""] if isinstance(node, ast.ImportFrom) and node.level == 0 else []
+        found += [n for n in names if n == "photonpano.plugins" or n.startswith("photonpano.plugins.")]
+    return found
+
+
+def test_plugin_imports_are_found():
+    """The scanner sees a lazy import inside a function (so the next test can fail)."""
+    sample = FRAMEWORK.parent / "plugins" / "sources" / "swissspad.py"
+    assert "photonpano.plugins.sources._swissspad_sensor" in plugin_imports(sample)
+
+
+def test_framework_imports_no_built_in_plugin():
+    """No module under framework/ (outside ``ALLOWED``) imports ``photonpano.plugins``."""
+    offenders = {str(p.relative_to(FRAMEWORK)): plugin_imports(p) for p in sorted(FRAMEWORK.rglob("*.py"))
+                 if str(p.relative_to(FRAMEWORK)) not in ALLOWED}
+    offenders = {k: v for k, v in offenders.items() if v}
+    assert not offenders, f"framework modules importing built-in plugins: {offenders}"
