@@ -153,8 +153,10 @@ def test_every_numba_kernel_caches_outside_the_package():
 
 
 def test_every_subpackage_is_listed_for_the_wheel():
-    """A subpackage missing from pyproject's list installs fine editable and is absent from
-    the wheel that README command 1 installs."""
+    """Every subpackage is in pyproject's list.
+
+    One missing installs fine editable, and is absent from the wheel README command 1 installs.
+    """
     import tomllib
     from pathlib import Path
 
