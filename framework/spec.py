@@ -36,6 +36,7 @@ from pydantic import (
 from .errors import PluginError, SpecError
 from .faults import short_repr
 from .host import PluginHost
+from .spec_compat import move_refine_locator, move_scale
 from .spec_errors import PLUGIN_SLOTS, blame_set, describe_loc, listing, plugin_of, section_at, unknown_plugin, where
 from .spec_paths import resolve_relative_paths
 from .stages import STAGES
@@ -79,19 +80,12 @@ class _SpecBase(BaseModel):
 
     @model_validator(mode="before")
     @classmethod
-    def _scale_to_compositor(cls, data: Any) -> Any:
-        # the super-resolution scale belongs to the compositor; keep top-level ``scale:`` working
-        if not isinstance(data, dict) or "scale" not in data:
-            return data
-        data = dict(data)
-        scale = data.pop("scale")
-        section = data.get("compositor", DEFAULT_PLUGINS["compositor"])
-        section = {"plugin": section} if isinstance(section, str) else dict(section or {})
-        if "scale" in section and section["scale"] != scale:
-            raise ValueError(f"scale is given twice ({scale!r} and compositor.scale {section['scale']!r}); "
-                             "write it once, as compositor.scale")
-        section.setdefault("plugin", DEFAULT_PLUGINS["compositor"])
-        data["compositor"] = {**section, "scale": scale}
+    def _former_keys(cls, data: Any) -> Any:
+        # keys of earlier specs, read under their present names
+        if isinstance(data, dict) and ("scale" in data or "refine_locator" in data):
+            data = dict(data)
+            move_scale(data, DEFAULT_PLUGINS["compositor"])
+            move_refine_locator(data)
         return data
 
     @property
@@ -103,25 +97,6 @@ class _SpecBase(BaseModel):
     @classmethod
     def _plugin_shorthand(cls, value: Any) -> Any:
         return {"plugin": value} if isinstance(value, str) else value
-
-    @model_validator(mode="before")
-    @classmethod
-    def _refine_locator_to_schemes(cls, data: Any) -> Any:
-        # before level schemes were named: ``refine_locator: X`` is the mosaic scheme's
-        # locator, ``refine_locator: null`` means pairwise at every level
-        if not isinstance(data, dict) or "refine_locator" not in data:
-            return data
-        data = dict(data)
-        refine = data.pop("refine_locator")
-        if refine is None:
-            if data.setdefault("level_schemes", ["pairwise"]) != ["pairwise"]:
-                raise ValueError("refine_locator: null and level_schemes are both given; write level_schemes only")
-            return data
-        mosaic = dict(data.get("mosaic") or {})
-        if "locator" in mosaic:
-            raise ValueError("refine_locator and mosaic.locator are both given; write mosaic.locator only")
-        data["mosaic"] = {**mosaic, "locator": refine}
-        return data
 
     @model_validator(mode="after")
     def _level_one_is_pairwise(self) -> Any:
@@ -213,7 +188,6 @@ def _mosaic_model(host: PluginHost) -> type[BaseModel]:
 
     def default(registry: dict[str, Any], slot: str, shorthand: Any) -> Any:
         return Field(default_factory=lambda: registry[MOSAIC_PLUGINS[slot]](**shorthand({})))
-
     model = create_model(
         "MosaicSpec", __config__=ConfigDict(extra="forbid", frozen=True),
         locator=(Annotated[_tagged(list(locators.values())), BeforeValidator(locator), Field(
