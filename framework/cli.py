@@ -9,11 +9,12 @@ Expected failures (bad input, bad spec, broken plugin) print one line and exit 1
 
 from __future__ import annotations
 
+import functools
 import json
 import sys
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Annotated, Any, Optional
+from typing import Annotated, Any, Callable, Optional
 
 import typer
 
@@ -91,6 +92,17 @@ def _fail(message: str) -> None:
     raise typer.Exit(1)
 
 
+def one_line_errors(command: Callable[..., Any]) -> Callable[..., Any]:
+    """Make a command print an expected failure (:class:`PhotonpanoError`) as one line and exit 1."""
+    @functools.wraps(command)
+    def run_command(*args: Any, **kwargs: Any) -> Any:
+        try:
+            return command(*args, **kwargs)
+        except PhotonpanoError as exc:
+            _fail(str(exc))
+    return run_command
+
+
 def _host():
     from .host import PluginHost
 
@@ -155,25 +167,24 @@ def _report(summary: dict[str, Any], out: Path) -> None:
 
 
 @app.command()
+@one_line_errors
 def run(spec: Annotated[Path, typer.Argument(help="Pipeline spec (YAML).")], output: OutOption,
         set_: SetOption = None, force: ForceOption = False, resume: ResumeOption = False) -> None:
     """Run the pipeline described by a YAML spec."""
     from .spec import load_spec
 
-    try:
-        host = _host()
-        parsed = load_spec(spec, host, set_ or [])
-        if getattr(parsed, "pose_estimator", None) is not None:  # experimental: camera poses
-            from .cli_tools import execute_pose
+    host = _host()
+    parsed = load_spec(spec, host, set_ or [])
+    if getattr(parsed, "pose_estimator", None) is not None:  # experimental: camera poses
+        from .cli_tools import execute_pose
 
-            execute_pose(parsed, output, force, host)
-            return
-        _report(_execute(parsed, output, force, host, resume), output)
-    except PhotonpanoError as exc:
-        _fail(str(exc))
+        execute_pose(parsed, output, force, host)
+        return
+    _report(_execute(parsed, output, force, host, resume), output)
 
 
 @app.command()
+@one_line_errors
 def pano(input: Annotated[Path, typer.Argument(help="A capture: a .npy photon cube, a folder of SwissSPAD .bin "
                                                  "files, a video, an image folder or a Photron .mraw.")],
          output: OutOption,
@@ -181,13 +192,10 @@ def pano(input: Annotated[Path, typer.Argument(help="A capture: a .npy photon cu
     """Reconstruct a panorama from INPUT with the paper's default settings."""
     from .spec import apply_overrides, validate_spec
 
-    try:
-        host = _host()
-        data = apply_overrides(_capture_spec(input, host), set_ or [])
-        parsed = validate_spec(data, host, origin="pano")
-        _report(_execute(parsed, output, force, host, resume), output)
-    except PhotonpanoError as exc:
-        _fail(str(exc))
+    host = _host()
+    data = apply_overrides(_capture_spec(input, host), set_ or [])
+    parsed = validate_spec(data, host, origin="pano")
+    _report(_execute(parsed, output, force, host, resume), output)
 
 
 def _plugin_failure(exc: Exception, host, spec=None):
@@ -215,6 +223,7 @@ def _capture_spec(path: Path, host) -> dict[str, Any]:
 
 
 @app.command()
+@one_line_errors
 def demo(output: OutOption, set_: SetOption = None, force: ForceOption = False, resume: ResumeOption = False,
          frames: Annotated[int, typer.Option(help="Binary frames to simulate.")] = 20_000) -> None:
     """Simulate a capture from the bundled real photograph and reconstruct it.
@@ -223,18 +232,16 @@ def demo(output: OutOption, set_: SetOption = None, force: ForceOption = False, 
     """
     from .spec import apply_overrides, validate_spec
 
-    try:
-        host = _host()
-        data = apply_overrides({"source": {"plugin": "simulate", "frames": frames}}, set_ or [])
-        parsed = validate_spec(data, host, origin="demo")
-        typer.echo(f"simulating {parsed.source.frames} binary frames of {parsed.source.height}x"
-                   f"{parsed.source.width} at flux {parsed.source.flux} from the bundled photo ...")
-        _report(_execute(parsed, output, force, host, resume), output)
-    except PhotonpanoError as exc:
-        _fail(str(exc))
+    host = _host()
+    data = apply_overrides({"source": {"plugin": "simulate", "frames": frames}}, set_ or [])
+    parsed = validate_spec(data, host, origin="demo")
+    typer.echo(f"simulating {parsed.source.frames} binary frames of {parsed.source.height}x"
+               f"{parsed.source.width} at flux {parsed.source.flux} from the bundled photo ...")
+    _report(_execute(parsed, output, force, host, resume), output)
 
 
 @app.command()
+@one_line_errors
 def plugins() -> None:
     """List installed plugins: key, stage, module, distribution, version, status."""
     from rich.console import Console
@@ -250,28 +257,24 @@ def plugins() -> None:
 
 
 @app.command()
+@one_line_errors
 def validate(spec: Annotated[Path, typer.Argument(help="Pipeline spec (YAML).")], set_: SetOption = None) -> None:
     """Validate a spec without reading any data."""
     from .spec import check_available, dump_spec, load_spec
 
-    try:
-        parsed = load_spec(spec, _host(), set_ or [])
-        check_available(parsed)
-    except PhotonpanoError as exc:
-        _fail(str(exc))
+    parsed = load_spec(spec, _host(), set_ or [])
+    check_available(parsed)
     typer.echo(f"{spec}: valid")
     typer.echo(dump_spec(parsed))
 
 
 @app.command()
+@one_line_errors
 def schema() -> None:
     """Print the JSON schema of pipeline specs (for editor completion of YAML specs)."""
     from .spec import spec_model
 
-    try:
-        typer.echo(json.dumps(spec_model(_host()).model_json_schema(), indent=2))
-    except PhotonpanoError as exc:
-        _fail(str(exc))
+    typer.echo(json.dumps(spec_model(_host()).model_json_schema(), indent=2))
 
 
 def main() -> None:

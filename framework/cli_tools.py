@@ -10,7 +10,7 @@ from typing import Annotated, Any, Optional
 
 import typer
 
-from .cli import ForceOption, OutOption, SetOption, _capture_spec, _fail, _host, _observed, app
+from .cli import ForceOption, OutOption, SetOption, _capture_spec, _fail, _host, _observed, app, one_line_errors
 from .errors import PhotonpanoError
 
 __all__ = ["execute_pose", "pose", "convert", "compare"]
@@ -39,6 +39,7 @@ def _report_pose(summary: dict[str, Any], out: Path) -> None:
 
 
 @app.command()
+@one_line_errors
 def pose(input: Annotated[str, typer.Argument(
              help="A capture (.npy photon cube, SwissSPAD folder, ...) or 'simulate3d' (a simulated room "
                   "with ground-truth poses).")],
@@ -51,24 +52,22 @@ def pose(input: Annotated[str, typer.Argument(
     from .pose import Intrinsics
     from .spec import apply_overrides, validate_spec
 
-    try:
-        host = _host()
-        if intrinsics is not None:
-            Intrinsics.load(intrinsics)  # a bad file fails before any work
-        if input == "simulate3d":
-            source = {"plugin": "simulate3d"}
-        else:
-            source = _capture_spec(Path(input), host)["source"]
-        data = {"source": source, "pose_estimator": {"plugin": "pycolmap-sfm"}}
-        if intrinsics is not None:
-            data["pose_estimator"]["intrinsics"] = str(intrinsics)
-        parsed = validate_spec(apply_overrides(data, set_ or []), host, origin="pose")
-        execute_pose(parsed, output, force, host)
-    except PhotonpanoError as exc:
-        _fail(str(exc))
+    host = _host()
+    if intrinsics is not None:
+        Intrinsics.load(intrinsics)  # a bad file fails before any work
+    if input == "simulate3d":
+        source = {"plugin": "simulate3d"}
+    else:
+        source = _capture_spec(Path(input), host)["source"]
+    data = {"source": source, "pose_estimator": {"plugin": "pycolmap-sfm"}}
+    if intrinsics is not None:
+        data["pose_estimator"]["intrinsics"] = str(intrinsics)
+    parsed = validate_spec(apply_overrides(data, set_ or []), host, origin="pose")
+    execute_pose(parsed, output, force, host)
 
 
 @app.command()
+@one_line_errors
 def convert(inputs: Annotated[list[Path], typer.Argument(help="A folder of SwissSPAD2 .bin readout files, or "
                                                          ".bin files in frame order.")],
             output: Annotated[Path, typer.Option("--output", "-o", help="The .npy cube to write (must not exist).")],
@@ -80,30 +79,28 @@ def convert(inputs: Annotated[list[Path], typer.Argument(help="A folder of Swiss
     The cube holds the raw frames, (T, 256, 64) or (T, 512, 64) uint8 packed MSB first;
     read it with `photonpano pano cube.npy --set source.fix=colorspad` (or grayspad).
     """
-    try:
-        if layout not in ("half", "full"):
-            raise PhotonpanoError(f"convert: --layout must be half or full, got {layout!r}")
-        for path in inputs:
-            if not path.exists():
-                raise PhotonpanoError(f"input {path} does not exist")
-        from photonpano.plugins.sources.swissspad import convert_bin_to_npy
+    if layout not in ("half", "full"):
+        raise PhotonpanoError(f"convert: --layout must be half or full, got {layout!r}")
+    for path in inputs:
+        if not path.exists():
+            raise PhotonpanoError(f"input {path} does not exist")
+    from photonpano.plugins.sources.swissspad import convert_bin_to_npy
 
-        from .progress import RichProgress
+    from .progress import RichProgress
 
-        bars = RichProgress()
-        with bars.bars as bar:
-            task = bar.add_task("convert", total=None)
-            frames, notes = convert_bin_to_npy(inputs, output, layout, check_layout=check_layout,
-                                               progress=lambda done, total: bar.update(task, completed=done,
-                                                                                       total=total))
-        for note in notes:
-            typer.secho(f"warning: {note}", fg=typer.colors.YELLOW, err=True)
-        typer.echo(f"wrote {output}: {frames} {layout}-array frames")
-    except PhotonpanoError as exc:
-        _fail(str(exc))
+    bars = RichProgress()
+    with bars.bars as bar:
+        task = bar.add_task("convert", total=None)
+        frames, notes = convert_bin_to_npy(inputs, output, layout, check_layout=check_layout,
+                                           progress=lambda done, total: bar.update(task, completed=done,
+                                                                                   total=total))
+    for note in notes:
+        typer.secho(f"warning: {note}", fg=typer.colors.YELLOW, err=True)
+    typer.echo(f"wrote {output}: {frames} {layout}-array frames")
 
 
 @app.command()
+@one_line_errors
 def compare(input: Annotated[str, typer.Argument(help="A spec (.yaml), a capture (.npy, ...) or 'simulate' "
                                                   "(the demo's simulated capture, with ground truth).")],
             output: OutOption,
@@ -123,29 +120,26 @@ def compare(input: Annotated[str, typer.Argument(help="A spec (.yaml), a capture
     from .pipeline import prepare_output
     from .spec import apply_overrides
 
-    try:
-        host = _host()
-        path = Path(input)
-        if input == "simulate":
-            data: dict[str, Any] = {"source": {"plugin": "simulate"}}
-        elif path.suffix in (".yaml", ".yml"):
-            from .spec import read_spec_file
+    host = _host()
+    path = Path(input)
+    if input == "simulate":
+        data: dict[str, Any] = {"source": {"plugin": "simulate"}}
+    elif path.suffix in (".yaml", ".yml"):
+        from .spec import read_spec_file
 
-            if not path.exists():
-                raise PhotonpanoError(f"spec {input} does not exist")
-            data = read_spec_file(path)[0] or {}
-        else:
-            data = _capture_spec(path, host)
-        data = apply_overrides(data, set_ or [])
-        keys = [k.strip() for k in locators.split(",") if k.strip()]
-        if not keys:
-            raise PhotonpanoError("--locators: give at least one locator key")
-        prepare_output(output, force)
-        with _observed(host):
-            rows = compare_locators(data, keys, host, output, origin=input, log=typer.echo,
-                                    on_row=lambda done: write_comparison(done, output, data), refine=refine)
-    except PhotonpanoError as exc:
-        _fail(str(exc))
+        if not path.exists():
+            raise PhotonpanoError(f"spec {input} does not exist")
+        data = read_spec_file(path)[0] or {}
+    else:
+        data = _capture_spec(path, host)
+    data = apply_overrides(data, set_ or [])
+    keys = [k.strip() for k in locators.split(",") if k.strip()]
+    if not keys:
+        raise PhotonpanoError("--locators: give at least one locator key")
+    prepare_output(output, force)
+    with _observed(host):
+        rows = compare_locators(data, keys, host, output, origin=input, log=typer.echo,
+                                on_row=lambda done: write_comparison(done, output, data), refine=refine)
     typer.echo(markdown_table(rows))
     if not any(row["status"] == "ok" for row in rows):
         _fail("no locator completed (see the table)")
