@@ -4,9 +4,8 @@ With ``outputs: {merged_frames: true}`` every level gets a folder ``level_<k>/``
 ``merged.npy`` ((G, H, W) float32 flux in photons/s, NaN where unobserved),
 ``references.npy`` ((G,) int64 reference frames) and one tone-mapped PNG per group.
 
-Levels that register against the panorama stream their merged frames (they keep none);
-for those the dump merges the level's groups again with the spec's merger and the
-level's updated homographies (one extra merge pass, only when the dump is asked for).
+These are the merged frames the level registered (with the homographies it started
+from), whatever its scheme: the schemes keep them only when the dump is asked for.
 """
 
 from __future__ import annotations
@@ -20,14 +19,12 @@ from photonpano import hookimpl
 @hookimpl
 def photonpano_level_finished(level: Any, spec: Any, source: Any, out_dir: Path | None) -> None:
     """Dump the level's merged frames into ``out_dir/level_<k>/`` if the spec enables it (runs with a folder)."""
-    if out_dir is None or not spec.outputs.merged_frames:
+    merged = level.merged  # kept by every scheme when outputs.merged_frames is set
+    if out_dir is None or merged is None:
         return
     import cv2
     from photonpano.outputs import atomic_path, save_npy
 
-    merged = level.merged
-    if merged is None:  # streamed (registered against the panorama): merge again
-        merged = spec.merger.build().merge(source, level.homographies, level.groups)
     folder = out_dir / f"level_{level.level}"
     folder.mkdir(exist_ok=True)
     save_npy(folder / "merged.npy", merged.flux)
