@@ -103,16 +103,19 @@ def compose(source: PhotonSource, homographies: NDArray[np.float64], compositor:
         parts.append(fork)
     runs = np.array_split(np.arange(len(starts)), len(parts))
 
-    def feed(part: Compositor, run: NDArray[np.int64]) -> None:
+    def feed(part: Compositor, run: NDArray[np.int64]) -> Compositor:
+        # returns what it fed, so that an executor running tasks in other processes
+        # hands the filled copy back (with threads it is the same object)
         for c in run:
             executor.raise_if_cancelled()  # Ctrl-C: stop within a chunk
             chunk = edges[starts[c]:starts[c] + chunk_batches + 1]
             part.feed(part.read(source, chunk), np.diff(chunk), to_canvas[(chunk[:-1] + chunk[1:]) // 2])
             if progress is not None:
                 progress(int(chunk[-1] - chunk[0]))
+        return part
 
-    executor.map(feed, parts, runs)
-    for part in parts[1:]:
+    compositor, *others = executor.map(feed, parts, runs)
+    for part in others:
         compositor.join(part)
     return compositor.finish()
 

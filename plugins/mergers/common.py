@@ -80,15 +80,17 @@ class WarpMerger(Merger):
                            images=np.empty((g, h, w), np.uint8), masks=np.empty((g, h, w), bool))
         windows = [np.arange(s, min(s + self.config.window_groups, g)) for s in range(0, g, self.config.window_groups)]
 
-        def merge_window(index: NDArray[np.int64]) -> None:
+        def merge_window(index: NDArray[np.int64]) -> tuple[NDArray[np.int64], list[Any]]:
+            # a pure task (no shared state written), so any executor may run it
             sums = merge_groups(source, homographies, groups.start[index], groups.stop[index],
                                 groups.reference[index], self.config.subbatch_px)
-            for i, (counts, frames) in zip(index, sums):
-                out.frames[i] = frames
-                out.flux[i], out.masks[i], out.images[i] = self.estimate(
-                    source, counts, frames, int(groups.stop[i] - groups.start[i]))
+            merged = [(frames, *self.estimate(source, counts, frames, int(groups.stop[i] - groups.start[i])))
+                      for i, (counts, frames) in zip(index, sums)]
             if progress is not None:
                 progress(len(index))
+            return index, merged
 
-        (executor or SerialExecutor()).map(merge_window, windows)
+        for index, merged in (executor or SerialExecutor()).map(merge_window, windows):
+            for i, (frames, flux, mask, image) in zip(index, merged):
+                out.frames[i], out.flux[i], out.masks[i], out.images[i] = frames, flux, mask, image
         return out
