@@ -1,9 +1,16 @@
-"""Performance benchmark (issue 5): a long SPAD capture reconstructed, against the floor.
+"""Performance benchmark (issues 5, 16): a long SPAD capture reconstructed, against the floor.
 
 Simulates (once, cached under ``benchmarks/cache/``) a 254x496 capture of the bundled
-photo at 100 kHz (pan 0.004 px/frame + a 5 px, 30 Hz vibration, flux 0.5), then, in a
-fresh process, runs the default pipeline (3 levels + final panorama) on the cached
-bit-packed cube through the memory-mapped ``npy-cube`` source, and prints:
+photo at 100 kHz, flux 0.5, on one of the camera paths users record (``--path``):
+
+- ``pan``: 0.004 px/frame plus a 5 px, 30 Hz vibration;
+- ``zigzag``: the same pan sweeping 40 px up and down every 20 000 frames (a path that
+  doubles back over the scene), plus the vibration;
+- ``shake``: the same pan plus a smooth random hand shake (8 px RMS, 0.5-10 Hz) and the
+  vibration;
+
+then, in a fresh process, runs the default pipeline (3 levels + final panorama) on the
+cached bit-packed cube through the memory-mapped ``npy-cube`` source, and prints:
 
 - wall and CPU time per stage and level, and in total;
 - peak resident memory of the pipeline (the process's ``VmHWM``, reset after the floor
@@ -14,8 +21,9 @@ bit-packed cube through the memory-mapped ``npy-cube`` source, and prints:
 
 Usage::
 
-    python benchmarks/performance.py                  # 100 000 frames
-    python benchmarks/performance.py --frames 25000
+    python benchmarks/performance.py                  # 100 000 frames, pan
+    python benchmarks/performance.py --path zigzag --frames 25000
+    python benchmarks/performance.py --path pan,zigzag,shake   # one row per path
     python benchmarks/performance.py --scaling        # 12.5k, 25k, 50k, 100k, 200k frames
     python benchmarks/performance.py --set locator.max_features=2000   # spec overrides
 """
@@ -33,19 +41,27 @@ from pathlib import Path
 CACHE = Path(__file__).parent / "cache"
 SIMULATION = {"plugin": "simulate", "speed_px_per_frame": 0.004, "vibration_px": 5.0, "vibration_hz": 30.0,
               "flux": 0.5, "seed": 1}
+PATHS = {"pan": {}, "zigzag": {"path": "zigzag", "sweep_px": 40.0, "sweep_period_frames": 20_000},
+         "shake": {"path": "shake", "shake_px": 8.0}}
+"""Camera path -> simulate settings added to :data:`SIMULATION`."""
 
 
-def cube_path(frames: int) -> Path:
-    """Return the cached cube for ``frames`` frames, simulating it first if needed."""
+def simulation(path: str, frames: int) -> dict:
+    """The simulate settings of the capture of ``frames`` frames on camera path ``path``."""
+    return {**SIMULATION, **PATHS[path], "frames": frames}
+
+
+def cube_path(frames: int, camera: str = "pan") -> Path:
+    """Return the cached cube for ``frames`` frames on path ``camera``, simulating it first if needed."""
     from photonpano.plugins.sources.simulate import SimulateConfig
 
-    path = CACHE / f"pan_{frames}.npy"
+    path = CACHE / f"{camera}_{frames}.npy"
     if not path.exists():
         CACHE.mkdir(exist_ok=True)
         partial = path.with_suffix(".partial.npy")
         partial.unlink(missing_ok=True)
         t0 = time.perf_counter()
-        SimulateConfig(**{**SIMULATION, "frames": frames, "cube_path": partial}).build()
+        SimulateConfig(**simulation(camera, frames), cube_path=partial).build()
         partial.rename(path)
         print(f"simulated {frames} frames in {time.perf_counter() - t0:.0f} s -> {path}", file=sys.stderr)
     return path
@@ -86,7 +102,7 @@ def _peak_memory_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 
 
-def run_once(frames: int, overrides: list[str] = ()) -> dict:
+def run_once(frames: int, overrides: list[str] = (), camera: str = "pan") -> dict:
     """Reconstruct the cached capture in this process and return the measurements."""
     from photonpano.host import PluginHost
     from photonpano.metrics import trajectory_error
@@ -94,7 +110,7 @@ def run_once(frames: int, overrides: list[str] = ()) -> dict:
     from photonpano.plugins.sources.simulate import SimulateConfig, bundled_photo, camera_path, load_scene
     from photonpano.spec import apply_overrides, validate_spec
 
-    path = cube_path(frames)
+    path = cube_path(frames, camera)
     floor_s = floor_pass(path)
     data = apply_overrides({"source": {"plugin": "npy-cube", "path": str(path)}}, list(overrides))
     spec = validate_spec(data, PluginHost(), origin="benchmark")
@@ -104,27 +120,27 @@ def run_once(frames: int, overrides: list[str] = ()) -> dict:
     homographies, stats, pano, timings = reconstruct(spec, source)
     wall, cpu = time.perf_counter() - wall0, time.process_time() - cpu0
     peak_mb = _peak_memory_mb()  # before the ground truth (a full-resolution scene) is loaded
-    config = SimulateConfig(**{**SIMULATION, "frames": frames})
+    config = SimulateConfig(**simulation(camera, frames))
     truth = camera_path(config, load_scene(bundled_photo(), config.scene_width).shape)
     rmse = trajectory_error(homographies, truth, source.width, source.height).rmse_px
-    return {"frames": frames, "wall_s": wall, "cpu_s": cpu, "floor_s": floor_s, "ratio": wall / floor_s,
+    return {"path": camera, "frames": frames, "wall_s": wall, "cpu_s": cpu, "floor_s": floor_s, "ratio": wall / floor_s,
             "peak_rss_mb": peak_mb,
             "rmse_px": rmse, "timings_s": timings,
             "levels": [{"level": s["level"], "groups": s["groups"], **s["timings_s"]} for s in stats]}
 
 
-def measure(frames: int, overrides: list[str] = ()) -> dict:
+def measure(frames: int, overrides: list[str] = (), camera: str = "pan") -> dict:
     """Run :func:`run_once` in a fresh process (so peak memory is the pipeline's own)."""
-    cube_path(frames)  # simulate outside the measured process
+    cube_path(frames, camera)  # simulate outside the measured process
     args = [a for o in overrides for a in ("--set", o)]
-    out = subprocess.run([sys.executable, __file__, "--worker", str(frames), *args], capture_output=True,
-                         text=True, check=True)
+    out = subprocess.run([sys.executable, __file__, "--worker", str(frames), "--path", camera, *args],
+                         capture_output=True, text=True, check=True)
     return json.loads(out.stdout.strip().splitlines()[-1])
 
 
 def report(r: dict) -> None:
     """Print one run's figures."""
-    print(f"{r['frames']} frames: wall {r['wall_s']:.1f} s, CPU {r['cpu_s']:.1f} s, "
+    print(f"{r['path']}, {r['frames']} frames: wall {r['wall_s']:.1f} s, CPU {r['cpu_s']:.1f} s, "
           f"peak RSS {r['peak_rss_mb']:.0f} MB, "
           f"floor {r['floor_s']:.2f} s, pipeline/floor {r['ratio']:.1f}x, trajectory RMSE {r['rmse_px']:.3f} px")
     for level in r["levels"]:
@@ -137,22 +153,29 @@ def main() -> None:
     """Parse arguments and run the benchmark."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--frames", type=int, default=100_000)
+    parser.add_argument("--path", default="pan", help="camera path(s), comma-separated: pan, zigzag, shake")
     parser.add_argument("--scaling", action="store_true", help="print the 12.5k..200k scaling table")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                         help="spec override, as in `photonpano run --set` (repeatable)")
     parser.add_argument("--worker", type=int, help=argparse.SUPPRESS)
     args = parser.parse_args()
+    cameras = [c.strip() for c in args.path.split(",") if c.strip()]
+    if unknown := set(cameras) - set(PATHS):
+        parser.error(f"--path: unknown {sorted(unknown)}; expected {', '.join(PATHS)}")
     if args.worker:
-        print(json.dumps(run_once(args.worker, args.set)))
+        print(json.dumps(run_once(args.worker, args.set, cameras[0])))
         return
     if not args.scaling:
-        report(measure(args.frames, args.set))
+        for camera in cameras:
+            report(measure(args.frames, args.set, camera))
         return
-    print(f"{'frames':>8} {'wall s':>7} {'CPU s':>7} {'floor s':>7} {'ratio':>6} {'RSS MB':>7} {'RMSE px':>8}")
-    for frames in (12_500, 25_000, 50_000, 100_000, 200_000):
-        r = measure(frames, args.set)
-        print(f"{frames:>8} {r['wall_s']:>7.1f} {r['cpu_s']:>7.1f} {r['floor_s']:>7.2f} {r['ratio']:>6.1f} "
-              f"{r['peak_rss_mb']:>7.0f} {r['rmse_px']:>8.3f}", flush=True)
+    print(f"{'path':>7} {'frames':>8} {'wall s':>7} {'CPU s':>7} {'floor s':>7} {'ratio':>6} {'RSS MB':>7} "
+          f"{'RMSE px':>8}")
+    for camera in cameras:
+        for frames in (12_500, 25_000, 50_000, 100_000, 200_000):
+            r = measure(frames, args.set, camera)
+            print(f"{camera:>7} {frames:>8} {r['wall_s']:>7.1f} {r['cpu_s']:>7.1f} {r['floor_s']:>7.2f} "
+                  f"{r['ratio']:>6.1f} {r['peak_rss_mb']:>7.0f} {r['rmse_px']:>8.3f}", flush=True)
 
 
 if __name__ == "__main__":
