@@ -70,14 +70,14 @@ def estimate_motion(source: PhotonSource, resampler: Resampler, merger: Merger, 
     n = source.n_frames
     homographies = np.repeat(np.eye(3)[None], n, axis=0) if initial is None else np.array(initial, np.float64)
     executor = executor or SerialExecutor()
-    if start_level == 1 and schemes and schemes[0].needs_estimate:
+    if start_level == 1 and schemes and schemes[0].needs_template:
         raise ValueError(f"level 1 cannot use the {schemes[0].name} scheme: it refines an existing estimate")
     for level in range(start_level, len(schemes) + 1):
         scheme, t0 = schemes[level - 1], time.perf_counter()
         groups = _resample(resampler, n, group_size, level)
         t1 = time.perf_counter()
         task = LevelTask(level, source, merger, groups, homographies, group_size, executor, keep_merged, template,
-                         next_template=level < len(schemes) and schemes[level].needs_estimate,
+                         next_template=level < len(schemes) and schemes[level].needs_template,
                          progress=progress(f"level {level}: merge + locate", len(groups)) if progress else None)
         located = scheme.locate(task)
         t2 = time.perf_counter()

@@ -71,8 +71,9 @@ class LevelScheme(abc.ABC):
     """
 
     name: ClassVar[str]
-    needs_estimate: ClassVar[bool] = False
-    """True if the scheme refines an existing estimate (it cannot run at level 1)."""
+    needs_template: ClassVar[bool] = False
+    """True if the scheme registers against the panorama of the current estimate: it cannot
+    run at level 1, and the level before it may build that panorama for it."""
 
     @abc.abstractmethod
     def locate(self, task: LevelTask) -> LocateResult:

@@ -59,7 +59,7 @@ class MosaicScheme(LevelScheme):
     """
 
     name = "mosaic"
-    needs_estimate = True
+    needs_template = True
 
     def __init__(self, make_locator: Callable[[], Locator], make_compositor: Callable[[], Compositor], *,
                  subbatch_px: float = 0.5, window: int = 16) -> None:
