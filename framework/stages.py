@@ -188,9 +188,13 @@ class Locator(abc.ABC):
         executor: set by the framework before :meth:`register_pairs`: an
             :class:`~photonpano.executor.Executor` on which independent per-frame or
             per-pair work may run (None: run serially). A locator may ignore it.
+        reuses_frames: set False by the framework when each frame is used in one call
+            only (the ``mosaic`` scheme): a locator that caches per-frame data across
+            calls may then skip its cache (and the cost of its keys).
     """
 
     executor: Any = None
+    reuses_frames: bool = True
 
     @abc.abstractmethod
     def register_pairs(self, merged: MergedFrames, pairs: NDArray[np.int64],

@@ -96,6 +96,7 @@ class MosaicScheme(LevelScheme):
         def run(index: NDArray[np.int64]) -> _WindowResult:
             start = time.perf_counter()
             locator = self.make_locator()
+            locator.reuses_frames = False  # each frame is registered once, by this locator
             merged = task.merger.merge(source, task.homographies, groups.select(index))
             merge_s = time.perf_counter() - start
             views = panorama_views(template, to_canvas[index], source.height, source.width, task.group_size)

@@ -148,6 +148,8 @@ class CachingLocator(Locator):
         """Start a batch on ``merged``: key its frames ``indices`` and evict other frames' data."""
         self._merged = merged
         self._keys = {}
+        if not self.reuses_frames:  # every frame is used in this call only: no cache, no keys
+            return
         keys = set()
         for i in np.unique(np.asarray(indices, dtype=np.int64)):
             keys.add(self._key(int(i), False)[0])
@@ -172,6 +174,9 @@ class CachingLocator(Locator):
         if self._merged is None:
             raise RuntimeError("CachingLocator.frame_data called before begin()")
         cache = self._caches.setdefault(kind, FrameCache())
+        if not self.reuses_frames:
+            cache.misses += 1
+            return compute()
         return cache.get(self._key(index, flux), compute)
 
     def finish(self) -> None:

@@ -62,3 +62,15 @@ def test_srgb_roundtrip_and_tone_map():
     assert img.dtype == np.uint16 and img[0, 0] == 0 and img[0, 3] == 65535
     with pytest.raises(ValueError):
         photons.tone_map(np.zeros((2, 2)), bits=12)
+
+
+def test_tone_map_table_is_within_one_level_of_the_srgb_curve():
+    from photonpano.photons import linear_to_srgb, tone_map
+
+    flux = np.random.default_rng(3).gamma(2.0, 500.0, (64, 80)).astype(np.float32)
+    flux[:3] = np.nan
+    white = np.sort(flux[np.isfinite(flux)])[int(round((np.isfinite(flux).sum() - 1) * 0.995))]
+    exact = np.rint(linear_to_srgb(np.nan_to_num(flux) / white) * 255)
+    image = tone_map(flux)
+    assert image.dtype == np.uint8 and np.abs(image - exact).max() <= 1
+    assert (image[:3] == 0).all() and image.max() == 255
