@@ -18,7 +18,7 @@ from numpy.typing import NDArray
 
 from . import geometry
 from .errors import StageError
-from .executor import Executor, SerialExecutor
+from .executor import Executor, SerialExecutor, pure_task
 from .records import Canvas, MergedFrames, Panorama
 from .stages import Compositor, PhotonSource
 
@@ -103,9 +103,11 @@ def compose(source: PhotonSource, homographies: NDArray[np.float64], compositor:
         parts.append(fork)
     runs = np.array_split(np.arange(len(starts)), len(parts))
 
+    @pure_task
     def feed(part: Compositor, run: NDArray[np.int64]) -> Compositor:
         # returns what it fed, so that an executor running tasks in other processes
-        # hands the filled copy back (with threads it is the same object)
+        # hands the filled copy back (with threads it is the same object); progress
+        # reported from another process is dropped (see photonpano.progress.start_task)
         for c in run:
             executor.raise_if_cancelled()  # Ctrl-C: stop within a chunk
             chunk = edges[starts[c]:starts[c] + chunk_batches + 1]

@@ -17,7 +17,20 @@ import threading
 from concurrent.futures import ThreadPoolExecutor
 from typing import Any, Callable, Iterable
 
-__all__ = ["Executor", "SerialExecutor", "ThreadExecutor", "make_executor", "Cancelled"]
+__all__ = ["Executor", "SerialExecutor", "ThreadExecutor", "make_executor", "Cancelled", "pure_task"]
+
+
+def pure_task(fn: Callable[..., Any]) -> Callable[..., Any]:
+    """Mark a task function as process-safe: it returns its result and changes nothing else.
+
+    Such a task may run in another process (a Dask worker): what it reads travels there
+    by pickle (file-backed sources as "reopen this path"), and only its return value
+    comes back. A task that fills its caller's arrays or lists, or calls a progress
+    callback, is not pure; report progress with :meth:`Executor.map`'s ``done`` instead.
+    Returns ``fn`` itself, with ``fn.pure_task = True``.
+    """
+    fn.pure_task = True  # type: ignore[attr-defined]
+    return fn
 
 
 class Cancelled(Exception):
@@ -39,9 +52,27 @@ class Executor:
         if self.cancelled is not None and self.cancelled.is_set():
             raise Cancelled("the run was interrupted")
 
-    def map(self, fn: Callable[..., Any], *items: Iterable[Any]) -> list[Any]:
-        """Return ``[fn(*args) for args in zip(*items)]``, in the order of the items."""
-        return [fn(*args) for args in zip(*items)]
+    def map(self, fn: Callable[..., Any], *items: Iterable[Any],
+            done: Callable[[Any], None] | None = None) -> list[Any]:
+        """Return ``[fn(*args) for args in zip(*items)]``, in the order of the items.
+
+        Args:
+            fn: the task function (see :func:`pure_task` for what may run elsewhere).
+            *items: one iterable per argument of ``fn``.
+            done: called with each result as its task finishes, in this process (e.g.
+                to advance a progress bar); None: nothing is called.
+        """
+        results = []
+        for args in zip(*items):
+            results.append(fn(*args))
+            if done is not None:
+                done(results[-1])
+        return results
+
+    def __reduce__(self) -> tuple[Any, tuple[()]]:
+        # a task that holds its executor (to check for cancellation) travels to another
+        # process with a serial one: the workers' pool stays where it is
+        return SerialExecutor, ()
 
     def close(self) -> None:
         """Release the workers (idempotent)."""
@@ -73,14 +104,19 @@ class ThreadExecutor(Executor):
         self._cv_threads = cv2.getNumThreads()
         cv2.setNumThreads(1)
 
-    def map(self, fn: Callable[..., Any], *items: Iterable[Any]) -> list[Any]:
+    def map(self, fn: Callable[..., Any], *items: Iterable[Any],
+            done: Callable[[Any], None] | None = None) -> list[Any]:
         """Run ``fn`` over the items on the pool; exceptions propagate to the caller.
 
-        If the caller is interrupted (Ctrl-C) or a task fails, the tasks not started
-        are cancelled and running ones see :meth:`raise_if_cancelled` fire, so the
-        pool drains in well under a second instead of finishing its queue.
+        ``done`` (see :meth:`Executor.map`) is called from the worker threads. If the
+        caller is interrupted (Ctrl-C) or a task fails, the tasks not started are
+        cancelled and running ones see :meth:`raise_if_cancelled` fire, so the pool
+        drains in well under a second instead of finishing its queue.
         """
         futures = [self._pool.submit(fn, *args) for args in zip(*items)]
+        if done is not None:
+            for future in futures:
+                future.add_done_callback(lambda f: None if f.cancelled() or f.exception() else done(f.result()))
         try:
             return [future.result() for future in futures]
         except BaseException as exc:

@@ -40,7 +40,8 @@ def start_task(task: str, total: int | None) -> Callable[[int], None]:
     plugin host, so plugins (e.g. a source that simulates or decodes for a while) report
     progress without knowing who draws it; outside a run the callable does nothing.
     Call this in the thread that runs the pipeline; the returned callable may be used
-    from worker threads.
+    from worker threads, and pickled: a copy in another process (a Dask worker) does
+    nothing.
 
     Args:
         task: a short description, e.g. ``"simulate"``.
@@ -50,10 +51,23 @@ def start_task(task: str, total: int | None) -> Callable[[int], None]:
         ``advance(n)``: report ``n`` more units done.
     """
     host = _host.get()
-    if host is None:
-        return lambda n: None
-    host.hook.photonpano_progress(task=task, total=total, advance=0)
-    return lambda n: host.hook.photonpano_progress(task=task, total=total, advance=n)
+    if host is not None:
+        host.hook.photonpano_progress(task=task, total=total, advance=0)
+    return _Advance(host, task, total)
+
+
+class _Advance:
+    """``advance(n)`` of one task; a copy in another process (a Dask worker) does nothing."""
+
+    def __init__(self, host: Any, task: str, total: int | None) -> None:
+        self.host, self.task, self.total = host, task, total
+
+    def __call__(self, n: int) -> None:
+        if self.host is not None:
+            self.host.hook.photonpano_progress(task=self.task, total=self.total, advance=n)
+
+    def __reduce__(self) -> tuple[Any, tuple[Any, ...]]:
+        return _Advance, (None, self.task, self.total)
 
 
 def level_line(level: Any) -> str:

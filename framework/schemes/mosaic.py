@@ -27,6 +27,7 @@ from numpy.typing import NDArray
 from .. import geometry
 from ..compose import compose, panorama_views
 from ..errors import StageError
+from ..executor import pure_task
 from ..guards import bridge, plausible
 from ..records import LocateResult, MergedFrames, PairRegistrations, Panorama
 from ..stages import Compositor, Locator
@@ -93,6 +94,7 @@ class MosaicScheme(LevelScheme):
         to_canvas = template.homographies[groups.reference]
         shape = template.flux.shape
 
+        @pure_task
         def run(index: NDArray[np.int64]) -> _WindowResult:
             start = time.perf_counter()
             locator = self.make_locator()
@@ -106,14 +108,13 @@ class MosaicScheme(LevelScheme):
                                            np.repeat(np.eye(3)[None], n, axis=0))
             crop = _accumulate(merged, to_canvas[index] @ found.homographies, found.ok, shape) \
                 if task.next_template else None
-            if task.progress is not None:
-                task.progress(n)
             return _WindowResult(found, locator.cache_stats(), merge_s, time.perf_counter() - start,
                                  merged if task.keep_merged else None, crop)
 
         windows = [np.arange(s, min(s + self.window, len(groups))) for s in range(0, len(groups), self.window)]
         started = time.perf_counter()
-        parts: list[_WindowResult] = task.executor.map(run, windows)
+        done = None if task.progress is None else (lambda part: task.progress(len(part.registrations)))
+        parts: list[_WindowResult] = task.executor.map(run, windows, done=done)
         wall = time.perf_counter() - started
         regs = PairRegistrations.concat(*(part.registrations for part in parts))
         ok = regs.ok & plausible(regs.homographies, source.width, source.height)

@@ -71,7 +71,7 @@ class WarpMerger(Merger):
     def merge(self, source: PhotonSource, homographies: NDArray[np.float64], groups: Groups,
               progress: Any = None, executor: Any = None) -> MergedFrames:
         """Merge every group (see :meth:`Merger.merge`); windows of groups run on ``executor``."""
-        from photonpano.executor import SerialExecutor
+        from photonpano.executor import SerialExecutor, pure_task
         from photonpano.warping import merge_groups
 
         self.check_source(source)
@@ -80,17 +80,15 @@ class WarpMerger(Merger):
                            images=np.empty((g, h, w), np.uint8), masks=np.empty((g, h, w), bool))
         windows = [np.arange(s, min(s + self.config.window_groups, g)) for s in range(0, g, self.config.window_groups)]
 
+        @pure_task
         def merge_window(index: NDArray[np.int64]) -> tuple[NDArray[np.int64], list[Any]]:
-            # a pure task (no shared state written), so any executor may run it
             sums = merge_groups(source, homographies, groups.start[index], groups.stop[index],
                                 groups.reference[index], self.config.subbatch_px)
-            merged = [(frames, *self.estimate(source, counts, frames, int(groups.stop[i] - groups.start[i])))
-                      for i, (counts, frames) in zip(index, sums)]
-            if progress is not None:
-                progress(len(index))
-            return index, merged
+            return index, [(frames, *self.estimate(source, counts, frames, int(groups.stop[i] - groups.start[i])))
+                           for i, (counts, frames) in zip(index, sums)]
 
-        for index, merged in (executor or SerialExecutor()).map(merge_window, windows):
+        done = None if progress is None else (lambda result: progress(len(result[0])))
+        for index, merged in (executor or SerialExecutor()).map(merge_window, windows, done=done):
             for i, (frames, flux, mask, image) in zip(index, merged):
                 out.frames[i], out.flux[i], out.masks[i], out.images[i] = frames, flux, mask, image
         return out

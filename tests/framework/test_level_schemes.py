@@ -87,3 +87,22 @@ def test_levels_emit_frozen_records_in_panorama_coordinates():
     np.testing.assert_array_equal(seen[-1].homographies, homographies)
     stats = seen[1].statistics()
     assert stats["scheme"] == "mosaic" and stats["pairs"] == len(seen[1].groups)
+
+
+def test_pure_tasks_pickle_with_their_executor_and_progress():
+    """What a pure task holds travels to another process.
+
+    Executors as serial ones, progress callables as ones that do nothing (a Dask worker
+    has no progress display).
+    """
+    import pickle
+
+    from photonpano.executor import SerialExecutor, ThreadExecutor
+    from photonpano.progress import start_task
+
+    with ThreadExecutor(2) as executor:
+        assert type(pickle.loads(pickle.dumps(executor))) is SerialExecutor
+        done = []
+        assert executor.map(lambda x: x * x, [1, 2, 3], done=done.append) == [1, 4, 9]
+    assert sorted(done) == [1, 4, 9]
+    pickle.loads(pickle.dumps(start_task("level 1", 3)))(1)  # no display here: nothing happens
