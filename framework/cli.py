@@ -296,6 +296,27 @@ def convert(inputs: Annotated[list[Path], typer.Argument(help="A folder of Swiss
 
 
 @app.command()
+def batch(inputs: Annotated[list[str], typer.Argument(
+              help="Captures (anything `pano` reads), spec files (.yaml) or source keys such as 'simulate'.")],
+          output: Annotated[Path, typer.Option("--output", "-o", help="Folder receiving one output folder per "
+                                               "input, named after the input's stem.")],
+          set_: SetOption = None, force: ForceOption = False) -> None:
+    """Reconstruct several captures concurrently (processes, or Dask with --set executor=dask).
+
+    Prints one progress bar over the captures and a summary table; exits 1 if any capture
+    failed (the others still run). See docs/scaling.md.
+    """
+    from .batch import main as batch_main
+
+    try:
+        code = batch_main(inputs, output, set_ or [], force, _state["quiet"], _host())
+    except PhotonpanoError as exc:
+        _fail(str(exc))
+    if code:
+        raise typer.Exit(code)
+
+
+@app.command()
 def demo(output: OutOption, set_: SetOption = None, force: ForceOption = False, resume: ResumeOption = False,
          frames: Annotated[int, typer.Option(help="Binary frames to simulate.")] = 20_000) -> None:
     """Simulate a capture from the bundled real photograph and reconstruct it.

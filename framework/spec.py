@@ -174,9 +174,14 @@ def spec_model(host: PluginHost) -> type[BaseModel]:
             "paper's chain, more offsets are solved jointly against chaining drift.")], [1, 2, 4, 8, 16, 32, 64]),
         panorama_subbatch_px=(Annotated[float, Field(gt=0, le=2, description="Frames whose canvas "
                               "warps differ by less than this (canvas pixels) are warped together.")], 0.25),
-        executor=(Literal["serial", "threads"], Field("threads", description="Where independent work "
-                  "(groups, chunks) runs: the calling thread, or a pool of threads.")),
-        workers=(Annotated[int, Field(ge=0, description="Threads of the executor (0 = one per CPU core).")], 0),
+        executor=(Literal["serial", "threads", "dask"], Field("threads", description="Where independent work "
+                  "(groups, chunks) runs: the calling thread, a pool of threads, or a Dask cluster (a local one "
+                  "of `workers` processes, or the scheduler at `dask_address`; see docs/scaling.md).")),
+        workers=(Annotated[int, Field(ge=0, description="Threads of the executor, or worker processes of a local "
+                                      "Dask cluster (0 = one per CPU core).")], 0),
+        dask_address=(Annotated[str | None, Field(
+            pattern=r"^(tcp|tls|inproc|ucx|ws|wss)://\S+$", description="executor dask: address of a running "
+            "Dask scheduler, e.g. tcp://10.0.0.5:8786; null starts a local cluster of `workers` processes.")], None),
         outputs=(OutputsConfig, Field(default_factory=OutputsConfig)),
     )
     model.__doc__ = "A photonpano pipeline: one plugin per stage and the method's settings."
