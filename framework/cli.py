@@ -262,35 +262,51 @@ def pose(input: Annotated[str, typer.Argument(
 
 @app.command()
 def convert(inputs: Annotated[list[Path], typer.Argument(help="A folder of SwissSPAD2 .bin readout files, or "
-                                                         ".bin files in frame order.")],
-            output: Annotated[Path, typer.Option("--output", "-o", help="The .npy cube to write (must not exist).")],
+                                                         ".bin files in frame order; or one .npy or .zarr cube.")],
+            output: Annotated[Path, typer.Option("--output", "-o", help="The .npy (or, from a .npy cube, .zarr) "
+                                                 "cube to write (must not exist).")],
             layout: Annotated[str, typer.Option(help="Readout layout: half (512 frames of 256x512 per file) or "
                                                 "full (256 frames of 512x512).")] = "half",
             check_layout: Annotated[bool, typer.Option(help="Refuse a layout the data does not fit.")] = True) -> None:
-    """Convert SwissSPAD2 raw readouts to a bit-packed .npy photon cube, streaming.
+    """Convert SwissSPAD2 raw readouts to a bit-packed .npy photon cube, or a cube between .npy and .zarr, streaming.
 
-    The cube holds the raw frames, (T, 256, 64) or (T, 512, 64) uint8 packed MSB first;
-    read it with `photonpano pano cube.npy --set source.fix=colorspad` (or grayspad).
+    From readouts the cube holds the raw frames, (T, 256, 64) or (T, 512, 64) uint8 packed
+    MSB first; read it with `photonpano pano cube.npy --set source.fix=colorspad` (or
+    grayspad). A .npy cube converts to a chunked, compressed zarr array (source
+    zarr-cube) and back, keeping its shape and dtype.
     """
     try:
-        if layout not in ("half", "full"):
-            raise PhotonpanoError(f"convert: --layout must be half or full, got {layout!r}")
         for path in inputs:
             if not path.exists():
                 raise PhotonpanoError(f"input {path} does not exist")
-        from photonpano.plugins.sources.swissspad import convert_bin_to_npy
-
+        kinds = (inputs[0].suffix.lower(), output.suffix.lower())
+        cube_to_cube = len(inputs) == 1 and kinds in ((".npy", ".zarr"), (".zarr", ".npy"))
+        if not cube_to_cube and layout not in ("half", "full"):
+            raise PhotonpanoError(f"convert: --layout must be half or full, got {layout!r}")
         from .progress import RichProgress
 
+        notes: list[str] = []
         bars = RichProgress()
         with bars.bars as bar:
             task = bar.add_task("convert", total=None)
-            frames, notes = convert_bin_to_npy(inputs, output, layout, check_layout=check_layout,
-                                               progress=lambda done, total: bar.update(task, completed=done,
-                                                                                       total=total))
+
+            def progress(done: int, total: int) -> None:
+                bar.update(task, completed=done, total=total)
+
+            if cube_to_cube:
+                from photonpano.plugins.sources.zarr_cube import convert_npy_to_zarr, convert_zarr_to_npy
+
+                to_zarr = kinds[1] == ".zarr"
+                frames = (convert_npy_to_zarr if to_zarr else convert_zarr_to_npy)(inputs[0], output,
+                                                                                   progress=progress)
+            else:
+                from photonpano.plugins.sources.swissspad import convert_bin_to_npy
+
+                frames, notes = convert_bin_to_npy(inputs, output, layout, check_layout=check_layout,
+                                                   progress=progress)
         for note in notes:
             typer.secho(f"warning: {note}", fg=typer.colors.YELLOW, err=True)
-        typer.echo(f"wrote {output}: {frames} {layout}-array frames")
+        typer.echo(f"wrote {output}: {frames} " + ("frames" if cube_to_cube else f"{layout}-array frames"))
     except PhotonpanoError as exc:
         _fail(str(exc))
 
