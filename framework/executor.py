@@ -184,7 +184,7 @@ class DaskExecutor(Executor):
                 log.warning(f"executor dask: {name} uses its caller's variables, so it runs in this process, "
                             "not on the cluster")
             return [fn(*a) for a in args]
-        shared = self.client.scatter(fn, hash=False)  # once, not with every task
+        shared = self.client.scatter(fn, hash=False, broadcast=True)  # to each worker once, not with every task
         futures = self.client.map(_call, [shared] * len(args), *zip(*args), pure=False)
         try:
             return self.client.gather(futures)
