@@ -157,9 +157,14 @@ class DaskExecutor(Executor):
                 raise SpecError(f"dask_address: no Dask scheduler answers at {address!r} within {timeout_s:g} s "
                                 f"({type(exc).__name__}: {exc})") from None
         else:
-            self._cluster = LocalCluster(n_workers=workers or os.cpu_count() or 1, threads_per_worker=1,
-                                         processes=True, host="127.0.0.1", dashboard_address=":0",
-                                         silence_logs=logging.CRITICAL)
+            import dask
+
+            # distributed sets MALLOC_TRIM_THRESHOLD_=65536 in its workers, which makes every large
+            # numpy allocation a fresh mmap: +45 % wall time on a 3 000-frame run (5 s of system time)
+            with dask.config.set({"distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": None}):
+                self._cluster = LocalCluster(n_workers=workers or os.cpu_count() or 1, threads_per_worker=1,
+                                             processes=True, host="127.0.0.1", dashboard_address=":0",
+                                             silence_logs=logging.CRITICAL)
             self.client = Client(self._cluster, set_as_default=False)
         self.client.register_plugin(_one_thread_opencv(), name="photonpano-opencv-threads")
         self.workers = max(1, sum(self.client.nthreads().values()))
