@@ -9,7 +9,8 @@ Four simulated captures (different seeds and camera paths, 6 000 frames of the d
   local cluster of 2 worker processes, each capture one Dask task (cluster start-up
   included in the time).
 
-Prints both wall-clock times, their ratio (acceptance: <= 0.6) and, per capture, the RMSE
+Prints both wall-clock times (and the CPU time of the processes, which a shared machine
+does not change much: the load average is printed too), their ratio (acceptance: <= 0.6) and, per capture, the RMSE
 of the frame corners between the batch's and the serial run's homographies (acceptance:
 <= 0.05 px; the same serial pipeline runs inside each task, so 0 is expected).
 
@@ -21,6 +22,7 @@ Usage::
 from __future__ import annotations
 
 import argparse
+import os
 import subprocess
 import sys
 import tempfile
@@ -40,6 +42,14 @@ def corner_rmse(a: np.ndarray, b: np.ndarray, width: int, height: int) -> float:
     return float(np.sqrt(np.mean(np.sum((geometry.apply(a, c) - geometry.apply(b, c)) ** 2, axis=-1))))
 
 
+def children_cpu_s() -> float:
+    """User + system CPU seconds of the finished child processes so far (workers included once joined)."""
+    import resource
+
+    usage = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return usage.ru_utime + usage.ru_stime
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--frames", type=int, default=6000)
@@ -47,6 +57,7 @@ def main() -> int:
     parser.add_argument("--workers", type=int, default=2)
     args = parser.parse_args()
     cli = str(Path(sys.executable).parent / "photonpano")
+    load_before = f"{os.getloadavg()[0]:.1f}"
     with tempfile.TemporaryDirectory(prefix="photonpano-batch-") as scratch:
         root = Path(scratch)
         specs = []
@@ -55,15 +66,15 @@ def main() -> int:
             spec.write_text(f"source: {{plugin: simulate, frames: {args.frames}, seed: {i}, "
                             f"path: {PATHS[i % len(PATHS)]}}}\noutputs: {{trajectory_plot: false}}\n")
             specs.append(spec)
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), children_cpu_s()
         for spec in specs:
             subprocess.run([cli, "-q", "run", str(spec), "-o", str(root / "serial" / spec.stem), "--set",
                             "executor=serial"], check=True, stdout=subprocess.DEVNULL)
-        serial_s = time.perf_counter() - t0
-        t0 = time.perf_counter()
+        serial_s, serial_cpu = time.perf_counter() - t0, children_cpu_s() - c0
+        t0, c0 = time.perf_counter(), children_cpu_s()
         subprocess.run([cli, "-q", "batch", *map(str, specs), "-o", str(root / "batch"), "--set", "executor=dask",
                         "--set", f"workers={args.workers}"], check=True, stdout=subprocess.DEVNULL)
-        batch_s = time.perf_counter() - t0
+        batch_s, batch_cpu = time.perf_counter() - t0, children_cpu_s() - c0
         from photonpano.api import load
 
         rmse = []
@@ -73,8 +84,9 @@ def main() -> int:
             rmse.append(corner_rmse(batch.homographies, serial.homographies, src["width"], src["height"]))
     ratio = batch_s / serial_s
     print(f"{args.captures} captures of {args.frames} frames")
-    print(f"serial, one after another: {serial_s:.1f} s")
-    print(f"batch, {args.workers}-worker local Dask cluster: {batch_s:.1f} s")
+    print(f"load average before: {load_before}, after: {os.getloadavg()[0]:.1f} ({os.cpu_count()} cores)")
+    print(f"serial, one after another: {serial_s:.1f} s (CPU {serial_cpu:.1f} s)")
+    print(f"batch, {args.workers}-worker local Dask cluster: {batch_s:.1f} s (CPU {batch_cpu:.1f} s)")
     print(f"ratio: {ratio:.2f} (acceptance <= 0.6: {'pass' if ratio <= 0.6 else 'FAIL'})")
     for spec, r in zip(specs, rmse):
         print(f"{spec.stem}: corner RMSE vs serial {r:.2e} px ({'pass' if r <= 0.05 else 'FAIL'})")

@@ -101,8 +101,9 @@ def plan_jobs(inputs: Sequence[str], out_root: Path, host: Any) -> list[BatchJob
     jobs = []
     for text in inputs:
         name = stem = _stem(text)
+        k = 2
         while name in used:
-            name = f"{stem}-{len([u for u in used if u == stem or u.startswith(stem + '-')]) + 1}"
+            name, k = f"{stem}-{k}", k + 1
         used.add(name)
         out_dir = (out_root / name).absolute()
         path = Path(text).absolute()
@@ -115,8 +116,9 @@ def plan_jobs(inputs: Sequence[str], out_root: Path, host: Any) -> list[BatchJob
                 spec = path
             else:
                 spec = spec_for_capture(path, host)
-        except PhotonpanoError as exc:
-            jobs.append(BatchJob(text, None, out_dir, str(exc)))
+        except Exception as exc:  # a missing input, or a source plugin's bug: that capture fails
+            reason = str(exc) if isinstance(exc, PhotonpanoError) else f"{type(exc).__name__}: {exc}"
+            jobs.append(BatchJob(text, None, out_dir, " ".join(reason.split())))
             continue
         jobs.append(BatchJob(text, spec, out_dir))
     return jobs
@@ -192,7 +194,8 @@ def run_batch(jobs: Sequence[BatchJob], overrides: Sequence[str] = (), *, force:
     from .host import PluginHost
 
     settings = execution_settings(overrides, host or PluginHost())
-    workers = max(1, min(settings.workers or os.cpu_count() or 1, len(jobs)))
+    runnable = sum(job.spec is not None for job in jobs)
+    workers = max(1, min(settings.workers or os.cpu_count() or 1, runnable))
     results: dict[int, BatchResult] = {}
     if settings.executor == "dask":
         from .executor import DaskExecutor
@@ -211,8 +214,14 @@ def run_batch(jobs: Sequence[BatchJob], overrides: Sequence[str] = (), *, force:
     if on_start is not None:
         on_start(f"{len(jobs)} captures on {where}")
     try:
-        futures: dict[Future, int] = {pool.submit(run_capture, job, list(overrides), force): i
-                                      for i, job in enumerate(jobs)}
+        futures: dict[Future, int] = {}
+        for i, job in enumerate(jobs):
+            if job.spec is None:  # refused before running: nothing to ship
+                results[i] = run_capture(job, overrides, force)
+                if on_result is not None:
+                    on_result(results[i])
+            else:
+                futures[pool.submit(run_capture, job, list(overrides), force)] = i
         for future in as_completed(futures):
             i = futures[future]
             try:
