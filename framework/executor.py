@@ -133,8 +133,8 @@ class DaskExecutor(Executor):
 
     Attributes:
         client: the ``distributed.Client``.
-        dashboard_link: the URL of Dask's dashboard, or None when the scheduler has none
-            (the dashboard needs ``bokeh``).
+        dashboard_link: the URL of Dask's dashboard (its pages need ``bokeh>=3.1``), or
+            None when the scheduler runs none (``dask scheduler --no-dashboard``).
 
     Raises:
         MissingDependency: dask.distributed is not installed.
@@ -171,7 +171,7 @@ class DaskExecutor(Executor):
         services = self.client.scheduler_info().get("services", {})
         self.dashboard_link = self.client.dashboard_link if "dashboard" in services else None
         where = f"scheduler {address}" if address else f"local Dask cluster of {self.workers} worker processes"
-        log.info(f"executor dask: {where}; dashboard: {self.dashboard_link or 'none (pip install bokeh)'}")
+        log.info(f"executor dask: {where}; dashboard: {self.dashboard_link or 'none'}")
 
     def map(self, fn: Callable[..., Any], *items: Iterable[Any]) -> list[Any]:
         """Run ``fn`` over the items on the cluster and return the results in order.
@@ -239,6 +239,9 @@ def process_safe(fn: Callable[..., Any]) -> bool:
 
     Args:
         fn: a task function.
+
+    Returns:
+        False if ``fn`` (or the function a ``partial`` wraps) is a closure, else True.
     """
     while isinstance(fn, functools.partial):
         fn = fn.func

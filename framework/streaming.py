@@ -30,7 +30,7 @@ class ReopenOnPickle:
     """Mixin of sources backed by files: a pickle says "reopen this file with these settings".
 
     A source that streams a capture from files (an ``.npy`` memory map, a zarr array,
-    SwissSPAD readouts) pickles as its class and validated config only, a few hundred
+    SwissSPAD readouts, a video or ``.mraw``) pickles as its class and validated config only, a few hundred
     bytes, never as the photons it could read; unpickling opens the files again (and
     repeats the checks of ``__init__``). This is what lets a task that holds the source
     run in another process or on a cluster worker that sees the same files (shared
