@@ -281,6 +281,9 @@ def convert(inputs: Annotated[list[Path], typer.Argument(help="A folder of Swiss
                 raise PhotonpanoError(f"input {path} does not exist")
         kinds = (inputs[0].suffix.lower(), output.suffix.lower())
         cube_to_cube = len(inputs) == 1 and kinds in ((".npy", ".zarr"), (".zarr", ".npy"))
+        if not cube_to_cube and kinds[1] == ".zarr":
+            raise PhotonpanoError(f"convert: {output}: a .zarr cube is written from one .npy cube; convert the "
+                                  "readouts to .npy first")
         if not cube_to_cube and layout not in ("half", "full"):
             raise PhotonpanoError(f"convert: --layout must be half or full, got {layout!r}")
         from .progress import RichProgress

@@ -96,6 +96,8 @@ def test_convert_npy_to_zarr_and_back_is_exact_and_never_overwrites(cube, tmp_pa
     assert out.exit_code == 1 and "back.npy exists; refusing to overwrite it" in out.output
     assert (tmp_path / "back.npy").read_bytes() == before
     assert not list(tmp_path.glob("*.part"))
+    out = runner.invoke(app, ["convert", str(cube), str(tmp_path / "back.npy"), "-o", str(tmp_path / "two.zarr")])
+    assert out.exit_code == 1 and "a .zarr cube is written from one .npy cube" in out.output
     from photonpano.presets import spec_for_capture
 
     assert spec_for_capture(tmp_path / "c.zarr", host) == {"source": {"plugin": "zarr-cube",
