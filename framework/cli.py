@@ -291,7 +291,7 @@ def main() -> None:
         sys.exit(130)
 
 
-from . import cli_tools  # noqa: E402, F401  (registers pose, convert and compare on ``app``)
+from . import cli_tools  # noqa: E402, F401  (registers pose, convert, batch and compare on ``app``)
 
 if __name__ == "__main__":  # pragma: no cover
     main()

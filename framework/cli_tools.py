@@ -1,4 +1,4 @@
-"""Commands beside the main job: ``pose`` (experimental 6-DoF poses), ``convert``, ``compare``.
+"""Commands beside the main job: ``pose`` (experimental 6-DoF poses), ``convert``, ``batch``, ``compare``.
 
 Registered on :data:`photonpano.cli.app`; expected failures print one line and exit 1.
 """
@@ -13,7 +13,7 @@ import typer
 from .cli import ForceOption, OutOption, SetOption, _capture_spec, _fail, _host, _observed, app, one_line_errors
 from .errors import PhotonpanoError
 
-__all__ = ["execute_pose", "pose", "convert", "compare"]
+__all__ = ["execute_pose", "pose", "convert", "batch", "compare"]
 
 
 def execute_pose(spec: Any, out: Path, force: bool, host: Any) -> None:
@@ -69,34 +69,71 @@ def pose(input: Annotated[str, typer.Argument(
 @app.command()
 @one_line_errors
 def convert(inputs: Annotated[list[Path], typer.Argument(help="A folder of SwissSPAD2 .bin readout files, or "
-                                                         ".bin files in frame order.")],
-            output: Annotated[Path, typer.Option("--output", "-o", help="The .npy cube to write (must not exist).")],
+                                                         ".bin files in frame order; or one .npy or .zarr cube.")],
+            output: Annotated[Path, typer.Option("--output", "-o", help="The .npy (or, from a .npy cube, .zarr) "
+                                                 "cube to write (must not exist).")],
             layout: Annotated[str, typer.Option(help="Readout layout: half (512 frames of 256x512 per file) or "
                                                 "full (256 frames of 512x512).")] = "half",
             check_layout: Annotated[bool, typer.Option(help="Refuse a layout the data does not fit.")] = True) -> None:
-    """Convert SwissSPAD2 raw readouts to a bit-packed .npy photon cube, streaming.
+    """Convert SwissSPAD2 raw readouts to a bit-packed .npy photon cube, or a cube between .npy and .zarr, streaming.
 
-    The cube holds the raw frames, (T, 256, 64) or (T, 512, 64) uint8 packed MSB first;
-    read it with `photonpano pano cube.npy --set source.fix=colorspad` (or grayspad).
+    From readouts the cube holds the raw frames, (T, 256, 64) or (T, 512, 64) uint8 packed
+    MSB first; read it with `photonpano pano cube.npy --set source.fix=colorspad` (or
+    grayspad). A .npy cube converts to a chunked, compressed zarr array (source
+    zarr-cube) and back, keeping its shape and dtype.
     """
-    if layout not in ("half", "full"):
-        raise PhotonpanoError(f"convert: --layout must be half or full, got {layout!r}")
     for path in inputs:
         if not path.exists():
             raise PhotonpanoError(f"input {path} does not exist")
-    from photonpano.plugins.sources.swissspad import convert_bin_to_npy
-
+    kinds = (inputs[0].suffix.lower(), output.suffix.lower())
+    cube_to_cube = len(inputs) == 1 and kinds in ((".npy", ".zarr"), (".zarr", ".npy"))
+    if not cube_to_cube and kinds[1] == ".zarr":
+        raise PhotonpanoError(f"convert: {output}: a .zarr cube is written from one .npy cube; convert the "
+                              "readouts to .npy first")
+    if not cube_to_cube and layout not in ("half", "full"):
+        raise PhotonpanoError(f"convert: --layout must be half or full, got {layout!r}")
     from .progress import RichProgress
 
+    notes: list[str] = []
     bars = RichProgress()
     with bars.bars as bar:
         task = bar.add_task("convert", total=None)
-        frames, notes = convert_bin_to_npy(inputs, output, layout, check_layout=check_layout,
-                                           progress=lambda done, total: bar.update(task, completed=done,
-                                                                                   total=total))
+
+        def progress(done: int, total: int) -> None:
+            bar.update(task, completed=done, total=total)
+
+        if cube_to_cube:
+            from photonpano.plugins.sources.zarr_cube import convert_npy_to_zarr, convert_zarr_to_npy
+
+            to_zarr = kinds[1] == ".zarr"
+            frames = (convert_npy_to_zarr if to_zarr else convert_zarr_to_npy)(inputs[0], output, progress=progress)
+        else:
+            from photonpano.plugins.sources.swissspad import convert_bin_to_npy
+
+            frames, notes = convert_bin_to_npy(inputs, output, layout, check_layout=check_layout, progress=progress)
     for note in notes:
         typer.secho(f"warning: {note}", fg=typer.colors.YELLOW, err=True)
-    typer.echo(f"wrote {output}: {frames} {layout}-array frames")
+    typer.echo(f"wrote {output}: {frames} " + ("frames" if cube_to_cube else f"{layout}-array frames"))
+
+
+@app.command()
+@one_line_errors
+def batch(inputs: Annotated[list[str], typer.Argument(
+              help="Captures (anything `pano` reads), spec files (.yaml) or source keys such as 'simulate'.")],
+          output: Annotated[Path, typer.Option("--output", "-o", help="Folder receiving one output folder per "
+                                               "input, named after the input's stem.")],
+          set_: SetOption = None, force: ForceOption = False) -> None:
+    """Reconstruct several captures concurrently (processes, or Dask with --set executor=dask).
+
+    Prints one progress bar over the captures and a summary table; exits 1 if any capture
+    failed (the others still run). See docs/scaling.md.
+    """
+    from .batch import main as batch_main
+    from .cli import _state
+
+    code = batch_main(inputs, output, set_ or [], force, _state["quiet"], _host())
+    if code:
+        raise typer.Exit(code)
 
 
 @app.command()

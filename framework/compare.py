@@ -115,7 +115,7 @@ def _compare_one(item: str, base: dict[str, Any], host: PluginHost, out_dir: Pat
                 log(f"{label}: level {stats['level']}: locate {stats['timings_s'].get('locate', 0):.1f} s, "
                     f"{stats['failed_pairs']} failed pairs" + _rmse_text(stats.get("trajectory_rmse_px")))
 
-        with make_executor(spec.executor, spec.workers) as executor:
+        with make_executor(spec.executor, spec.workers, spec.dask_address) as executor:
             homographies = stages.estimate_motion(executor, on_level=on_level)
     except PhotonpanoError as exc:
         row["status"] = str(exc)

@@ -321,7 +321,7 @@ def reconstruct(spec: BaseModel, source: PhotonSource, *, on_level: Callable[[Le
                                   None if t is None else (t.flux, t.frames, t.homographies)))
 
     timings: dict[str, float] = {}
-    with make_executor(spec.executor, spec.workers) as executor:
+    with make_executor(spec.executor, spec.workers, spec.dask_address) as executor:
         t0 = time.perf_counter()
         homographies = stages.estimate_motion(executor, on_level=level_done, progress=progress, resume=resume)
         timings["levels"] = time.perf_counter() - t0

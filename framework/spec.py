@@ -162,9 +162,14 @@ def spec_model(host: PluginHost) -> type[BaseModel]:
             "(the paper's: pairs of merged frames and a pose graph; level 1 is always pairwise) or mosaic (each "
             "merged frame against the panorama of the current estimate: no drift, one registration per "
             "group).")], ["pairwise", "mosaic"]),
-        executor=(Literal["serial", "threads"], Field("threads", description="Where independent work "
-                  "(groups, chunks) runs: the calling thread, or a pool of threads.")),
-        workers=(Annotated[int, Field(ge=0, description="Threads of the executor (0 = one per CPU core).")], 0),
+        executor=(Literal["serial", "threads", "dask"], Field("threads", description="Where independent work "
+                  "(groups, chunks) runs: the calling thread, a pool of threads, or a Dask cluster (a local one "
+                  "of `workers` processes, or the scheduler at `dask_address`; see docs/scaling.md).")),
+        workers=(Annotated[int, Field(ge=0, description="Threads of the executor, or worker processes of a local "
+                                      "Dask cluster (0 = one per CPU core).")], 0),
+        dask_address=(Annotated[str | None, Field(
+            pattern=r"^(tcp|tls|inproc|ucx|ws|wss)://\S+$", description="executor dask: address of a running "
+            "Dask scheduler, e.g. tcp://10.0.0.5:8786; null starts a local cluster of `workers` processes.")], None),
         outputs=(OutputsConfig, Field(default_factory=OutputsConfig)),
     )
     model.__doc__ = "A photonpano pipeline: one plugin per stage and the method's settings."

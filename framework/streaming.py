@@ -14,15 +14,75 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, Iterable
+from typing import Any, Callable, Iterable
 
 import numpy as np
 from numpy.typing import NDArray
 
-__all__ = ["FrameSegment", "FrameFiles", "DEFAULT_CHUNK_BYTES", "sum_ranges_by_blocks"]
+__all__ = ["FrameSegment", "FrameFiles", "DEFAULT_CHUNK_BYTES", "sum_ranges_by_blocks", "ReopenOnPickle",
+           "write_npy_blocks"]
 
 DEFAULT_CHUNK_BYTES = 32 * 2**20
 """Default read buffer size of :class:`FrameFiles` in bytes (32 MiB)."""
+
+
+class ReopenOnPickle:
+    """Mixin of sources backed by files: a pickle says "reopen this file with these settings".
+
+    A source that streams a capture from files (an ``.npy`` memory map, a zarr array,
+    SwissSPAD readouts, a video or ``.mraw``) pickles as its class and validated config only, a few hundred
+    bytes, never as the photons it could read; unpickling opens the files again (and
+    repeats the checks of ``__init__``). This is what lets a task that holds the source
+    run in another process or on a cluster worker that sees the same files (shared
+    storage). Sources that hold their frames in memory (``simulate``) pickle whole.
+
+    The class must rebuild itself completely from ``self.config`` (its ``__init__``
+    takes the config as its only argument).
+    """
+
+    config: Any
+
+    def __reduce__(self) -> tuple[type, tuple[Any]]:
+        return type(self), (self.config,)
+
+
+def write_npy_blocks(output: Path, shape: tuple[int, ...], dtype: Any, blocks: Iterable[NDArray],
+                     progress: Callable[[int, int], None] | None = None) -> None:
+    """Write an ``.npy`` file from consecutive blocks along its first axis, streaming.
+
+    The file is written under ``<output>.part`` and renamed when complete, so an
+    interrupted write leaves no truncated ``output`` behind.
+
+    Args:
+        output: the ``.npy`` file to write (replaced if it exists: callers check first).
+        shape: the full array shape, e.g. ``(T, H, W/8)`` for a bit-packed photon cube.
+        dtype: the element dtype (a C-ordered array of it is written).
+        blocks: arrays of shape ``(t_i, *shape[1:])`` whose ``t_i`` sum to ``shape[0]``.
+        progress: called as ``progress(rows_done, shape[0])`` after each block.
+
+    Raises:
+        ValueError: if the blocks do not add up to ``shape``.
+        OSError: if the file cannot be written.
+    """
+    dtype = np.dtype(dtype)
+    partial = output.with_name(output.name + ".part")
+    done = 0
+    try:
+        with open(partial, "wb") as f:
+            np.lib.format.write_array_header_2_0(f, {"descr": np.lib.format.dtype_to_descr(dtype),
+                                                     "fortran_order": False, "shape": tuple(shape)})
+            for block in blocks:
+                if block.shape[1:] != tuple(shape[1:]) or done + len(block) > shape[0]:
+                    raise ValueError(f"{output}: block of shape {block.shape} does not fit an array of shape {shape}")
+                f.write(np.ascontiguousarray(block, dtype=dtype).tobytes())
+                done += len(block)
+                if progress is not None:
+                    progress(done, shape[0])
+        if done != shape[0]:
+            raise ValueError(f"{output}: blocks hold {done} of the {shape[0]} rows of shape {shape}")
+        partial.replace(output)
+    finally:
+        partial.unlink(missing_ok=True)
 
 
 @dataclass(frozen=True)

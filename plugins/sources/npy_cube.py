@@ -21,6 +21,7 @@ from photonpano.errors import SourceError
 from photonpano.plugins.sources._capture_config import BinaryCaptureConfig
 from photonpano.plugins.sources._swissspad_sensor import SwissSpadCorrections
 from photonpano.stages import PhotonSource, SourceConfig
+from photonpano.streaming import ReopenOnPickle
 
 
 class NpyCubeConfig(SwissSpadCorrections, BinaryCaptureConfig):
@@ -40,8 +41,11 @@ class NpyCubeConfig(SwissSpadCorrections, BinaryCaptureConfig):
         return NpyCube(self)
 
 
-class NpyCube(PhotonSource):
+class NpyCube(ReopenOnPickle, PhotonSource):
     """A memory-mapped ``.npy`` photon cube (see :class:`NpyCubeConfig`).
+
+    Pickles as its config (the file is opened again where it is unpickled), never as
+    the photons (see :class:`~photonpano.streaming.ReopenOnPickle`).
 
     Attributes:
         cube: (T_file, H, W/8) or (T_file, H, W) read-only memory map (only its first
@@ -51,6 +55,9 @@ class NpyCube(PhotonSource):
         corrector: the sensor corrections applied to counts.
     """
 
+    label = "npy-cube"
+    """The plugin key, as messages name the source."""
+
     def __init__(self, config: NpyCubeConfig) -> None:
         """Open and check the cube.
 
@@ -58,39 +65,59 @@ class NpyCube(PhotonSource):
             SourceError: missing or unreadable file, wrong dtype or number of
                 dimensions, or a frame range outside the cube; messages name the file.
         """
-        self.config = config
         path = config.path
         if not path.is_file():
             raise SourceError(f"source (npy-cube): {path} does not exist")
         from photonpano.npy_header import load_npy
 
         cube = load_npy(path, "source (npy-cube)", mmap_mode="r")
-        if cube.ndim != 3:
-            raise SourceError(f"source (npy-cube): {path} has shape {cube.shape}; expected a photon cube "
-                              "(T, H, W/8) bit-packed or (T, H, W) unpacked")
-        if cube.dtype not in (np.uint8, np.bool_):
-            raise SourceError(f"source (npy-cube): {path} has dtype {cube.dtype}; expected uint8 "
-                              "(bit-packed, or 0/1 unpacked) or bool")
-        self.cube = cube
-        self.packed = _is_packed(cube, config.layout, path, _expected_width(config))
-        total = len(cube)
-        start, stop = config.frame_range(total, path)
+        self._open(config, cube)
         if np.isfortran(cube):
             raise SourceError(f"source (npy-cube): {path} is stored in Fortran order; expected a C-ordered cube")
-        from photonpano.plugins.sources._swissspad_sensor import SensorCorrector
         from photonpano.streaming import FrameFiles, FrameSegment
+
+        frame_bytes = int(np.prod(cube.shape[1:])) * cube.dtype.itemsize
+        self.frames = FrameFiles([FrameSegment(path, int(cube.offset) + config.start * frame_bytes, self.n_frames)],
+                                 cube.shape[1:], cube.dtype, chunk_bytes=int(config.chunk_mb * 2**20))
+
+    def _open(self, config: NpyCubeConfig, cube: Any) -> None:
+        """Check a (T, H, W/8) or (T, H, W) cube array and set everything but ``frames``.
+
+        Args:
+            config: the source's config.
+            cube: an array-like with ``ndim``, ``dtype``, ``shape`` and integer
+                indexing of frames (a memory map, a zarr array).
+
+        Raises:
+            SourceError: wrong dtype or number of dimensions, or a frame range outside
+                the cube; messages name the plugin and the file.
+        """
+        self.config = config
+        path, what = config.path, f"source ({self.label})"
+        if cube.ndim != 3:
+            raise SourceError(f"{what}: {path} has shape {cube.shape}; expected a photon cube "
+                              "(T, H, W/8) bit-packed or (T, H, W) unpacked")
+        if cube.dtype not in (np.uint8, np.bool_):
+            raise SourceError(f"{what}: {path} has dtype {cube.dtype}; expected uint8 "
+                              "(bit-packed, or 0/1 unpacked) or bool")
+        self.cube = cube
+        self.packed = _is_packed(cube, config.layout, path, _expected_width(config), what=what)
+        start, stop = config.frame_range(int(cube.shape[0]), path)
+        from photonpano.plugins.sources._swissspad_sensor import SensorCorrector
 
         self.offset = start
         self.n_frames = stop - start
-        frame_bytes = int(np.prod(cube.shape[1:])) * cube.dtype.itemsize
-        self.frames = FrameFiles([FrameSegment(path, int(cube.offset) + start * frame_bytes, self.n_frames)],
-                                 cube.shape[1:], cube.dtype, chunk_bytes=int(config.chunk_mb * 2**20))
         raw_shape = (cube.shape[1], cube.shape[2] * (8 if self.packed else 1))
-        self.corrector = SensorCorrector(config, raw_shape, None, f"npy-cube({path.name})")
+        self.corrector = SensorCorrector(config, raw_shape, None, f"{self.label}({path.name})")
         self.height, self.width = self.corrector.shape
         self.frame_rate_hz = config.frame_rate_hz
         self.exposure_s = config.exposure_s or 1.0 / config.frame_rate_hz
-        self.name = f"npy-cube({path.name}, {'packed' if self.packed else 'unpacked'})"
+        self.name = f"{self.label}({path.name}, {'packed' if self.packed else 'unpacked'})"
+
+    def __reduce__(self) -> tuple[type, tuple[Any]]:
+        # the layout found by sampling goes with the config, so reopening samples no frames
+        layout = "packed" if self.packed else self.config.layout
+        return type(self), (self.config.model_copy(update={"layout": layout}),)
 
     def sum_ranges(self, edges: NDArray[np.int64]) -> NDArray[np.uint16]:
         """Count detections over frame ranges, corrected (see :meth:`PhotonSource.sum_ranges`)."""
@@ -125,7 +152,7 @@ def _expected_width(config: NpyCubeConfig) -> int | None:
 
 
 def _is_packed(cube: np.ndarray, layout: str, path: Path, expected_width: int | None = None,
-               samples: int = 64) -> bool:
+               samples: int = 64, what: str = "source (npy-cube)") -> bool:
     """Decide the layout from ``samples`` frames spread over the whole cube (not its first frames).
 
     A byte above 1 anywhere means bit-packed; if every sampled byte is 0 or 1, the
@@ -133,15 +160,16 @@ def _is_packed(cube: np.ndarray, layout: str, path: Path, expected_width: int | 
     """
     if cube.dtype == np.bool_:
         if layout == "packed":
-            raise SourceError(f"source (npy-cube): {path} holds bool frames, which cannot be bit-packed; "
+            raise SourceError(f"{what}: {path} holds bool frames, which cannot be bit-packed; "
                               "use layout: unpacked or auto")
         return False
     if layout == "packed":
         return True
-    picks = np.unique(np.linspace(0, len(cube) - 1, min(len(cube), samples)).astype(np.int64))
+    total = int(cube.shape[0])
+    picks = np.unique(np.linspace(0, total - 1, min(total, samples)).astype(np.int64))
     above_one = any(bool(np.asarray(cube[i]).max(initial=0) > 1) for i in picks)
     if layout == "unpacked" and above_one:
-        raise SourceError(f"source (npy-cube): {path} holds bytes above 1, so it is not an unpacked "
+        raise SourceError(f"{what}: {path} holds bytes above 1, so it is not an unpacked "
                           "0/1 cube; use layout: packed or auto")
     if not above_one and layout == "auto" and expected_width == cube.shape[2] * 8:
         return True

@@ -24,6 +24,7 @@ from photonpano.errors import SourceError
 from photonpano.intensity import IntensitySource, response_lut
 from photonpano.plugins.sources._capture_config import IntensityCaptureConfig
 from photonpano.stages import SourceConfig
+from photonpano.streaming import ReopenOnPickle
 from pydantic import Field
 
 __all__ = ["PhotronMrawConfig", "PhotronMraw", "header_and_data", "unpack_uint12"]
@@ -111,7 +112,7 @@ def unpack_uint12(data: NDArray[np.uint8]) -> NDArray[np.uint16]:
     return out.reshape(-1)
 
 
-class PhotronMraw(IntensitySource):
+class PhotronMraw(ReopenOnPickle, IntensitySource):
     """A Photron ``.mraw`` recording as intensity frames (see :class:`PhotronMrawConfig`).
 
     Attributes:

@@ -26,6 +26,7 @@ from photonpano.plugins.sources._capture_config import BinaryCaptureConfig
 from photonpano.plugins.sources._swissspad_readout import BIN_FILE_BYTES, LAYOUTS
 from photonpano.plugins.sources._swissspad_sensor import SwissSpadCorrections
 from photonpano.stages import PhotonSource, SourceConfig
+from photonpano.streaming import ReopenOnPickle, write_npy_blocks
 
 __all__ = ["SwissSpadBinConfig", "SwissSpadBin", "convert_bin_to_npy", "SourceWarning"]
 
@@ -74,7 +75,7 @@ def _files_of(config_path: Path | list[Path]) -> tuple[list[Path], str]:
     raise SourceError(f"source (swissspad-bin): {config_path} does not exist")
 
 
-class SwissSpadBin(PhotonSource):
+class SwissSpadBin(ReopenOnPickle, PhotonSource):
     """SwissSPAD2 raw readouts (see :class:`SwissSpadBinConfig`).
 
     Attributes:
@@ -236,20 +237,10 @@ def convert_bin_to_npy(inputs: list[Path], output: Path, layout: str = "half", *
     if output.exists():
         raise SourceError(f"convert: {output} exists; refusing to overwrite it")
     lay = source.layout
-    shape = (source.n_frames, lay.height, lay.width // 8)
-    partial = output.with_name(output.name + ".part")
     step = source.frames.chunk_frames
-    try:
-        with open(partial, "wb") as f:
-            np.lib.format.write_array_header_2_0(f, {"descr": "|u1", "fortran_order": False, "shape": shape})
-            for start in range(0, source.n_frames, step):
-                stop = min(start + step, source.n_frames)
-                f.write(source.read_frames(start, stop).tobytes())
-                if progress is not None:
-                    progress(stop, source.n_frames)
-        partial.replace(output)
-    finally:
-        partial.unlink(missing_ok=True)
+    write_npy_blocks(output, (source.n_frames, lay.height, lay.width // 8), np.uint8,
+                     (source.read_frames(start, min(start + step, source.n_frames))
+                      for start in range(0, source.n_frames, step)), progress)
     return source.n_frames, source.notes
 
 

@@ -33,6 +33,7 @@ from photonpano.errors import SourceError
 from photonpano.intensity import IntensitySource, read_cih_frame_rate, response_lut
 from photonpano.plugins.sources._capture_config import IntensityCaptureConfig
 from photonpano.stages import SourceConfig
+from photonpano.streaming import ReopenOnPickle
 from pydantic import Field
 
 __all__ = ["VideoConfig", "VideoSource", "VIDEO_SUFFIXES", "IMAGE_SUFFIXES", "find_cih"]
@@ -247,7 +248,7 @@ class _VideoFrames:
         return out
 
 
-class VideoSource(IntensitySource):
+class VideoSource(ReopenOnPickle, IntensitySource):
     """A video or image sequence as intensity frames (see :class:`VideoConfig`).
 
     Attributes:
