@@ -213,7 +213,7 @@ class DaskExecutor(Executor):
             done: Callable[[Any], None] | None = None) -> list[Any]:
         """Run ``fn`` over the items on the cluster and return the results in order.
 
-        ``done`` (see :meth:`Executor.map`) is called here as the results arrive.
+        ``done`` (see :meth:`Executor.map`) is called here with each result, in order.
         Exceptions raised by a task propagate to the caller (the first in item order);
         if the caller is interrupted, the tasks not finished are cancelled.
         """
@@ -227,13 +227,11 @@ class DaskExecutor(Executor):
                 log.warning(f"executor dask: {name} uses its caller's variables, so it runs in this process, "
                             "not on the cluster")
             return Executor.map(self, fn, *zip(*args), done=done)
-        from distributed import as_completed
-
         shared = self.client.scatter(fn, hash=False, broadcast=True)  # to each worker once, not with every task
         futures = self.client.map(_call, [shared] * len(args), *zip(*args), pure=False)
         try:
             if done is not None:
-                for future in as_completed(futures):
+                for future in futures:  # in order: progress is as fresh as the slowest task
                     done(future.result())
             return self.client.gather(futures)
         except BaseException:
