@@ -121,8 +121,8 @@ def test_file_sources_pickle_as_their_settings_not_their_photons(tmp_path):
 
 def test_swissspad_source_pickles_as_its_settings(tmp_path):
     from capture_helpers import simulate_raw_half
-    from photonpano.plugins.sources.swissspad import SwissSpadBinConfig
     from photonpano.plugins.sources._swissspad_readout import write_bin_files
+    from photonpano.plugins.sources.swissspad import SwissSpadBinConfig
 
     _, raw = simulate_raw_half(1100, flux=0.3, speed_px_per_frame=0.05, vibration_px=1.0)
     write_bin_files(raw, tmp_path / "capture")
