@@ -82,18 +82,18 @@ def blend_sums(sums: NDArray[np.float32], frames: NDArray[np.float32], scale: fl
 
     r = wide_px * scale
     taps = np.maximum(0.0, 1 - np.abs(np.arange(-math.ceil(r), math.ceil(r) + 1)) / r)
-    taps /= taps.sum()
-    s64, n64 = sums.astype(np.float64), frames.astype(np.float64)
-    wide_s = cv2.sepFilter2D(s64, -1, taps, taps, borderType=cv2.BORDER_CONSTANT)
-    wide_n = cv2.sepFilter2D(n64, -1, taps, taps, borderType=cv2.BORDER_CONSTANT)
-    seen = n64 > 0
+    taps = (taps / taps.sum()).astype(np.float32)
+    sums, frames = np.asarray(sums, np.float32), np.asarray(frames, np.float32)
+    wide_s = cv2.sepFilter2D(sums, -1, taps, taps, borderType=cv2.BORDER_CONSTANT)
+    wide_n = cv2.sepFilter2D(frames, -1, taps, taps, borderType=cv2.BORDER_CONSTANT)
+    seen = frames > 0
     with np.errstate(divide="ignore", invalid="ignore"):
-        p = np.where(seen, s64 / n64, 0.0)
-        p_wide = np.where(seen, np.clip(wide_s / wide_n, 0, 1), 0.0)
-        noise = np.where(seen, p_wide * (1 - p_wide) * sharpness / n64, 0.0)
-    detail = np.where(seen, p - p_wide, 0.0)
+        p = np.where(seen, sums / frames, np.float32(0))
+        p_wide = np.where(seen, np.clip(wide_s / wide_n, 0, 1), np.float32(0))
+        noise = np.where(seen, p_wide * (1 - p_wide) * np.float32(sharpness) / frames, np.float32(0))
+    detail = p - p_wide
     window = (2 * round(scale) + 1,) * 2  # one frame pixel either side
     signal = np.maximum(cv2.boxFilter(detail * detail, -1, window) - cv2.boxFilter(noise, -1, window), 0)
     with np.errstate(divide="ignore", invalid="ignore"):
-        keep = np.where(signal + noise > 0, signal / (signal + noise), 1.0)
-    return ((p_wide + keep * detail) * n64).astype(np.float32)
+        keep = np.where(signal + noise > 0, signal / (signal + noise), np.float32(1))
+    return ((p_wide + keep * detail) * frames).astype(np.float32)
