@@ -17,10 +17,16 @@ same canvas (the reference), all on the same pixels; ``gain`` = default - refere
 Acceptance: gain >= 2.0 dB undersampled at scale 2, >= -0.3 dB standard at scale 1.
 Same as ``photonpano run spec.yaml --set scale=2``.
 
+Measured (session 5, 2-core machine; docs/performance.md has the table and the
+diagnosis): bundled photo undersampled +2.48 dB, standard +1.65 dB (plain drizzle,
+``--set compositor.noise_adaptive=false``: +0.84 and +0.47 dB); ``--photo
+equirect_crop.jpg`` +2.41 and +1.61 dB.
+
 Usage::
 
     python benchmarks/super_resolution.py
     python benchmarks/super_resolution.py --photo other.jpg --scene-width 1200 --captures undersampled
+    python benchmarks/super_resolution.py --set compositor.noise_adaptive=false
 """
 
 from __future__ import annotations

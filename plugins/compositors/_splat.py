@@ -30,6 +30,45 @@ def _pixel_size(m):
     return math.sqrt(abs(m[0, 0] * m[1, 1] - m[0, 1] * m[1, 0])) / abs(m[2, 2])
 
 
+@cached_njit(nogil=True, fastmath=True)
+def _row_inside(m, y, w, off, hi_u, hi_v):
+    """Whether every pixel centre of frame row ``y`` lands inside the canvas.
+
+    True if ``(u + off, v + off)`` lies in ``[0, hi_u) x [0, hi_v)`` for the canvas
+    position ``(u, v)`` of each centre: a row maps to a segment, so its two ends decide.
+    """
+    for x in (0, w - 1):
+        u, v = _project(m, x, y)
+        if not (0 <= u + off < hi_u and 0 <= v + off < hi_v):
+            return False
+    return True
+
+
+@cached_njit(nogil=True, fastmath=True)
+def _row_cells(m, y, off, side, xs, js, is_, axs, ays):
+    """Cells and weights of the drops of frame row ``y``, for rows :func:`_row_inside`.
+
+    With ``(u, v)`` a pixel centre's canvas position: ``js, is_`` (int32) are
+    ``floor(u + off), floor(v + off)``, and ``axs, ays`` (float32) the fractions
+    ``min(side, j + 1 - (u + off)) / side`` of a drop of ``side`` canvas pixels whose
+    left (top) edge is at ``u + off`` (``v + off``) that fall in column ``j`` (row ``i``).
+    ``m`` is (3, 3) float32; a branch-free loop the compiler vectorises (valid where
+    ``u + off, v + off >= 0``: truncation is the floor there).
+    """
+    # the matrix in scalars: the loop's stores could alias ``m``, which would stop vectorisation
+    a00, a10, a20 = m[0, 0], m[1, 0], m[2, 0]
+    bu, bv, bd = m[0, 1] * y + m[0, 2], m[1, 1] * y + m[1, 2], m[2, 1] * y + m[2, 2]
+    inv_side = np.float32(1) / side
+    for x in range(xs.size):
+        inv = np.float32(1) / (a20 * xs[x] + bd)
+        u = (a00 * xs[x] + bu) * inv + off
+        v = (a10 * xs[x] + bv) * inv + off
+        j, i = np.int32(u), np.int32(v)
+        js[x], is_[x] = j, i
+        axs[x] = min(side, np.float32(j + 1) - u) * inv_side
+        ays[x] = min(side, np.float32(i + 1) - v) * inv_side
+
+
 @cached_njit(nogil=True)
 def splat_point(counts, n_frames, homographies, weights, acc):
     """Add each frame pixel to the canvas pixel its centre lands in.
@@ -74,59 +113,71 @@ def splat_square(counts, n_frames, homographies, weights, acc, pixfrac):
     The drop is an axis-aligned square of side ``pixfrac`` frame pixels centred on the
     frame pixel's centre (a rotation of the frame is ignored for the drop's shape).
     Drops of at most one canvas pixel (``pixfrac * scale <= 1``, the default) touch at
-    most 2x2 canvas pixels and take a fast path. Arguments as :func:`splat_point`;
-    ``pixfrac`` > 0.
+    most 2x2 canvas pixels, with weights ``ax ay``, ``(1 - ax) ay``, ``ax (1 - ay)``,
+    ``(1 - ax) (1 - ay)`` (``ax``, ``ay``: the fractions of the drop's width and height
+    in its first column and row); they take a fast path: the cells and weights of a
+    whole row at once in float32 (:func:`_row_cells`), then the adds without bounds
+    checks in rows whose drops all lie on the canvas. Arguments as
+    :func:`splat_point`; ``pixfrac`` > 0.
     """
     nb, h, w = counts.shape
     hc, wc = acc.shape[0], acc.shape[1]
+    xs = np.arange(w).astype(np.float32)
+    js, is_ = np.empty(w, np.int32), np.empty(w, np.int32)
+    axs, ays = np.empty(w, np.float32), np.empty(w, np.float32)
     for b in range(nb):
-        m = homographies[b]
+        m, m32 = homographies[b], homographies[b].astype(np.float32)
         nf = np.float32(n_frames[b])
         side = pixfrac * _pixel_size(m)
-        half = 0.5 * side
-        inv_area = 1.0 / (side * side)
-        small = side <= 1.0
+        if side > 1.0:
+            for y in range(h):
+                _square_row(counts[b, y], nf, m, y, weights[y], acc, side)
+            continue
+        off, side32 = np.float32(0.5 - 0.5 * side), np.float32(side)
         for y in range(h):
-            for x in range(w):
+            if not _row_inside(m, y, w, off, wc - 1, hc - 1):
+                _square_row(counts[b, y], nf, m, y, weights[y], acc, side)
+                continue
+            _row_cells(m32, y, off, side32, xs, js, is_, axs, ays)
+            for x in range(w):  # no bounds checks
+                i0, j0, ax, ay = is_[x], js[x], axs[x], ays[x]
                 wt = weights[y, x]
-                if wt == 0:
-                    continue
-                u, v = _project(m, x, y)
-                x0, x1, y0, y1 = u - half, u + half, v - half, v + half
-                c = counts[b, y, x] * wt
-                n = nf * wt
-                if small:  # overlaps with (i0, j0) and the next pixel along each axis
-                    j0, i0 = int(math.floor(x0 + 0.5)), int(math.floor(y0 + 0.5))
-                    ox = min(x1, j0 + 0.5) - x0
-                    oy = min(y1, i0 + 0.5) - y0
-                    ox1, oy1 = side - ox, side - oy
-                    if 0 <= i0 and i0 + 1 < hc and 0 <= j0 and j0 + 1 < wc:  # inside: no checks
-                        w00, w01 = np.float32(ox * oy * inv_area), np.float32(ox1 * oy * inv_area)
-                        w10, w11 = np.float32(ox * oy1 * inv_area), np.float32(ox1 * oy1 * inv_area)
-                        cf, nn = np.float32(c), np.float32(n)
-                        acc[i0, j0, 0] += cf * w00
-                        acc[i0, j0 + 1, 0] += cf * w01
-                        acc[i0 + 1, j0, 0] += cf * w10
-                        acc[i0 + 1, j0 + 1, 0] += cf * w11
-                        acc[i0, j0, 1] += nn * w00
-                        acc[i0, j0 + 1, 1] += nn * w01
-                        acc[i0 + 1, j0, 1] += nn * w10
-                        acc[i0 + 1, j0 + 1, 1] += nn * w11
-                        continue
-                    _add(acc, i0, j0, c, n, ox * oy * inv_area)
-                    _add(acc, i0, j0 + 1, c, n, ox1 * oy * inv_area)
-                    _add(acc, i0 + 1, j0, c, n, ox * oy1 * inv_area)
-                    _add(acc, i0 + 1, j0 + 1, c, n, ox1 * oy1 * inv_area)
-                    continue
-                i0, i1 = max(int(math.floor(y0 + 0.5)), 0), min(int(math.floor(y1 + 0.5)), hc - 1)
-                j0, j1 = max(int(math.floor(x0 + 0.5)), 0), min(int(math.floor(x1 + 0.5)), wc - 1)
-                for i in range(i0, i1 + 1):
-                    oy = min(y1, i + 0.5) - max(y0, i - 0.5)
-                    for j in range(j0, j1 + 1):
-                        weight = oy * (min(x1, j + 0.5) - max(x0, j - 0.5)) * inv_area
-                        if weight > 0:
-                            acc[i, j, 0] += np.float32(c * weight)
-                            acc[i, j, 1] += np.float32(n * weight)
+                c, n = np.float32(counts[b, y, x]) * wt, nf * wt
+                w00 = ax * ay
+                w01, w10 = ay - w00, ax - w00
+                w11 = np.float32(1) - ax - ay + w00
+                acc[i0, j0, 0] += c * w00
+                acc[i0, j0, 1] += n * w00
+                acc[i0, j0 + 1, 0] += c * w01
+                acc[i0, j0 + 1, 1] += n * w01
+                acc[i0 + 1, j0, 0] += c * w10
+                acc[i0 + 1, j0, 1] += n * w10
+                acc[i0 + 1, j0 + 1, 0] += c * w11
+                acc[i0 + 1, j0 + 1, 1] += n * w11
+
+
+@cached_njit(nogil=True)
+def _square_row(counts, nf, m, y, weights, acc, side):
+    """Square drops of side ``side`` canvas pixels of frame row ``y``, with bounds checks.
+
+    For rows at the canvas's edges and drops larger than a canvas pixel; ``counts`` and
+    ``weights`` are (W,) that row's.
+    """
+    hc, wc = acc.shape[0], acc.shape[1]
+    half, inv_area = 0.5 * side, 1.0 / (side * side)
+    for x in range(counts.size):
+        wt = weights[x]
+        if wt == 0:
+            continue
+        u, v = _project(m, x, y)
+        x0, x1, y0, y1 = u - half, u + half, v - half, v + half
+        c, n = counts[x] * wt, nf * wt
+        i0, i1 = max(int(math.floor(y0 + 0.5)), 0), min(int(math.floor(y1 + 0.5)), hc - 1)
+        j0, j1 = max(int(math.floor(x0 + 0.5)), 0), min(int(math.floor(x1 + 0.5)), wc - 1)
+        for i in range(i0, i1 + 1):
+            oy = min(y1, i + 0.5) - max(y0, i - 0.5)
+            for j in range(j0, j1 + 1):
+                _add(acc, i, j, c, n, oy * (min(x1, j + 0.5) - max(x0, j - 0.5)) * inv_area)
 
 
 @cached_njit(nogil=True)
