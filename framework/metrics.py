@@ -20,8 +20,8 @@ class TrajectoryError:
     """Trajectory error after the best global alignment.
 
     Attributes:
-        rmse_px: RMSE over frames of the per-frame mean corner distance, in ground-truth
-            (scene) pixels.
+        rmse_px: RMSE over frames of the per-frame mean corner distance, in the
+            ground truth's units: frame pixels (scene pixels when the sensor pitch is 1).
         per_frame_px: (T,) float64 mean corner distance of each frame, in pixels.
         alignment: (3, 3) float64 homography G mapping estimated panorama coordinates to
             ground-truth coordinates that minimises the corner distances.

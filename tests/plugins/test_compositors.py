@@ -199,3 +199,15 @@ def test_point_drops_land_in_the_pixel_of_their_centre():
         keep = (i >= 0) & (i < shape[0]) & (j >= 0) & (j < shape[1])
         np.add.at(expected, (i[keep], j[keep]), counts[b].ravel()[keep])
     np.testing.assert_allclose(acc[..., 0], expected, rtol=1e-6)
+
+
+@pytest.mark.parametrize("scale", [1.0, 2.0, 3.0])
+def test_canvas_follows_the_super_resolution_convention(scale):
+    """docs/conventions.md: canvas pixel = s * (x + 0.5) - 0.5 from the footprint's outer edge."""
+    from photonpano.compose import canvas_homographies
+    from photonpano.geometry import apply
+
+    to_canvas, (ch, cw) = canvas_homographies(np.eye(3)[None], 8, 4, scale)
+    np.testing.assert_allclose(apply(to_canvas[0], np.array([[0.0, 0.0], [7.0, 3.0]])),
+                               [[scale * 0.5 - 0.5] * 2, [scale * 7.5 - 0.5, scale * 3.5 - 0.5]], atol=1e-12)
+    assert (ch, cw) == (int(4 * scale), int(8 * scale))
