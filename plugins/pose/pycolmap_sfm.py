@@ -22,9 +22,9 @@ from numpy.typing import NDArray
 from photonpano import hookimpl
 from photonpano.errors import StageError
 from photonpano.stages import PhotonSource, PoseEstimator, PoseEstimatorConfig
-from pydantic import Field
+from pydantic import Field, field_validator
 
-from ._colmap import model_landmarks, model_poses, write_and_match
+from ._colmap import model_landmarks, model_poses, prune_observations, refine_tracks, write_and_match
 
 
 class PycolmapSfMConfig(PoseEstimatorConfig):
@@ -72,8 +72,25 @@ class PycolmapSfMConfig(PoseEstimatorConfig):
     bundle_adjust: bool = True
     """Levels >= 2: triangulate the registered exposures' matches and bundle-adjust their poses
     and points together (else keep the poses of the single-image registration)."""
+    track_window: Annotated[int, Field(ge=0)] = 21
+    """Levels >= 2, after the bundle adjustment: re-locate each track's keypoints by
+    Lucas-Kanade alignment of patches of this side (pixels) to the track's middle
+    observation, then bundle-adjust again; 0 keeps COLMAP's SIFT keypoints."""
+    track_max_shift_px: Annotated[float, Field(gt=0)] = 3.0
+    """Track refinement: observations that move further than this (pixels) or do not
+    converge are dropped from their tracks."""
+    track_prune: Annotated[float, Field(ge=0)] = 3.0
+    """Track refinement: then drop observations whose reprojection error exceeds this
+    multiple of the median one and bundle-adjust again (0: keep them)."""
     seed: Annotated[int, Field(ge=0)] = 0
     """Random seed of COLMAP's RANSAC and mapper."""
+
+    @field_validator("track_window")
+    @classmethod
+    def _window(cls, value: int) -> int:
+        if 0 < value < 5:
+            raise ValueError("track_window must be 0 (off) or at least 5 pixels")
+        return value
 
     def build(self) -> PycolmapSfM:
         """Return the estimator."""
@@ -134,7 +151,7 @@ class PycolmapSfM(PoseEstimator):
                     merged.images, groups.reference, rec, landmarks, progress, level
                 )
                 if cfg.bundle_adjust:
-                    poses, refined = self._refine(
+                    poses, refined, tracks = self._refine(
                         merged.images,
                         groups.reference,
                         poses,
@@ -179,6 +196,8 @@ class PycolmapSfM(PoseEstimator):
                         points=int(refined.num_points3D()),
                         reprojection_error_px=float(refined.compute_mean_reprojection_error()),
                     )
+                    if tracks:
+                        row["track_refinement"] = tracks
             levels.append(row)
             exposures.append((groups.reference.copy(), poses))
             every = interpolate_poses(groups.reference, poses, n)
@@ -269,14 +288,17 @@ class PycolmapSfM(PoseEstimator):
         folder: Path,
         progress: Any,
         level: int,
-    ) -> tuple[NDArray[np.float64], Any]:
+    ) -> tuple[NDArray[np.float64], Any, dict[str, float]]:
         """Triangulate the level's exposures from their registered poses, then bundle-adjust poses and points.
 
         The camera stays that of the level-1 model (fixed). Exposures that failed to register
-        keep NaN poses.
+        keep NaN poses. With ``track_window`` set, every track's keypoints are then re-located
+        by patch alignment (:func:`refine_tracks`), the model bundle-adjusted again, and
+        with ``track_prune`` the outlying observations dropped before a last adjustment.
 
         Returns:
-            ``(poses, reconstruction)``: refined (G, 4, 4) camera-to-world poses and the model.
+            ``(poses, reconstruction, stats)``: refined (G, 4, 4) camera-to-world poses, the
+            model and the track refinement's figures (empty without it).
         """
         import pycolmap
 
@@ -344,9 +366,20 @@ class PycolmapSfM(PoseEstimator):
         adjust.print_summary = False
         adjust.ceres.loss_function_type = pycolmap.LossFunctionType.CAUCHY
         pycolmap.bundle_adjustment(model, adjust)
+        stats: dict[str, float] = {}
+        if self.config.track_window:
+            exposures = {
+                image_id: images[int(np.searchsorted(references, int(Path(image.name).stem)))]
+                for image_id, image in model.images.items()
+            }
+            stats = refine_tracks(model, exposures, self.config.track_window, self.config.track_max_shift_px)
+            pycolmap.bundle_adjustment(model, adjust)
+            if self.config.track_prune:
+                stats.update(prune_observations(model, self.config.track_prune))
+                pycolmap.bundle_adjustment(model, adjust)
         model.extract_colors_for_all_images(str(image_dir))
         self._database = database
-        return model_poses(model, references), model
+        return model_poses(model, references), model, stats
 
     def _check_light(self, source: PhotonSource, merged: Any) -> None:
         """Raise StageError if the level-1 exposures hold too few photons to register."""
