@@ -17,6 +17,20 @@ class Landmarks(NamedTuple):
     xyz: NDArray[np.float64]
 
 
+def camera_intrinsics(rec: Any) -> Any:
+    """The :class:`photonpano.pose.Intrinsics` of ``rec``'s first camera (OpenCV pixel centres).
+
+    Works for COLMAP's ``PINHOLE`` (fx, fy, cx, cy) and ``SIMPLE_*`` / ``RADIAL`` models
+    (f, cx, cy, ...); distortion parameters are left out.
+    """
+    from photonpano.pose import Intrinsics
+
+    camera = next(iter(rec.cameras.values()))
+    params = [float(v) for v in camera.params]
+    fx, fy, cx, cy = params[:4] if camera.model.name in ("PINHOLE", "OPENCV") else (params[0], *params[:3])
+    return Intrinsics(fx, fy, cx - 0.5, cy - 0.5)
+
+
 def model_poses(rec: Any, references: NDArray[np.int64]) -> NDArray[np.float64]:
     """(G, 4, 4) camera-to-world poses of ``rec``'s images, named by reference frame (NaN if absent)."""
     poses = np.full((len(references), 4, 4), np.nan)

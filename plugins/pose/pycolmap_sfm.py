@@ -24,7 +24,7 @@ from photonpano.errors import StageError
 from photonpano.stages import PhotonSource, PoseEstimator, PoseEstimatorConfig
 from pydantic import Field, field_validator
 
-from ._colmap import model_landmarks, model_poses, prune_observations, refine_tracks, write_and_match
+from ._colmap import camera_intrinsics, model_landmarks, model_poses, prune_observations, refine_tracks, write_and_match
 
 
 class PycolmapSfMConfig(PoseEstimatorConfig):
@@ -82,6 +82,10 @@ class PycolmapSfMConfig(PoseEstimatorConfig):
     track_prune: Annotated[float, Field(ge=0)] = 3.0
     """Track refinement: then drop observations whose reprojection error exceeds this
     multiple of the median one and bundle-adjust again (0: keep them)."""
+    refine_intrinsics: bool = True
+    """Self-calibration (no intrinsics given): the bundle adjustments of levels >= 2 also
+    refine the focal length and radial distortion, on the sharper exposures (the principal
+    point stays at COLMAP's estimate)."""
     seed: Annotated[int, Field(ge=0)] = 0
     """Random seed of COLMAP's RANSAC and mapper."""
 
@@ -104,6 +108,7 @@ class PycolmapSfM(PoseEstimator):
     def __init__(self, config: PycolmapSfMConfig) -> None:
         self.config = config
         self._database: Path | None = None  # the COLMAP database of the kept level-1 model
+        self._calibrate = False  # levels >= 2 refine the camera (self-calibration)
 
     def estimate(self, source: PhotonSource, intrinsics: Any, work_dir: Path, progress: Any = None) -> Any:
         """Estimate poses level by level (see :meth:`PoseEstimator.estimate`).
@@ -118,6 +123,7 @@ class PycolmapSfM(PoseEstimator):
         from photonpano.pose import PoseResult, dominant_plane, interpolate_poses, plane_homographies
 
         cfg, n = self.config, source.n_frames
+        self._calibrate = intrinsics is None and cfg.refine_intrinsics
         if n < 3 * cfg.group_size:
             raise StageError(
                 "pose_estimator",
@@ -146,16 +152,17 @@ class PycolmapSfM(PoseEstimator):
                     merged.images, groups.reference, work_dir / "level_1", intrinsics, progress
                 )
                 poses, inliers, final = model_poses(rec, groups.reference), None, rec
+                current = rec  # the model whose camera the next level uses
             else:
                 poses, inliers = self._localise(
-                    merged.images, groups.reference, rec, landmarks, progress, level
+                    merged.images, groups.reference, current, landmarks, progress, level
                 )
                 if cfg.bundle_adjust:
                     poses, refined, tracks = self._refine(
                         merged.images,
                         groups.reference,
                         poses,
-                        rec,
+                        current,
                         work_dir / f"level_{level}",
                         progress,
                         level,
@@ -192,6 +199,8 @@ class PycolmapSfM(PoseEstimator):
                     final = refined
                     if cfg.relocalise:  # the next level registers against this sharper model
                         landmarks = model_landmarks(refined, self._database)
+                    if self._calibrate:  # its bundle adjustment refined the camera
+                        current, used = refined, camera_intrinsics(refined)
                     row.update(
                         points=int(refined.num_points3D()),
                         reprojection_error_px=float(refined.compute_mean_reprojection_error()),
@@ -291,7 +300,8 @@ class PycolmapSfM(PoseEstimator):
     ) -> tuple[NDArray[np.float64], Any, dict[str, float]]:
         """Triangulate the level's exposures from their registered poses, then bundle-adjust poses and points.
 
-        The camera stays that of the level-1 model (fixed). Exposures that failed to register
+        The camera is that of ``rec`` (fixed, or refined when self-calibrating with
+        ``refine_intrinsics``). Exposures that failed to register
         keep NaN poses. With ``track_window`` set, every track's keypoints are then re-located
         by patch alignment (:func:`refine_tracks`), the model bundle-adjusted again, and
         with ``track_prune`` the outlying observations dropped before a last adjustment.
@@ -360,9 +370,9 @@ class PycolmapSfM(PoseEstimator):
             refine_intrinsics=False,
         )
         adjust = pycolmap.BundleAdjustmentOptions()
-        adjust.refine_focal_length = False
+        adjust.refine_focal_length = self._calibrate
         adjust.refine_principal_point = False
-        adjust.refine_extra_params = False
+        adjust.refine_extra_params = self._calibrate
         adjust.print_summary = False
         adjust.ceres.loss_function_type = pycolmap.LossFunctionType.CAUCHY
         pycolmap.bundle_adjustment(model, adjust)
@@ -403,7 +413,6 @@ class PycolmapSfM(PoseEstimator):
     ) -> tuple[Any, Any]:
         """Run COLMAP on the level-1 exposures; return (largest reconstruction or None, intrinsics)."""
         import pycolmap
-        from photonpano.pose import Intrinsics
 
         cfg = self.config
         model, params = (
@@ -431,11 +440,7 @@ class PycolmapSfM(PoseEstimator):
                 break
         if rec is None:
             return None, intrinsics
-        if intrinsics is None:
-            camera = next(iter(rec.cameras.values()))
-            f, cx, cy = camera.params[:3]
-            intrinsics = Intrinsics(float(f), float(f), float(cx) - 0.5, float(cy) - 0.5)
-        return rec, intrinsics
+        return rec, intrinsics if intrinsics is not None else camera_intrinsics(rec)
 
 
 @hookimpl
