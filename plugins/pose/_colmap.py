@@ -59,9 +59,9 @@ def model_landmarks(rec: Any, database: Path) -> Landmarks:
                     xyz.append(rec.points3D[point.point3D_id].xyz)
     finally:
         db.close()
-    desc = np.asarray(descriptors, np.float32)
+    desc = np.asarray(descriptors, np.float32).reshape(-1, 128)
     desc /= np.maximum(np.linalg.norm(desc, axis=1, keepdims=True), 1e-12)
-    return Landmarks(np.asarray(frames, np.int64), desc, np.asarray(xyz, np.float64))
+    return Landmarks(np.asarray(frames, np.int64), desc, np.asarray(xyz, np.float64).reshape(-1, 3))
 
 
 def write_and_match(

@@ -7,8 +7,11 @@ mapping with the known intrinsics, or self-calibration without them). Each later
 re-samples with ``midpoint`` (groups between the previous ones, so twice as many
 exposures) and re-merges every group with the plane-induced homographies of the
 current pose estimate (a fronto-parallel plane at the median depth of the sparse
-points), so the new virtual exposures are sharp at their centre frame; they are mapped
-again and the poses interpolated to every binary frame (SE(3): slerp + cubic).
+points), so the new virtual exposures are sharp at their centre frame; they are
+registered against the model, triangulated and bundle-adjusted, every track's keypoints
+are re-located by patch alignment to one reference observation (SIFT's keypoint noise
+would otherwise set the poses' noise), outlying observations are dropped and the model
+adjusted again. The poses are interpolated to every binary frame (SE(3): slerp + cubic).
 """
 
 from __future__ import annotations
@@ -193,6 +196,13 @@ class PycolmapSfM(PoseEstimator):
                 row.update(median_inliers=float(np.median(found)) if len(found) else 0.0)
                 if registered < 3:  # keep the previous level's poses
                     row["note"] = "too few exposures registered; the previous level's poses are kept"
+                    levels.append(row)
+                    break
+                if cfg.bundle_adjust and refined.num_points3D() < cfg.min_inliers:
+                    row["note"] = (
+                        f"the bundle adjustment kept {refined.num_points3D()} points; "
+                        "the previous level's poses are kept"
+                    )
                     levels.append(row)
                     break
                 if cfg.bundle_adjust:
