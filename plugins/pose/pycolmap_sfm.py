@@ -441,6 +441,8 @@ class PycolmapSfM(PoseEstimator):
             database, image_dir = write_and_match(
                 self.config, images, references, folder, model, params, progress, 1, seed=cfg.seed + attempt
             )
+            if attempt == 0:
+                first = database
             options.random_seed = cfg.seed + attempt
             models = pycolmap.incremental_mapping(database, image_dir, folder / f"sparse_{attempt}", options)
             best = max(models.values(), key=lambda r: r.num_reg_images()) if models else None
@@ -448,6 +450,17 @@ class PycolmapSfM(PoseEstimator):
                 rec, self._database = best, database
             if rec is not None and rec.num_reg_images() >= cfg.min_registered * len(images):
                 break
+        if intrinsics is None and (rec is None or rec.num_reg_images() < len(images)):
+            # self-calibration can run away with the focal length on a short path (seen: 1454 px
+            # for 420, half the exposures registered): map once more with COLMAP's prior focal
+            # length held (1.2 x the larger image side); levels >= 2 refine it (refine_intrinsics)
+            options.ba_refine_focal_length = False
+            options.ba_refine_extra_params = False
+            options.random_seed = cfg.seed
+            models = pycolmap.incremental_mapping(first, image_dir, folder / "sparse_prior_focal", options)
+            best = max(models.values(), key=lambda r: r.num_reg_images()) if models else None
+            if best is not None and (rec is None or best.num_reg_images() > rec.num_reg_images()):
+                rec, self._database = best, first
         if rec is None:
             return None, intrinsics
         return rec, intrinsics if intrinsics is not None else camera_intrinsics(rec)
