@@ -421,7 +421,13 @@ class PycolmapSfM(PoseEstimator):
         intrinsics: Any,
         progress: Any,
     ) -> tuple[Any, Any]:
-        """Run COLMAP on the level-1 exposures; return (largest reconstruction or None, intrinsics)."""
+        """Run COLMAP on the level-1 exposures; return (largest reconstruction or None, intrinsics).
+
+        Up to ``attempts`` seeds; self-calibrated, when an exposure is left out, also with
+        the focal length held at 1.0, 0.8 and 0.6 x the larger image side.
+        """
+        import shutil
+
         import pycolmap
 
         cfg = self.config
@@ -452,15 +458,29 @@ class PycolmapSfM(PoseEstimator):
                 break
         if intrinsics is None and (rec is None or rec.num_reg_images() < len(images)):
             # self-calibration can run away with the focal length on a short path (seen: 1454 px
-            # for 420, half the exposures registered): map once more with COLMAP's prior focal
-            # length held (1.2 x the larger image side); levels >= 2 refine it (refine_intrinsics)
+            # for 420, half the exposures registered): map again with the focal length held at
+            # a few values; levels >= 2 refine it (refine_intrinsics)
             options.ba_refine_focal_length = False
             options.ba_refine_extra_params = False
             options.random_seed = cfg.seed
-            models = pycolmap.incremental_mapping(first, image_dir, folder / "sparse_prior_focal", options)
-            best = max(models.values(), key=lambda r: r.num_reg_images()) if models else None
-            if best is not None and (rec is None or best.num_reg_images() > rec.num_reg_images()):
-                rec, self._database = best, first
+            side = float(max(images.shape[1:3]))
+            for scale in (1.0, 0.8, 0.6):
+                database = folder / f"database_focal_{scale}.db"
+                shutil.copyfile(first, database)
+                db = pycolmap.Database.open(str(database))
+                try:
+                    camera = db.read_all_cameras()[0]
+                    camera.params = [scale * side, camera.params[1], camera.params[2], 0.0]
+                    camera.has_prior_focal_length = True
+                    db.update_camera(camera)
+                finally:
+                    db.close()
+                models = pycolmap.incremental_mapping(database, image_dir, folder / f"sparse_focal_{scale}", options)
+                best = max(models.values(), key=lambda r: r.num_reg_images()) if models else None
+                if best is not None and (rec is None or best.num_reg_images() > rec.num_reg_images()):
+                    rec, self._database = best, database
+                if rec is not None and rec.num_reg_images() == len(images):
+                    break
         if rec is None:
             return None, intrinsics
         return rec, intrinsics if intrinsics is not None else camera_intrinsics(rec)
