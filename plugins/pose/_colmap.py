@@ -131,7 +131,8 @@ def refine_tracks(
 
     SIFT keypoints of the same scene point move by about a pixel from one virtual exposure
     to the next (detector noise on photon-noisy images), and a 1 mm sideways error of the
-    camera shows as only ~0.03 px of parallax here, so their noise sets the poses' noise.
+    camera shows as only ~0.03 px of parallax in the simulated room, so their noise sets the
+    poses' noise.
     Aligning the patch around each observation to the patch around the track's
     observation in the exposure nearest the middle of the track in time (pyramidal
     Lucas-Kanade, translation only; Bouguet, "Pyramidal implementation of the Lucas
