@@ -7,6 +7,11 @@ frames). Prints, per level: exposures registered, ATE after a similarity alignme
 the relative pose error over m frames (mm and % of the true motion over that gap).
 
     python benchmarks/pose.py [--frames 20000] [--group-size 1000] [--levels 4] [--photo PATH ...]
+        [--source key=value ...] [--set key=value ...]
+
+``--source`` sets other ``simulate3d`` fields (e.g. ``path_m=0.3 vibration_hz=40``) and
+``--set`` other ``pycolmap-sfm`` fields (e.g. ``track_window=0``), to check that the
+figures hold on other scenes and paths and to compare settings.
 """
 
 from __future__ import annotations
@@ -31,7 +36,14 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--photo", type=Path, action="append", default=[])
     parser.add_argument("--no-self-calibration", action="store_true")
+    parser.add_argument("--source", action="append", default=[], metavar="KEY=VALUE")
+    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
     args = parser.parse_args()
+
+    def fields(pairs: list[str]) -> dict[str, str]:
+        if any("=" not in pair for pair in pairs):
+            parser.error(f"expected KEY=VALUE, got {pairs}")
+        return dict(pair.split("=", 1) for pair in pairs)
 
     host = PluginHost()
     source = {
@@ -40,14 +52,20 @@ def main() -> None:
         "flux": args.flux,
         "seed": args.seed,
         "photos": [str(p) for p in args.photo],
+        **fields(args.source),
     }
-    estimator = {"plugin": "pycolmap-sfm", "group_size": args.group_size, "levels": args.levels}
+    estimator = {
+        "plugin": "pycolmap-sfm",
+        "group_size": args.group_size,
+        "levels": args.levels,
+        **fields(args.set),
+    }
     spec = validate_spec({"source": source, "pose_estimator": estimator}, host, origin="benchmark")
     t0 = time.perf_counter()
     room = spec.source.build()
     print(
         f"# {room.name}: {args.frames} frames {room.height}x{room.width}, simulated in "
-        f"{time.perf_counter() - t0:.0f} s"
+        f"{time.perf_counter() - t0:.0f} s; source {fields(args.source)}, estimator {fields(args.set)}"
     )
     # reuse the simulated capture for both runs
     spec.source.__class__.build = lambda self, _room=room: _room  # type: ignore[method-assign]

@@ -17,6 +17,20 @@ class Landmarks(NamedTuple):
     xyz: NDArray[np.float64]
 
 
+def camera_intrinsics(rec: Any) -> Any:
+    """The :class:`photonpano.pose.Intrinsics` of ``rec``'s first camera (OpenCV pixel centres).
+
+    Works for COLMAP's ``PINHOLE`` (fx, fy, cx, cy) and ``SIMPLE_*`` / ``RADIAL`` models
+    (f, cx, cy, ...); distortion parameters are left out.
+    """
+    from photonpano.pose import Intrinsics
+
+    camera = next(iter(rec.cameras.values()))
+    params = [float(v) for v in camera.params]
+    fx, fy, cx, cy = params[:4] if camera.model.name in ("PINHOLE", "OPENCV") else (params[0], *params[:3])
+    return Intrinsics(fx, fy, cx - 0.5, cy - 0.5)
+
+
 def model_poses(rec: Any, references: NDArray[np.int64]) -> NDArray[np.float64]:
     """(G, 4, 4) camera-to-world poses of ``rec``'s images, named by reference frame (NaN if absent)."""
     poses = np.full((len(references), 4, 4), np.nan)
@@ -45,9 +59,9 @@ def model_landmarks(rec: Any, database: Path) -> Landmarks:
                     xyz.append(rec.points3D[point.point3D_id].xyz)
     finally:
         db.close()
-    desc = np.asarray(descriptors, np.float32)
+    desc = np.asarray(descriptors, np.float32).reshape(-1, 128)
     desc /= np.maximum(np.linalg.norm(desc, axis=1, keepdims=True), 1e-12)
-    return Landmarks(np.asarray(frames, np.int64), desc, np.asarray(xyz, np.float64))
+    return Landmarks(np.asarray(frames, np.int64), desc, np.asarray(xyz, np.float64).reshape(-1, 3))
 
 
 def write_and_match(
@@ -108,3 +122,106 @@ def write_and_match(
         )
     advance(1)
     return database, image_dir
+
+
+def refine_tracks(
+    rec: Any, images: dict[int, NDArray[np.uint8]], window: int, max_shift_px: float
+) -> dict[str, float]:
+    """Re-locate every track's observations by Lucas-Kanade alignment to one reference observation.
+
+    SIFT keypoints of the same scene point move by about a pixel from one virtual exposure
+    to the next (detector noise on photon-noisy images), and a 1 mm sideways error of the
+    camera shows as only ~0.03 px of parallax in the simulated room, so their noise sets the
+    poses' noise.
+    Aligning the patch around each observation to the patch around the track's
+    observation in the exposure nearest the middle of the track in time (pyramidal
+    Lucas-Kanade, translation only; Bouguet, "Pyramidal implementation of the Lucas
+    Kanade feature tracker", OpenCV 2000) makes the observations of a track consistent
+    with each other; the reference keypoint's own error is common to the whole track
+    and moves the 3D point, not the poses. Observations that do not converge or move
+    more than ``max_shift_px`` are deleted from the track (bundle-adjust afterwards).
+
+    Args:
+        rec: ``pycolmap.Reconstruction``, modified in place (keypoints ``xy`` in COLMAP
+            pixels: centres at +0.5).
+        images: image id -> (H, W) uint8 virtual exposure of that image.
+        window: side of the aligned square patch in pixels (>= 5).
+        max_shift_px: largest accepted move of a keypoint in pixels.
+
+    Returns:
+        ``{"moved_px": median move of the kept observations, "deleted": count}``.
+    """
+    import cv2
+
+    frame = {image_id: int(Path(image.name).stem) for image_id, image in rec.images.items()}
+    jobs: dict[tuple[int, int], list[tuple[NDArray[np.float64], int]]] = {}
+    for point in rec.points3D.values():
+        elements = [(e.image_id, e.point2D_idx) for e in point.track.elements]
+        order = np.argsort([frame[image_id] for image_id, _ in elements], kind="stable")
+        ref_image, ref_index = elements[order[len(order) // 2]]
+        ref_xy = rec.images[ref_image].points2D[ref_index].xy
+        for image_id, index in elements:
+            if image_id != ref_image:
+                jobs.setdefault((ref_image, image_id), []).append((ref_xy, index))
+    criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-3)
+    moved, delete = [], []
+    for (ref_image, image_id), items in jobs.items():
+        keypoints = rec.images[image_id].points2D
+        # OpenCV puts pixel centres at integers, COLMAP at +0.5
+        start = np.array([xy for xy, _ in items], np.float32).reshape(-1, 1, 2) - 0.5
+        guess = np.array([keypoints[i].xy for _, i in items], np.float32).reshape(-1, 1, 2) - 0.5
+        found, status, _ = cv2.calcOpticalFlowPyrLK(
+            images[ref_image],
+            images[image_id],
+            start,
+            guess.copy(),
+            winSize=(window, window),
+            maxLevel=1,
+            criteria=criteria,
+            flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
+        )
+        shift = np.linalg.norm(found - guess, axis=2).ravel()
+        keep = (status.ravel() == 1) & (shift < max_shift_px)
+        for (_, index), xy, ok, step in zip(items, found.reshape(-1, 2) + 0.5, keep, shift):
+            if ok:
+                keypoints[index].xy = xy.astype(np.float64)
+                moved.append(step)
+            else:
+                delete.append((image_id, index))
+    for image_id, index in delete:
+        if rec.images[image_id].points2D[index].has_point3D():
+            rec.delete_observation(image_id, index)
+    return {"moved_px": float(np.median(moved)) if moved else 0.0, "deleted": len(delete)}
+
+
+def prune_observations(rec: Any, factor: float) -> dict[str, float]:
+    """Delete observations whose reprojection error exceeds ``factor`` times the median one.
+
+    After :func:`refine_tracks` most observations reproject within a fraction of a pixel
+    and the rest (wrong matches, occlusion edges, patches that drifted) would pull the
+    poses; bundle-adjust afterwards.
+
+    Args:
+        rec: ``pycolmap.Reconstruction`` with poses and points, modified in place.
+        factor: threshold as a multiple of the median reprojection error (> 0).
+
+    Returns:
+        ``{"threshold_px": the threshold in pixels, "pruned": observations deleted}``.
+    """
+    observations, errors = [], []
+    for point in rec.points3D.values():
+        for element in point.track.elements:
+            image = rec.images[element.image_id]
+            projected = image.project_point(point.xyz)
+            xy = image.points2D[element.point2D_idx].xy
+            observations.append((element.image_id, element.point2D_idx))
+            errors.append(np.inf if projected is None else float(np.linalg.norm(np.asarray(projected) - xy)))
+    if not errors:
+        return {"threshold_px": 0.0, "pruned": 0}
+    threshold = factor * float(np.median(errors))
+    pruned = 0
+    for (image_id, index), error in zip(observations, errors):
+        if error > threshold and rec.images[image_id].points2D[index].has_point3D():
+            rec.delete_observation(image_id, index)
+            pruned += 1
+    return {"threshold_px": threshold, "pruned": pruned}

@@ -7,8 +7,11 @@ mapping with the known intrinsics, or self-calibration without them). Each later
 re-samples with ``midpoint`` (groups between the previous ones, so twice as many
 exposures) and re-merges every group with the plane-induced homographies of the
 current pose estimate (a fronto-parallel plane at the median depth of the sparse
-points), so the new virtual exposures are sharp at their centre frame; they are mapped
-again and the poses interpolated to every binary frame (SE(3): slerp + cubic).
+points), so the new virtual exposures are sharp at their centre frame; they are
+registered against the model, triangulated and bundle-adjusted, every track's keypoints
+are re-located by patch alignment to one reference observation (SIFT's keypoint noise
+would otherwise set the poses' noise), outlying observations are dropped and the model
+adjusted again. The poses are interpolated to every binary frame (SE(3): slerp + cubic).
 """
 
 from __future__ import annotations
@@ -22,9 +25,9 @@ from numpy.typing import NDArray
 from photonpano import hookimpl
 from photonpano.errors import StageError
 from photonpano.stages import PhotonSource, PoseEstimator, PoseEstimatorConfig
-from pydantic import Field
+from pydantic import Field, field_validator
 
-from ._colmap import model_landmarks, model_poses, write_and_match
+from ._colmap import camera_intrinsics, model_landmarks, model_poses, prune_observations, refine_tracks, write_and_match
 
 
 class PycolmapSfMConfig(PoseEstimatorConfig):
@@ -72,8 +75,29 @@ class PycolmapSfMConfig(PoseEstimatorConfig):
     bundle_adjust: bool = True
     """Levels >= 2: triangulate the registered exposures' matches and bundle-adjust their poses
     and points together (else keep the poses of the single-image registration)."""
+    track_window: Annotated[int, Field(ge=0)] = 21
+    """Levels >= 2, after the bundle adjustment: re-locate each track's keypoints by
+    Lucas-Kanade alignment of patches of this side (pixels) to the track's middle
+    observation, then bundle-adjust again; 0 keeps COLMAP's SIFT keypoints."""
+    track_max_shift_px: Annotated[float, Field(gt=0)] = 3.0
+    """Track refinement: observations that move further than this (pixels) or do not
+    converge are dropped from their tracks."""
+    track_prune: Annotated[float, Field(ge=0)] = 3.0
+    """Track refinement: then drop observations whose reprojection error exceeds this
+    multiple of the median one and bundle-adjust again (0: keep them)."""
+    refine_intrinsics: bool = True
+    """Self-calibration (no intrinsics given): the bundle adjustments of levels >= 2 also
+    refine the focal length and radial distortion, on the sharper exposures (the principal
+    point stays at COLMAP's estimate)."""
     seed: Annotated[int, Field(ge=0)] = 0
     """Random seed of COLMAP's RANSAC and mapper."""
+
+    @field_validator("track_window")
+    @classmethod
+    def _window(cls, value: int) -> int:
+        if 0 < value < 5:
+            raise ValueError("track_window must be 0 (off) or at least 5 pixels")
+        return value
 
     def build(self) -> PycolmapSfM:
         """Return the estimator."""
@@ -87,6 +111,7 @@ class PycolmapSfM(PoseEstimator):
     def __init__(self, config: PycolmapSfMConfig) -> None:
         self.config = config
         self._database: Path | None = None  # the COLMAP database of the kept level-1 model
+        self._calibrate = False  # levels >= 2 refine the camera (self-calibration)
 
     def estimate(self, source: PhotonSource, intrinsics: Any, work_dir: Path, progress: Any = None) -> Any:
         """Estimate poses level by level (see :meth:`PoseEstimator.estimate`).
@@ -101,6 +126,7 @@ class PycolmapSfM(PoseEstimator):
         from photonpano.pose import PoseResult, dominant_plane, interpolate_poses, plane_homographies
 
         cfg, n = self.config, source.n_frames
+        self._calibrate = intrinsics is None and cfg.refine_intrinsics
         if n < 3 * cfg.group_size:
             raise StageError(
                 "pose_estimator",
@@ -129,16 +155,17 @@ class PycolmapSfM(PoseEstimator):
                     merged.images, groups.reference, work_dir / "level_1", intrinsics, progress
                 )
                 poses, inliers, final = model_poses(rec, groups.reference), None, rec
+                current = rec  # the model whose camera the next level uses
             else:
                 poses, inliers = self._localise(
-                    merged.images, groups.reference, rec, landmarks, progress, level
+                    merged.images, groups.reference, current, landmarks, progress, level
                 )
                 if cfg.bundle_adjust:
-                    poses, refined = self._refine(
+                    poses, refined, tracks = self._refine(
                         merged.images,
                         groups.reference,
                         poses,
-                        rec,
+                        current,
                         work_dir / f"level_{level}",
                         progress,
                         level,
@@ -171,14 +198,25 @@ class PycolmapSfM(PoseEstimator):
                     row["note"] = "too few exposures registered; the previous level's poses are kept"
                     levels.append(row)
                     break
+                if cfg.bundle_adjust and refined.num_points3D() < cfg.min_inliers:
+                    row["note"] = (
+                        f"the bundle adjustment kept {refined.num_points3D()} points; "
+                        "the previous level's poses are kept"
+                    )
+                    levels.append(row)
+                    break
                 if cfg.bundle_adjust:
                     final = refined
                     if cfg.relocalise:  # the next level registers against this sharper model
                         landmarks = model_landmarks(refined, self._database)
+                    if self._calibrate:  # its bundle adjustment refined the camera
+                        current, used = refined, camera_intrinsics(refined)
                     row.update(
                         points=int(refined.num_points3D()),
                         reprojection_error_px=float(refined.compute_mean_reprojection_error()),
                     )
+                    if tracks:
+                        row["track_refinement"] = tracks
             levels.append(row)
             exposures.append((groups.reference.copy(), poses))
             every = interpolate_poses(groups.reference, poses, n)
@@ -269,14 +307,18 @@ class PycolmapSfM(PoseEstimator):
         folder: Path,
         progress: Any,
         level: int,
-    ) -> tuple[NDArray[np.float64], Any]:
+    ) -> tuple[NDArray[np.float64], Any, dict[str, float]]:
         """Triangulate the level's exposures from their registered poses, then bundle-adjust poses and points.
 
-        The camera stays that of the level-1 model (fixed). Exposures that failed to register
-        keep NaN poses.
+        The camera is that of ``rec`` (fixed, or refined when self-calibrating with
+        ``refine_intrinsics``). Exposures that failed to register
+        keep NaN poses. With ``track_window`` set, every track's keypoints are then re-located
+        by patch alignment (:func:`refine_tracks`), the model bundle-adjusted again, and
+        with ``track_prune`` the outlying observations dropped before a last adjustment.
 
         Returns:
-            ``(poses, reconstruction)``: refined (G, 4, 4) camera-to-world poses and the model.
+            ``(poses, reconstruction, stats)``: refined (G, 4, 4) camera-to-world poses, the
+            model and the track refinement's figures (empty without it).
         """
         import pycolmap
 
@@ -338,15 +380,26 @@ class PycolmapSfM(PoseEstimator):
             refine_intrinsics=False,
         )
         adjust = pycolmap.BundleAdjustmentOptions()
-        adjust.refine_focal_length = False
+        adjust.refine_focal_length = self._calibrate
         adjust.refine_principal_point = False
-        adjust.refine_extra_params = False
+        adjust.refine_extra_params = self._calibrate
         adjust.print_summary = False
         adjust.ceres.loss_function_type = pycolmap.LossFunctionType.CAUCHY
         pycolmap.bundle_adjustment(model, adjust)
+        stats: dict[str, float] = {}
+        if self.config.track_window:
+            exposures = {
+                image_id: images[int(np.searchsorted(references, int(Path(image.name).stem)))]
+                for image_id, image in model.images.items()
+            }
+            stats = refine_tracks(model, exposures, self.config.track_window, self.config.track_max_shift_px)
+            pycolmap.bundle_adjustment(model, adjust)
+            if self.config.track_prune:
+                stats.update(prune_observations(model, self.config.track_prune))
+                pycolmap.bundle_adjustment(model, adjust)
         model.extract_colors_for_all_images(str(image_dir))
         self._database = database
-        return model_poses(model, references), model
+        return model_poses(model, references), model, stats
 
     def _check_light(self, source: PhotonSource, merged: Any) -> None:
         """Raise StageError if the level-1 exposures hold too few photons to register."""
@@ -368,9 +421,14 @@ class PycolmapSfM(PoseEstimator):
         intrinsics: Any,
         progress: Any,
     ) -> tuple[Any, Any]:
-        """Run COLMAP on the level-1 exposures; return (largest reconstruction or None, intrinsics)."""
+        """Run COLMAP on the level-1 exposures; return (largest reconstruction or None, intrinsics).
+
+        Up to ``attempts`` seeds; self-calibrated, when an exposure is left out, also with
+        the focal length held at 1.0, 0.8 and 0.6 x the larger image side.
+        """
+        import shutil
+
         import pycolmap
-        from photonpano.pose import Intrinsics
 
         cfg = self.config
         model, params = (
@@ -389,6 +447,8 @@ class PycolmapSfM(PoseEstimator):
             database, image_dir = write_and_match(
                 self.config, images, references, folder, model, params, progress, 1, seed=cfg.seed + attempt
             )
+            if attempt == 0:
+                first = database
             options.random_seed = cfg.seed + attempt
             models = pycolmap.incremental_mapping(database, image_dir, folder / f"sparse_{attempt}", options)
             best = max(models.values(), key=lambda r: r.num_reg_images()) if models else None
@@ -396,13 +456,34 @@ class PycolmapSfM(PoseEstimator):
                 rec, self._database = best, database
             if rec is not None and rec.num_reg_images() >= cfg.min_registered * len(images):
                 break
+        if intrinsics is None and (rec is None or rec.num_reg_images() < len(images)):
+            # self-calibration can run away with the focal length on a short path (seen: 1454 px
+            # for 420, half the exposures registered): map again with the focal length held at
+            # a few values; levels >= 2 refine it (refine_intrinsics)
+            options.ba_refine_focal_length = False
+            options.ba_refine_extra_params = False
+            options.random_seed = cfg.seed
+            side = float(max(images.shape[1:3]))
+            for scale in (1.0, 0.8, 0.6):
+                database = folder / f"database_focal_{scale}.db"
+                shutil.copyfile(first, database)
+                db = pycolmap.Database.open(str(database))
+                try:
+                    camera = db.read_all_cameras()[0]
+                    camera.params = [scale * side, camera.params[1], camera.params[2], 0.0]
+                    camera.has_prior_focal_length = True
+                    db.update_camera(camera)
+                finally:
+                    db.close()
+                models = pycolmap.incremental_mapping(database, image_dir, folder / f"sparse_focal_{scale}", options)
+                best = max(models.values(), key=lambda r: r.num_reg_images()) if models else None
+                if best is not None and (rec is None or best.num_reg_images() > rec.num_reg_images()):
+                    rec, self._database = best, database
+                if rec is not None and rec.num_reg_images() == len(images):
+                    break
         if rec is None:
             return None, intrinsics
-        if intrinsics is None:
-            camera = next(iter(rec.cameras.values()))
-            f, cx, cy = camera.params[:3]
-            intrinsics = Intrinsics(float(f), float(f), float(cx) - 0.5, float(cy) - 0.5)
-        return rec, intrinsics
+        return rec, intrinsics if intrinsics is not None else camera_intrinsics(rec)
 
 
 @hookimpl

@@ -163,6 +163,9 @@ def test_pose_command_writes_every_output_and_scores_against_ground_truth(tmp_pa
     assert [row["level"] for row in summary["levels"]] == [1, 2]
     assert all(row["registered"] == row["exposures"] for row in summary["levels"])
     assert summary["ground_truth"]["ate_m"] < 0.01
+    # the track refinement re-located the level-2 keypoints: SIFT's alone reproject at ~1 px
+    assert summary["levels"][1]["track_refinement"]["pruned"] > 0
+    assert summary["levels"][1]["reprojection_error_px"] < 0.5
     assert summary["intrinsics"]["used"] == {"fx": 210.0, "fy": 210.0, "cx": 123.5, "cy": 63.5}
 
 
