@@ -241,15 +241,8 @@ class PycolmapSfM(PoseEstimator):
             model_dir=model_dir,
         )
 
-    def _localise(
-        self,
-        images: NDArray[np.uint8],
-        references: NDArray[np.int64],
-        rec: Any,
-        landmarks: Any,
-        progress: Any,
-        level: int,
-    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    def _localise(self, images: NDArray[np.uint8], references: NDArray[np.int64], rec: Any, landmarks: Any,
+                  progress: Any, level: int) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """Register each exposure against the level-1 model (SIFT, ratio test, LO-RANSAC P3P + refinement).
 
         Returns:
@@ -413,14 +406,8 @@ class PycolmapSfM(PoseEstimator):
                 f"{self.config.min_photons} needed; raise group_size)",
             )
 
-    def _map(
-        self,
-        images: NDArray[np.uint8],
-        references: NDArray[np.int64],
-        folder: Path,
-        intrinsics: Any,
-        progress: Any,
-    ) -> tuple[Any, Any]:
+    def _map(self, images: NDArray[np.uint8], references: NDArray[np.int64], folder: Path, intrinsics: Any,
+             progress: Any) -> tuple[Any, Any]:
         """Run COLMAP on the level-1 exposures; return (largest reconstruction or None, intrinsics).
 
         Up to ``attempts`` seeds; self-calibrated, when an exposure is left out, also with
