@@ -191,16 +191,15 @@ def _mosaic_model(host: PluginHost) -> type[BaseModel]:
         value = {"plugin": value} if isinstance(value, str) else value
         return {"plugin": MOSAIC_PLUGINS["template"], **value} if isinstance(value, dict) else value
 
-    def default(registry: dict[str, Any], slot: str, shorthand: Any) -> Any:
-        return Field(default_factory=lambda: registry[MOSAIC_PLUGINS[slot]](**shorthand({})))
+    default_locator = locators[MOSAIC_PLUGINS["locator"]]
     model = create_model(
         "MosaicSpec", __config__=ConfigDict(extra="forbid", frozen=True),
         locator=(Annotated[_tagged(list(locators.values())), BeforeValidator(locator), Field(
             description="Locator registering each merged frame against the panorama view at its pose.")],
-            default(locators, "locator", lambda v: {k: x for k, x in locator(v).items() if k != "plugin"})),
+            Field(default_factory=lambda: default_locator(**default_locator.template_defaults))),
         template=(Annotated[_tagged(list(compositors.values())), BeforeValidator(compositor), Field(
             description="Compositor of the panorama registered against (when the previous level did not "
-            "leave one).")], default(compositors, "template", lambda v: {})),
+            "leave one).")], Field(default_factory=compositors[MOSAIC_PLUGINS["template"]])),
         subbatch_px=(Annotated[float, Field(gt=0, le=2, description="Sub-batch tolerance of that panorama, "
                                             "in canvas pixels.")], 0.5),
     )
