@@ -32,7 +32,7 @@ class OpenCVSiftConfig(LocatorConfig):
     keypoints mapped back to full-resolution pixels. OpenCV's SIFT upsamples its input
     2x, so 0.5 detects at the frame's own resolution, about 4x faster than 1.0; the
     first level only initialises the later levels' refinement against the panorama. Use
-    1.0 for the finest keypoints (e.g. with ``refine_locator: null``)."""
+    1.0 for the finest keypoints (e.g. with ``level_schemes: [pairwise]``)."""
     contrast_threshold: Annotated[float, Field(gt=0)] = 0.02
     """SIFT contrast threshold (OpenCV's default is 0.04; merged frames are low-contrast)."""
     ratio: Annotated[float, Field(gt=0, lt=1)] = 0.75
@@ -53,8 +53,8 @@ class OpenCVSiftConfig(LocatorConfig):
     (Levenberg-Marquardt, the paper's setting); ``ecc`` then maximises the enhanced
     correlation coefficient between the two merged flux images (Evangelidis and Psarakis,
     2008), a dense sub-pixel refinement that keeps the feature result if it fails. With
-    the default ``refine_locator`` the later levels refine against the panorama anyway;
-    ``ecc`` pays off when every level registers pairs (``refine_locator: null``)."""
+    the default ``level_schemes`` the later levels refine against the panorama anyway;
+    ``ecc`` pays off when every level registers pairs (``level_schemes: [pairwise]``)."""
     ecc_iterations: Annotated[int, Field(gt=0)] = 30
     """ecc: maximum Gauss-Newton iterations per pair."""
     ecc_blur: Annotated[int, Field(ge=1, le=15)] = 9
