@@ -13,7 +13,4 @@ from .base import LevelScheme, LevelTask
 from .mosaic import MosaicScheme
 from .pairwise import PairwiseScheme, locate_keyframes
 
-__all__ = ["LevelScheme", "LevelTask", "PairwiseScheme", "MosaicScheme", "locate_keyframes", "SCHEME_NAMES"]
-
-SCHEME_NAMES = ("pairwise", "mosaic")
-"""The names a spec's ``level_schemes`` may use."""
+__all__ = ["LevelScheme", "LevelTask", "PairwiseScheme", "MosaicScheme", "locate_keyframes"]
