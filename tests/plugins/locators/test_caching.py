@@ -56,3 +56,20 @@ def test_direct_locator_caches_its_prepared_pyramids(four_frames):
     locator.register_pairs(four_frames, EXTRA, _eye(2))
     stats = locator.cache_stats()
     assert stats["pyramid_misses"] == 4 and stats["pyramid_hits"] == 2 + 4
+
+
+def test_a_locator_told_frames_are_used_once_hashes_none(four_frames, monkeypatch):
+    """The mosaic scheme registers each frame once: its locators skip the content keys."""
+    from photonpano.plugins.locators import common
+
+    hashed = []
+    original = common.frame_key
+    monkeypatch.setattr(common, "frame_key", lambda *a, **k: hashed.append(1) or original(*a, **k))
+    config = OpenCVEccConfig(**OpenCVEccConfig.template_defaults)
+    once = config.build()
+    once.reuses_frames = False
+    found = once.register_pairs(four_frames, CHAIN, _eye(3))
+    assert not hashed and once.cache_stats()["hits"] == 0
+    reused = config.build().register_pairs(four_frames, CHAIN, _eye(3))
+    assert hashed  # the default keys every frame by content
+    np.testing.assert_array_equal(found.homographies, reused.homographies)
