@@ -130,7 +130,7 @@ class CascadeLocator(Locator):
 
     Args:
         primary: the spec's built locator (attributes not defined here are its own).
-        binning: pixels per side of the binned frames (>= 2 is used for the check).
+        binning: merged-frame pixels per side of the binned frames (>= 1).
         min_correlation: the binned correlation a registration must reach.
         min_overlap: fraction of binned pixels both frames must share.
     """
@@ -138,7 +138,7 @@ class CascadeLocator(Locator):
     def __init__(self, primary: Locator, binning: int, *, min_correlation: float = 0.4,
                  min_overlap: float = 0.3) -> None:
         self.__dict__["primary"] = primary
-        self.factor = max(2, int(binning))
+        self.factor = max(1, int(binning))
         self.min_correlation = min_correlation
         self.min_overlap = min_overlap
         self._stats = self._empty()

@@ -16,6 +16,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from . import geometry
+from .binning import RegistrationGrid
 from .errors import StageError
 from .executor import Executor, SerialExecutor
 from .guards import guard_keyframes, plausible
@@ -31,7 +32,7 @@ def estimate_motion(source: PhotonSource, resampler: Resampler, merger: Merger, 
                     keep_merged: bool = False, on_level: Callable[[LevelResult], None] | None = None,
                     progress: Callable[[str, int], Callable[[int], None]] | None = None, start_level: int = 1,
                     initial: NDArray[np.float64] | None = None,
-                    template: Panorama | None = None) -> NDArray[np.float64]:
+                    template: Panorama | None = None, binning: int = 1) -> NDArray[np.float64]:
     """Estimate a homography for every binary frame by stratified re-sampling.
 
     One level per scheme. Each level re-samples groups, has its scheme merge them with
@@ -57,6 +58,10 @@ def estimate_motion(source: PhotonSource, resampler: Resampler, merger: Merger, 
         initial: (T, 3, 3) float64 homographies after level ``start_level - 1`` (that
             :class:`~photonpano.records.LevelResult`'s); None: identities.
         template: that level's :attr:`~photonpano.records.LevelResult.template`.
+        binning: the schemes merge and register frames binned ``binning`` x
+            ``binning`` (:mod:`photonpano.binning`); homographies, keyframes and
+            templates cross into sensor pixels here, so every level's result is in
+            sensor pixels (its registrations in the merged frames' binned pixels).
 
     Returns:
         (T, 3, 3) float64 frame-to-panorama homographies, where panorama coordinates are
@@ -70,19 +75,22 @@ def estimate_motion(source: PhotonSource, resampler: Resampler, merger: Merger, 
     n = source.n_frames
     homographies = np.repeat(np.eye(3)[None], n, axis=0) if initial is None else np.array(initial, np.float64)
     executor = executor or SerialExecutor()
+    grid = RegistrationGrid(source, binning)
     if start_level == 1 and schemes and schemes[0].needs_template:
         raise ValueError(f"level 1 cannot use the {schemes[0].name} scheme: it refines an existing estimate")
     for level in range(start_level, len(schemes) + 1):
         scheme, t0 = schemes[level - 1], time.perf_counter()
         groups = _resample(resampler, n, group_size, level)
         t1 = time.perf_counter()
-        task = LevelTask(level, source, merger, groups, homographies, group_size, executor, keep_merged, template,
+        task = LevelTask(level, grid.source, merger, groups, grid.inward(homographies), group_size, executor,
+                         keep_merged, grid.template_inward(template),
                          next_template=level < len(schemes) and schemes[level].needs_template,
                          progress=progress(f"level {level}: merge + locate", len(groups)) if progress else None)
-        located = scheme.locate(task)
+        located = grid.located_outward(scheme.locate(task))
         t2 = time.perf_counter()
-        keyframes, rejected = guard_keyframes(task.current, located.keyframes, source.width, source.height)
-        updated = _interpolate(interpolator, groups, task.current, keyframes, homographies, source, level)
+        current = homographies[groups.reference]
+        keyframes, rejected = guard_keyframes(current, located.keyframes, source.width, source.height)
+        updated = _interpolate(interpolator, groups, current, keyframes, homographies, source, level)
         homographies, template = _gauge(updated, homographies, located.template)
         t3 = time.perf_counter()
         timings = {"resample": t1 - t0, "merge": located.merge_s, "locate": t2 - t1 - located.merge_s,

@@ -211,19 +211,24 @@ class Stages:
     def __init__(self, spec: BaseModel, source: PhotonSource) -> None:
         """Build every stage of ``spec`` for ``source``."""
         from .adaptive import plan_group_size
+        from .binning import registration_binning
         from .coarse import CascadeLocator
         from .schemes import MosaicScheme, PairwiseScheme
         from .spec import level_schemes
 
         self.spec, self.source = spec, source
         self.plan = plan_group_size(spec.group_size, source)
-        self.locator = spec.locator.build()
+        self.binning = registration_binning(spec, source)
+        self.locator = spec.locator.in_merged_pixels(self.binning).build()
         if self.plan.auto:  # explicit group sizes keep the plain locator
-            self.locator = CascadeLocator(self.locator, self.plan.binning)
+            # the check bins sensor pixels in blocks of at least 2, counted in merged-frame pixels
+            blocks = max(2, self.plan.binning) / self.binning
+            self.locator = CascadeLocator(self.locator, max(1, round(blocks)))
         self.resampler, self.merger = spec.resampler.build(), spec.merger.build()
         self.interpolator = spec.interpolator.build()
         built = {"pairwise": PairwiseScheme(self.locator, tuple(spec.pair_offsets)),
-                 "mosaic": MosaicScheme(spec.mosaic.locator.build, spec.mosaic.template.build,
+                 "mosaic": MosaicScheme(spec.mosaic.locator.in_merged_pixels(self.binning).build,
+                                        spec.mosaic.template.build,
                                         subbatch_px=spec.mosaic.subbatch_px)}
         self.schemes = [built[name] for name in level_schemes(spec)]
 
@@ -248,7 +253,7 @@ class Stages:
         return estimate_motion(self.source, self.resampler, self.merger, self.interpolator, self.schemes,
                                group_size=self.plan.group_size, executor=executor,
                                keep_merged=self.spec.outputs.merged_frames, on_level=on_level, progress=progress,
-                               **start)
+                               binning=self.binning, **start)
 
     def compose(self, homographies: NDArray[np.float64], executor: Executor,
                 progress: Callable[[int], None] | None = None) -> Panorama:

@@ -27,12 +27,14 @@ class OpenCVSiftConfig(LocatorConfig):
     plugin: Literal["opencv-sift"] = "opencv-sift"
     max_features: Annotated[int, Field(ge=0)] = 2000
     """Keypoints kept per merged frame, strongest first (0 = all)."""
-    image_scale: Annotated[float, Field(gt=0, le=1)] = 0.5
+    image_scale: Annotated[float, Field(gt=0, le=1)] = 1.0
     """Merged frames are resized by this factor (area averaging) before detection, and
-    keypoints mapped back to full-resolution pixels. OpenCV's SIFT upsamples its input
-    2x, so 0.5 detects at the frame's own resolution, about 4x faster than 1.0; the
-    first level only initialises the later levels' refinement against the panorama. Use
-    1.0 for the finest keypoints (e.g. with ``level_schemes: [pairwise]``)."""
+    keypoints mapped back to the merged frame's pixels. OpenCV's SIFT upsamples its
+    input 2x, so at half the sensor resolution (the default ``registration_binning: 2``,
+    or 0.5 here with ``registration_binning: 1``) it detects at the sensor's own
+    resolution, about 4x faster than full resolution; the first level only initialises
+    the later levels' refinement against the panorama. For the finest keypoints (e.g.
+    with ``level_schemes: [pairwise]``) use ``registration_binning: 1`` and 1.0 here."""
     contrast_threshold: Annotated[float, Field(gt=0)] = 0.02
     """SIFT contrast threshold (OpenCV's default is 0.04; merged frames are low-contrast)."""
     ratio: Annotated[float, Field(gt=0, lt=1)] = 0.75

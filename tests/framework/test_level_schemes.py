@@ -27,7 +27,7 @@ def test_refine_locator_keeps_working_under_its_new_names():
     assert level_schemes(_spec(refine_locator=None, levels=3)) == ["pairwise"] * 3
     spec = _spec(refine_locator={"plugin": "opencv-ecc", "iterations": 5})
     # fields given win, the rest start from the locator's template defaults
-    assert spec.mosaic.locator.iterations == 5 and spec.mosaic.locator.pyramid_levels == 2
+    assert spec.mosaic.locator.iterations == 5 and spec.mosaic.locator.pyramid_levels == 1
     assert _spec(refine_locator={"iterations": 7}).mosaic.locator.iterations == 7
     assert "refine_locator" not in dump_spec(spec)
     assert validate_spec({**SOURCE, **_reloaded(spec)}, HOST).model_dump() == spec.model_dump()  # spec.yaml round trip

@@ -1,0 +1,103 @@
+"""Registration at a binned resolution (photonpano.binning, spec `registration_binning`)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+
+def test_bin_counts_is_the_mean_of_each_block_and_drops_the_remainder():
+    from photonpano.binning import bin_counts
+
+    counts = np.arange(2 * 5 * 7, dtype=np.uint16).reshape(2, 5, 7)
+    binned = bin_counts(counts, 2)
+    assert binned.shape == (2, 2, 3) and binned.dtype == np.float32
+    expected = counts[:, :4, :6].reshape(2, 2, 2, 3, 2).mean(axis=(2, 4))
+    np.testing.assert_allclose(binned, expected)
+
+
+def test_binned_source_keeps_the_detection_probability(tiny_capture):
+    from photonpano.binning import BinnedSource
+
+    binned = BinnedSource(tiny_capture, 2)
+    assert (binned.height, binned.width) == (tiny_capture.height // 2, tiny_capture.width // 2)
+    edges = np.array([0, 100, 300])
+    full, coarse = tiny_capture.sum_ranges(edges), binned.sum_ranges(edges)
+    # the mean count of each 2x2 block, so counts / frames is still a probability
+    np.testing.assert_allclose(coarse.mean(axis=(1, 2)), full.mean(axis=(1, 2)), rtol=1e-3)
+    assert binned.describe()["binning"] == 2
+    with pytest.raises(ValueError, match="binning"):
+        BinnedSource(tiny_capture, 0)
+
+
+def test_registration_grid_maps_a_binned_pixel_to_the_centre_of_its_block(tiny_capture):
+    from photonpano import geometry
+    from photonpano.binning import RegistrationGrid
+    from photonpano.records import Panorama
+
+    grid = RegistrationGrid(tiny_capture, 2)
+    shift = geometry.translation(3.0, -2.0)[None]
+    # a shift of 3 sensor pixels is 1.5 binned pixels, and back
+    np.testing.assert_allclose(grid.inward(shift)[0, :2, 2], [1.5, -1.0])
+    np.testing.assert_allclose(grid.outward(grid.inward(shift)), shift, atol=1e-12)
+    template = Panorama(np.zeros((4, 4), np.float32), np.zeros((4, 4), np.float32), shift)
+    back = grid.template_outward(grid.template_inward(template))
+    np.testing.assert_allclose(back.homographies, shift, atol=1e-12)
+    # binned pixel 0 covers sensor pixels 0 and 1: its centre is sensor 0.5
+    to_sensor = grid.outward(np.eye(3)[None])[0]
+    assert np.allclose(to_sensor, np.eye(3))
+    assert RegistrationGrid(tiny_capture, 1).inward(shift) is shift
+
+
+def test_auto_binning_keeps_100_pixels_on_the_short_side():
+    from photonpano.binning import auto_binning
+
+    assert auto_binning(254, 496) == 2
+    assert auto_binning(256, 512) == 2
+    assert auto_binning(127, 248) == 1
+    assert auto_binning(199, 4000) == 1
+
+
+def test_locator_lengths_are_sensor_pixels_whatever_the_binning(host):
+    from photonpano.spec import validate_spec
+
+    spec = validate_spec({"source": "simulate", "locator": {"plugin": "opencv-sift", "reprojection_px": 1.5}}, host)
+    binned = spec.locator.in_merged_pixels(2)
+    assert binned.reprojection_px == 0.75 and binned.ecc_max_change_px == 1.0
+    assert binned.max_features == spec.locator.max_features  # not a length
+    assert spec.locator.in_merged_pixels(1) is spec.locator
+    orb = validate_spec({"source": "simulate", "locator": {"plugin": "opencv-orb", "border_px": 7}},
+                        host).locator.in_merged_pixels(2)
+    assert orb.border_px == 4  # integers round up
+
+
+def test_a_binning_that_leaves_no_frame_is_a_one_line_error(host):
+    from photonpano.errors import StageError
+    from photonpano.pipeline import Stages
+    from photonpano.plugins.sources.simulate import SimulateConfig
+    from photonpano.spec import validate_spec
+
+    spec = validate_spec({"source": "simulate", "registration_binning": 8, "group_size": 200}, host)
+    with pytest.raises(StageError, match="registration_binning.*smaller than 16"):
+        Stages(spec, SimulateConfig(frames=400, height=96, width=160).build())
+
+
+@pytest.mark.slow
+def test_binned_registration_is_as_accurate_as_full_resolution(host):
+    """Levels registered on 2x2-binned merged frames track the true motion about as well (another path and size)."""
+    from photonpano.executor import SerialExecutor
+    from photonpano.metrics import trajectory_error
+    from photonpano.pipeline import Stages
+    from photonpano.plugins.sources.simulate import SimulateConfig
+    from photonpano.spec import validate_spec
+
+    source = SimulateConfig(frames=12000, height=220, width=360, flux=0.3, speed_px_per_frame=0.015,
+                            vibration_px=3.0, seed=7).build()
+    errors = {}
+    for binning in (1, 2):
+        spec = validate_spec({"source": "simulate", "group_size": 400, "registration_binning": binning}, host)
+        stages = Stages(spec, source)
+        homographies = stages.estimate_motion(SerialExecutor())
+        errors[binning] = trajectory_error(homographies, source.ground_truth, source.width, source.height).rmse_px
+    assert errors[2] < 0.2, errors
+    assert errors[2] < 1.5 * errors[1] + 0.03, errors
