@@ -163,7 +163,7 @@ def spec_model(host: PluginHost) -> type[BaseModel]:
             "least 100 pixels on their short side, else 1 (photonpano.binning.auto_binning). The panorama is "
             "always composited from the full-resolution photons.")], "auto"),
         panorama_subbatch_px=(Annotated[float, Field(gt=0, le=2, description="Frames whose canvas "
-                              "warps differ by less than this (canvas pixels) are warped together.")], 0.25),
+                              "warps differ by less than this (canvas pixels) are warped together.")], 0.5),
         level_schemes=(Annotated[list[Literal["pairwise", "mosaic"]], Field(
             min_length=1, description="Scheme of each level, the last repeated for the levels after: pairwise "
             "(the paper's: pairs of merged frames and a pose graph; level 1 is always pairwise) or mosaic (each "
