@@ -26,11 +26,17 @@ def test_default_spec_meets_the_accuracy_bar(host, flux, max_rmse):
 
 
 def test_iterating_beats_group_averaging(host):
-    """Level 1 alone (group averaging + SIFT) is several times worse than three levels."""
-    spec = validate_spec({"source": {"plugin": "simulate", "frames": 6000, "flux": 0.5}}, host)
-    source = spec.source.build()
-    _, stats, _, _ = reconstruct(spec, source)
-    assert stats[0]["trajectory_rmse_px"] > 4 * stats[-1]["trajectory_rmse_px"]
+    """Level 1 alone (group averaging + SIFT) is several times worse than three levels.
+
+    At full resolution (``registration_binning: 1``) the ratio is above 4; registering
+    2x2-binned merged frames (the default on these frames) trades about 0.02 px of the
+    final error for 1.6x the speed (docs/performance.md), leaving it about 3.5.
+    """
+    for binning, ratio in ((1, 4), ("auto", 3)):
+        spec = validate_spec({"source": {"plugin": "simulate", "frames": 6000, "flux": 0.5},
+                              "registration_binning": binning}, host)
+        _, stats, _, _ = reconstruct(spec, spec.source.build())
+        assert stats[0]["trajectory_rmse_px"] > ratio * stats[-1]["trajectory_rmse_px"], binning
 
 
 def test_rotation_zoom_and_shake_are_tracked(host):
