@@ -170,13 +170,15 @@ class RegistrationGrid:
         return Panorama(template.flux, template.frames, geometry.normalize(template.homographies @ self._to_binned))
 
     def located_outward(self, located: LocateResult) -> LocateResult:
-        """A scheme's result with its keyframes in sensor pixels and its template mapping sensor frames.
+        """A scheme's result in sensor pixels: keyframes, registrations (pixel maps between frames) and template.
 
-        The registrations stay in the pixels of the (binned) merged frames they relate.
+        Only the merged frames it may hold stay binned (they are images of the binned grid).
         """
         if self.factor == 1:
             return located
         import dataclasses
 
+        regs = located.registrations
         return dataclasses.replace(located, keyframes=self.outward(located.keyframes),
+                                   registrations=dataclasses.replace(regs, homographies=self.outward(regs.homographies)),
                                    template=self.template_outward(located.template))

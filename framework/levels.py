@@ -61,7 +61,7 @@ def estimate_motion(source: PhotonSource, resampler: Resampler, merger: Merger, 
         binning: the schemes merge and register frames binned ``binning`` x
             ``binning`` (:mod:`photonpano.binning`); homographies, keyframes and
             templates cross into sensor pixels here, so every level's result is in
-            sensor pixels (its registrations in the merged frames' binned pixels).
+            sensor pixels (only its merged frames, if kept, are binned images).
 
     Returns:
         (T, 3, 3) float64 frame-to-panorama homographies, where panorama coordinates are

@@ -101,3 +101,22 @@ def test_binned_registration_is_as_accurate_as_full_resolution(host):
         errors[binning] = trajectory_error(homographies, source.ground_truth, source.width, source.height).rmse_px
     assert errors[2] < 0.2, errors
     assert errors[2] < 1.5 * errors[1] + 0.03, errors
+
+
+def test_binned_levels_report_registrations_in_sensor_pixels(host):
+    """What observers and run.json get is in sensor pixels: the pairs agree with the solved keyframes."""
+    from photonpano.executor import SerialExecutor
+    from photonpano.pipeline import Stages
+    from photonpano.plugins.sources.simulate import SimulateConfig
+    from photonpano.quality import level_figures
+    from photonpano.spec import validate_spec
+
+    source = SimulateConfig(frames=3000, height=200, width=320, flux=0.5, vibration_px=2.0).build()
+    spec = validate_spec({"source": "simulate", "group_size": 250, "levels": 2, "registration_binning": 2}, host)
+    stages = Stages(spec, source)
+    results = []
+    stages.estimate_motion(SerialExecutor(), on_level=results.append)
+    pairwise = level_figures(results[0], stages.plan, source.width, source.height)
+    assert pairwise["pose_graph_residual_px"] < 0.5, pairwise
+    # a mosaic registration is the correction of a keyframe: sub-pixel here, not scaled by the binning
+    assert level_figures(results[1], stages.plan, source.width, source.height)["median_correction_px"] < 1.0
