@@ -179,6 +179,6 @@ class RegistrationGrid:
         import dataclasses
 
         regs = located.registrations
-        return dataclasses.replace(located, keyframes=self.outward(located.keyframes),
-                                   registrations=dataclasses.replace(regs, homographies=self.outward(regs.homographies)),
+        regs = dataclasses.replace(regs, homographies=self.outward(regs.homographies))
+        return dataclasses.replace(located, keyframes=self.outward(located.keyframes), registrations=regs,
                                    template=self.template_outward(located.template))
