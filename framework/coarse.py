@@ -170,40 +170,33 @@ class CascadeLocator(Locator):
     def register_pairs(self, merged: MergedFrames, pairs: NDArray[np.int64],
                        initial: NDArray[np.float64]) -> PairRegistrations:
         """Register with the primary locator, then check and rescue on binned frames (see the module)."""
-        from .executor import SerialExecutor
-
         found = self.primary.register_pairs(merged, pairs, initial)
-        executor = self.primary.executor or SerialExecutor()
-        frames = [int(i) for i in np.unique(pairs)]
-        binned = dict(zip(frames, executor.map(
-            lambda i: binned_frame(merged.flux[i], merged.masks[i], self.factor), frames)))
+        homographies, inliers, ok = found.homographies.copy(), found.inliers.copy(), found.ok.copy()
+        cache: dict[int, tuple[NDArray, NDArray]] = {}
 
-        def check(p: int) -> tuple[NDArray[np.float64], int, bool, float, str]:
-            """Pair p's homography, inliers, ok, binned correlation and what happened to it."""
-            a, b = binned[int(pairs[p, 0])], binned[int(pairs[p, 1])]
-            need = self.min_overlap * max(int(b[1].sum()), 1)
-            h, inliers, ok, cc, outcome = found.homographies[p], int(found.inliers[p]), bool(found.ok[p]), -1.0, ""
-            if ok:
-                cc, overlap = warped_correlation(a, b, h, self.factor)
-                ok = cc >= self.min_correlation and overlap >= need
-                outcome = "checked" if ok else "rejected_by_check"
-            if not ok:
-                h2, cc, overlap = register_binned(a, b, initial[p], self.factor)
-                if cc >= self.min_correlation and overlap >= need:
-                    h, ok, inliers = h2, True, max(8, int(round(100 * cc ** 2)))
-                    outcome += "+rescued"
-            return h, inliers, ok, cc, outcome
+        def frame(i: int) -> tuple[NDArray, NDArray]:
+            if i not in cache:
+                cache[i] = binned_frame(merged.flux[i], merged.masks[i], self.factor)
+            return cache[i]
 
-        results = executor.map(check, range(len(pairs)))
         stats = self._stats
-        for _, _, _, cc, outcome in results:
-            stats["checked"] += outcome.startswith(("checked", "rejected_by_check"))
-            stats["rejected_by_check"] += outcome.startswith("rejected_by_check")
-            stats["rescued"] += outcome.endswith("rescued")
+        for p, (i, j) in enumerate(pairs):
+            a, b = frame(int(i)), frame(int(j))
+            need = self.min_overlap * max(int(b[1].sum()), 1)
+            cc = -1.0
+            if ok[p]:
+                stats["checked"] += 1
+                cc, overlap = warped_correlation(a, b, homographies[p], self.factor)
+                if cc < self.min_correlation or overlap < need:
+                    ok[p] = False
+                    stats["rejected_by_check"] += 1
+            if not ok[p]:
+                h, cc, overlap = register_binned(a, b, initial[p], self.factor)
+                if cc >= self.min_correlation and overlap >= need:
+                    homographies[p], ok[p] = h, True
+                    inliers[p] = max(8, int(round(100 * cc ** 2)))
+                    stats["rescued"] += 1
             stats["correlations"].append(cc)
-        homographies = np.array([r[0] for r in results]).reshape(len(pairs), 3, 3)
-        inliers = np.array([r[1] for r in results], dtype=found.inliers.dtype)
-        ok = np.array([r[2] for r in results], dtype=bool)
         return PairRegistrations(homographies, found.matches, inliers, ok)
 
     def take_statistics(self) -> dict[str, Any]:
