@@ -25,7 +25,8 @@ from . import geometry
 from .records import LocateResult, Panorama
 from .stages import PhotonSource
 
-__all__ = ["BinnedSource", "RegistrationGrid", "bin_counts", "auto_binning", "registration_binning", "MIN_BINNED_SIDE"]
+__all__ = ["BinnedSource", "BinnedBlocks", "RegistrationGrid", "bin_counts", "block_size",
+           "auto_binning", "registration_binning", "MIN_BINNED_SIDE"]
 
 MIN_BINNED_SIDE = 100
 """``registration_binning: auto`` bins only where the binned frames keep at least this many
@@ -60,27 +61,122 @@ def registration_binning(spec: Any, source: PhotonSource) -> int:
     return factor
 
 
-def bin_counts(counts: NDArray, factor: int) -> NDArray[np.float32]:
-    """Mean of each ``factor`` x ``factor`` block of pixels of B count images.
+def bin_counts(counts: NDArray, factor: int, dtype: Any = np.float32, *, mean: bool = True) -> NDArray:
+    """Sum (or mean) of each ``factor`` x ``factor`` block of pixels of B count images.
 
     Args:
         counts: (B, H, W) detection counts (any real dtype).
         factor: block size k in pixels (>= 1).
+        dtype: dtype of the result (an integer dtype must hold ``k^2`` times the counts).
+        mean: divide by ``k^2`` (the mean count per sensor pixel), else the block sums.
 
     Returns:
-        (B, H // k, W // k) float32 mean count per sensor pixel of each block (the
-        last ``H % k`` rows and ``W % k`` columns are left out).
+        (B, H // k, W // k) ``dtype`` per block (the last ``H % k`` rows and ``W % k``
+        columns are left out).
     """
     b, h, w = counts.shape
     k = int(factor)
     hb, wb = h // k, w // k
-    out = np.zeros((b, hb, wb), np.float32)
-    for dy in range(k):
+    out = np.zeros((b, hb, wb), dtype)
+    for dy in range(k):  # k^2 strided adds: several times faster than a sum over a 5-D reshape
         rows = counts[:, dy:hb * k:k]
         for dx in range(k):
             out += rows[:, :, dx:wb * k:k]
-    out *= np.float32(1.0 / (k * k))
+    if mean:
+        out *= out.dtype.type(1.0 / (k * k))
     return out
+
+
+class BinnedBlocks:
+    """Binned photon counts of consecutive blocks of frames, counted once and kept on disk.
+
+    Every level merges (and the first mosaic template composites) the same photons
+    again. Binned k x k and summed over blocks of ``block`` frames, a capture shrinks
+    ``8 k^2 / 2`` times or more (254x496 binary frames bit-packed, k = 2, blocks of 25:
+    126 MB per 100 000 frames against 1.57 GB): counted once, in parallel, into an
+    anonymous temporary file, any range of whole blocks is then read back and added in
+    a fraction of a counting pass. Reads go through ordinary file reads (the page
+    cache), not a memory map, so the process's resident memory does not grow with the
+    capture.
+
+    Args:
+        source: the capture (binary frames).
+        factor: binning k (>= 1).
+        block: frames per block (``block x k^2 <= 65535``).
+        executor: counts chunks of blocks in parallel (threads of this process).
+        chunk_blocks: blocks counted per task.
+
+    Raises:
+        OSError: if the temporary file cannot be written (e.g. the disk is full).
+    """
+
+    def __init__(self, source: PhotonSource, factor: int, block: int, executor: Any = None,
+                 chunk_blocks: int = 64) -> None:
+        """Count every whole block of ``source`` (see the class)."""
+        import os
+        import tempfile
+
+        from .executor import SerialExecutor
+
+        self.factor, self.block = int(factor), int(block)
+        self.n_blocks = source.n_frames // self.block
+        self.height, self.width = source.height // self.factor, source.width // self.factor
+        self.dtype = np.dtype(np.uint8 if self.block * self.factor ** 2 <= 255 else np.uint16)
+        self._block_bytes = self.height * self.width * self.dtype.itemsize
+        self._file = tempfile.TemporaryFile(prefix="photonpano-blocks-")
+        fd = self._file.fileno()
+        os.ftruncate(fd, self.n_blocks * self._block_bytes)
+
+        def count(first: int) -> int:
+            last = min(first + chunk_blocks, self.n_blocks)
+            edges = np.arange(first, last + 1, dtype=np.int64) * self.block
+            sums = bin_counts(source.sum_ranges(edges), self.factor, self.dtype, mean=False)
+            os.pwrite(fd, sums.tobytes(), first * self._block_bytes)
+            return last - first
+
+        (executor or SerialExecutor()).map(count, list(range(0, self.n_blocks, chunk_blocks)))
+
+    def covers(self, edges: NDArray[np.int64]) -> bool:
+        """Whether every edge is a block boundary within the stored blocks."""
+        return bool(len(edges) and np.all(edges % self.block == 0) and edges[-1] <= self.n_blocks * self.block)
+
+    def mean_counts(self, edges: NDArray[np.int64]) -> NDArray[np.float32]:
+        """(B, H // k, W // k) float32 mean detections per sensor pixel over ranges ``edges`` (see :meth:`covers`)."""
+        import os
+
+        blocks = np.asarray(edges, np.int64) // self.block
+        first, last = int(blocks[0]), int(blocks[-1])
+        raw = os.pread(self._file.fileno(), (last - first) * self._block_bytes, first * self._block_bytes)
+        stored = np.frombuffer(raw, self.dtype).reshape(last - first, self.height, self.width)
+        sums = np.add.reduceat(stored, blocks[:-1] - first, axis=0, dtype=np.float32)
+        sums *= np.float32(1.0 / self.factor ** 2)
+        return sums
+
+    def close(self) -> None:
+        """Delete the temporary file."""
+        self._file.close()
+
+
+def block_size(boundaries: NDArray[np.int64], group_size: int, largest: int = 32) -> int:
+    """Frames per block of :class:`BinnedBlocks` whose block grid holds every group boundary.
+
+    The largest divisor of the boundaries' greatest common divisor that is at most
+    ``min(largest, group_size // 16)``: a block then moves by at most a sixteenth of a
+    group's motion blur (the group-size plan bounds that blur), and a level's groups
+    and sub-batches are whole blocks.
+
+    Args:
+        boundaries: frame indices where groups start or stop, at every level, and the
+            capture length.
+        group_size: binary frames per group m.
+        largest: most frames per block.
+
+    Returns:
+        Frames per block (1: no block size fits, count directly).
+    """
+    step = int(np.gcd.reduce(np.asarray(boundaries, np.int64)))
+    limit = max(1, min(largest, group_size // 16))
+    return max((d for d in range(1, limit + 1) if step % d == 0), default=1)
 
 
 class BinnedSource(PhotonSource):
@@ -101,8 +197,12 @@ class BinnedSource(PhotonSource):
         ValueError: if ``factor`` is not a positive integer no larger than the frame.
     """
 
-    def __init__(self, source: PhotonSource, factor: int) -> None:
-        """Wrap ``source``; frames are ``H // factor`` x ``W // factor`` pixels."""
+    def __init__(self, source: PhotonSource, factor: int, blocks: BinnedBlocks | None = None) -> None:
+        """Wrap ``source``; frames are ``H // factor`` x ``W // factor`` pixels.
+
+        With ``blocks`` (its photons counted once, :class:`BinnedBlocks`), ranges of whole
+        blocks are read from there and :attr:`frame_step` is the block length.
+        """
         factor = int(factor)
         if factor < 1 or factor > min(source.height, source.width):
             raise ValueError(f"binning must be between 1 and the frame size {source.height}x{source.width}, "
@@ -113,10 +213,19 @@ class BinnedSource(PhotonSource):
         self.height, self.width = source.height // factor, source.width // factor
         self.name = f"{source.name} (binned {factor}x{factor})"
         self.kind = getattr(source, "kind", "binary")
+        self.blocks = blocks
+        self.frame_step = blocks.block if blocks is not None else 1
 
     def sum_ranges(self, edges: NDArray[np.int64]) -> NDArray[np.float32]:
         """(B, H // k, W // k) float32 mean detections per sensor pixel over frame ranges ``edges``."""
+        edges = np.asarray(edges, np.int64)
+        if self.blocks is not None and self.blocks.covers(edges):
+            return self.blocks.mean_counts(edges)
         return bin_counts(self.source.sum_ranges(edges), self.factor)
+
+    def __reduce__(self) -> tuple[type, tuple[PhotonSource, int]]:
+        """Pickle as the capture and the binning (the block store is this process's temporary file)."""
+        return type(self), (self.source, self.factor)
 
     def describe(self) -> dict[str, Any]:
         """The underlying capture's summary, with the binning."""
@@ -142,6 +251,41 @@ class RegistrationGrid:
         self.source = source if self.factor == 1 else BinnedSource(source, self.factor)
         self._to_binned = geometry.scale_matrix(1.0 / self.factor)
         self._to_sensor = np.linalg.inv(self._to_binned)
+
+    def count_once(self, boundaries: NDArray[np.int64], group_size: int, executor: Any) -> None:
+        """Count the binned photons once for every level (:class:`BinnedBlocks`), where that pays.
+
+        Only with binning (a full-resolution store would be half the size of a packed
+        cube), binary frames, an executor of this process, and a block grid of at least
+        4 frames that holds every group boundary (:func:`block_size`); otherwise, or if
+        the temporary file cannot be written, every level counts from the capture.
+
+        Args:
+            boundaries: frame indices where the levels' groups start or stop.
+            group_size: binary frames per group m.
+            executor: the run's executor.
+        """
+        import logging
+
+        if self.factor == 1 or self.source.kind != "binary" or not executor.in_process:
+            return
+        capture = self.source.source
+        block = block_size(np.append(boundaries, capture.n_frames), group_size)
+        if block < 4:
+            return
+        try:
+            blocks = BinnedBlocks(capture, self.factor, block, executor)
+        except OSError as err:
+            logging.getLogger(__name__).warning("counting photons per level: no room for the binned block "
+                                                "store (%s)", err)
+            return
+        self.source = BinnedSource(capture, self.factor, blocks)
+
+    def close(self) -> None:
+        """Delete the block store, if any."""
+        blocks = getattr(self.source, "blocks", None)
+        if blocks is not None:
+            blocks.close()
 
     def inward(self, homographies: NDArray[np.float64]) -> NDArray[np.float64]:
         """(..., 3, 3) frame-to-panorama homographies in sensor pixels -> binned pixels."""

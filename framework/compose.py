@@ -91,7 +91,8 @@ def compose(source: PhotonSource, homographies: NDArray[np.float64], compositor:
     else:
         to_canvas, (ch, cw) = geometry.normalize(homographies), canvas_shape
     compositor.prepare(Canvas(ch, cw, to_canvas), source)
-    edges = subbatch_edges(to_canvas, source.width, source.height, subbatch_px)
+    edges = subbatch_edges(to_canvas, source.width, source.height, subbatch_px,
+                           frame_step=source.frame_step)
     executor = executor or SerialExecutor()
     starts = list(range(0, len(edges) - 1, chunk_batches))
     workers = max(1, min(executor.workers, len(starts)))

@@ -48,6 +48,8 @@ class Executor:
 
     workers: int = 1
     cancelled: threading.Event | None = None
+    in_process: bool = True
+    """Tasks run in the calling process (and may share its files and memory)."""
 
     def raise_if_cancelled(self) -> None:
         """Raise :class:`Cancelled` if the caller was interrupted: long tasks call this between chunks.
@@ -176,6 +178,8 @@ class DaskExecutor(Executor):
         MissingDependency: dask.distributed is not installed.
         SpecError: the scheduler at ``address`` cannot be reached (names ``dask_address``).
     """
+
+    in_process = False
 
     def __init__(self, workers: int = 0, address: str | None = None, timeout_s: float = 5.0) -> None:
         from .errors import MissingDependency, SpecError

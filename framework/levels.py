@@ -61,7 +61,10 @@ def estimate_motion(source: PhotonSource, resampler: Resampler, merger: Merger, 
         binning: the schemes merge and register frames binned ``binning`` x
             ``binning`` (:mod:`photonpano.binning`); homographies, keyframes and
             templates cross into sensor pixels here, so every level's result is in
-            sensor pixels (only its merged frames, if kept, are binned images).
+            sensor pixels (only its merged frames, if kept, are binned images). With
+            binning and two or more levels to run, the binned photons are counted once
+            for all of them (:meth:`~photonpano.binning.RegistrationGrid.count_once`;
+            its time is part of the first level's ``merge``).
 
     Returns:
         (T, 3, 3) float64 frame-to-panorama homographies, where panorama coordinates are
@@ -75,30 +78,39 @@ def estimate_motion(source: PhotonSource, resampler: Resampler, merger: Merger, 
     n = source.n_frames
     homographies = np.repeat(np.eye(3)[None], n, axis=0) if initial is None else np.array(initial, np.float64)
     executor = executor or SerialExecutor()
-    grid = RegistrationGrid(source, binning)
     if start_level == 1 and schemes and schemes[0].needs_template:
         raise ValueError(f"level 1 cannot use the {schemes[0].name} scheme: it refines an existing estimate")
-    for level in range(start_level, len(schemes) + 1):
-        scheme, t0 = schemes[level - 1], time.perf_counter()
-        groups = _resample(resampler, n, group_size, level)
-        t1 = time.perf_counter()
-        task = LevelTask(level, grid.source, merger, groups, grid.inward(homographies), group_size, executor,
-                         keep_merged, grid.template_inward(template),
-                         next_template=level < len(schemes) and schemes[level].needs_template,
-                         progress=progress(f"level {level}: merge + locate", len(groups)) if progress else None)
-        located = grid.located_outward(scheme.locate(task))
-        t2 = time.perf_counter()
-        current = homographies[groups.reference]
-        keyframes, rejected = guard_keyframes(current, located.keyframes, source.width, source.height)
-        updated = _interpolate(interpolator, groups, current, keyframes, homographies, source, level)
-        homographies, template = _gauge(updated, homographies, located.template)
-        t3 = time.perf_counter()
-        timings = {"resample": t1 - t0, "merge": located.merge_s, "locate": t2 - t1 - located.merge_s,
-                   "interpolate": t3 - t2}
-        if on_level is not None:
-            on_level(LevelResult(level, scheme.name, groups, dataclasses.replace(located, template=template),
-                                 homographies, timings, rejected))
-    return homographies
+    grid = RegistrationGrid(source, binning)
+    try:
+        counted = time.perf_counter()
+        if len(schemes) > start_level:  # two or more passes over the photons: count them once
+            levels = [_resample(resampler, n, group_size, level) for level in range(start_level, len(schemes) + 1)]
+            grid.count_once(np.concatenate([np.r_[g.start, g.stop] for g in levels]), group_size, executor)
+        counted = time.perf_counter() - counted  # merge work: reported with the first level's merge
+        for level in range(start_level, len(schemes) + 1):
+            scheme, t0 = schemes[level - 1], time.perf_counter()
+            groups = _resample(resampler, n, group_size, level)
+            t1 = time.perf_counter()
+            task = LevelTask(level, grid.source, merger, groups, grid.inward(homographies), group_size, executor,
+                             keep_merged, grid.template_inward(template),
+                             next_template=level < len(schemes) and schemes[level].needs_template,
+                             progress=progress(f"level {level}: merge + locate", len(groups)) if progress else None)
+            located = grid.located_outward(scheme.locate(task))
+            t2 = time.perf_counter()
+            current = homographies[groups.reference]
+            keyframes, rejected = guard_keyframes(current, located.keyframes, source.width, source.height)
+            updated = _interpolate(interpolator, groups, current, keyframes, homographies, source, level)
+            homographies, template = _gauge(updated, homographies, located.template)
+            t3 = time.perf_counter()
+            first = counted if level == start_level else 0.0
+            timings = {"resample": t1 - t0, "merge": located.merge_s + first, "locate": t2 - t1 - located.merge_s,
+                       "interpolate": t3 - t2}
+            if on_level is not None:
+                on_level(LevelResult(level, scheme.name, groups, dataclasses.replace(located, template=template),
+                                     homographies, timings, rejected))
+        return homographies
+    finally:
+        grid.close()
 
 
 def _resample(resampler: Resampler, n: int, group_size: int, level: int) -> Groups:

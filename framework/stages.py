@@ -81,6 +81,10 @@ class PhotonSource(abc.ABC):
             linear intensities (conventional high-speed video, see
             :mod:`photonpano.intensity`) and :meth:`sum_ranges` returns (B, H, W)
             float32 sums of linear intensity. Mergers that only handle one kind check it.
+        frame_step: :meth:`sum_ranges` is cheapest for ranges whose edges are multiples
+            of this many frames (1: any range; a capture whose photons were counted in
+            blocks, see :class:`photonpano.binning.BinnedBlocks`); callers that choose
+            their ranges freely (sub-batches) put their edges there.
     """
 
     n_frames: int
@@ -93,6 +97,7 @@ class PhotonSource(abc.ABC):
     scene_pitch: float = 1.0
     name: str = ""
     kind: str = "binary"
+    frame_step: int = 1
 
     @abc.abstractmethod
     def sum_ranges(self, edges: NDArray[np.int64]) -> NDArray[np.uint16]:

@@ -18,7 +18,8 @@ __all__ = ["subbatch_edges", "WarpAccumulator", "merge_groups"]
 
 
 def subbatch_edges(homographies: NDArray[np.float64], width: int, height: int,
-                   tolerance_px: float, breaks: NDArray[np.int64] | None = None) -> NDArray[np.int64]:
+                   tolerance_px: float, breaks: NDArray[np.int64] | None = None, *, frame_step: int = 1,
+                   first_frame: int = 0) -> NDArray[np.int64]:
     """Split consecutive frames into sub-batches whose warps differ by < ``tolerance_px``.
 
     The split follows the path length of the warped frame corners: a sub-batch ends
@@ -32,6 +33,11 @@ def subbatch_edges(homographies: NDArray[np.float64], width: int, height: int,
         tolerance_px: largest corner travel within one sub-batch, in target pixels (> 0).
         breaks: frame indices in ``0..K`` where a sub-batch must end (e.g. group
             boundaries, so that the sub-batches of several overlapping groups are shared).
+        frame_step: other edges fall on capture frames that are multiples of this (a
+            source whose photons are counted in blocks of frames, see
+            :class:`photonpano.binning.BinnedBlocks`); a sub-batch then ends at the first
+            such frame after its corners travelled ``tolerance_px``.
+        first_frame: capture frame index of the first of the K frames.
 
     Returns:
         (B + 1,) int64 edges into ``0..K`` (``edges[0] == 0``, ``edges[-1] == K``),
@@ -54,7 +60,7 @@ def subbatch_edges(homographies: NDArray[np.float64], width: int, height: int,
     travelled = 0.0
     for i, s in enumerate(step.tolist(), start=1):  # K iterations of scalar work: cheap
         travelled += s
-        if travelled >= tolerance_px or forced[i]:
+        if forced[i] or (travelled >= tolerance_px and (first_frame + i) % frame_step == 0):
             edges.append(i)
             travelled = 0.0
     edges.append(k)
@@ -220,7 +226,8 @@ def merge_groups(source, homographies: NDArray[np.float64], starts: NDArray[np.i
     base = np.linalg.inv(homographies[int(references[0])])
     relative = base @ homographies[lo:hi]
     boundaries = np.unique(np.concatenate([starts, stops])) - lo
-    edges = subbatch_edges(relative, w, h, subbatch_px, breaks=boundaries)
+    edges = subbatch_edges(relative, w, h, subbatch_px, breaks=boundaries,
+                           frame_step=source.frame_step, first_frame=lo)
     counts = source.sum_ranges(lo + edges)
     middles = lo + (edges[:-1] + edges[1:]) // 2
     sizes = np.diff(edges)

@@ -120,3 +120,35 @@ def test_binned_levels_report_registrations_in_sensor_pixels(host):
     assert pairwise["pose_graph_residual_px"] < 0.5, pairwise
     # a mosaic registration is the correction of a keyframe: sub-pixel here, not scaled by the binning
     assert level_figures(results[1], stages.plan, source.width, source.height)["median_correction_px"] < 1.0
+
+
+def test_block_store_reads_back_what_counting_gives(tiny_capture):
+    """Photons counted once per block of frames equal the direct count of any range of whole blocks."""
+    from photonpano.binning import BinnedBlocks, BinnedSource
+    from photonpano.executor import ThreadExecutor
+
+    with ThreadExecutor(2) as executor:
+        blocks = BinnedBlocks(tiny_capture, 2, 20, executor, chunk_blocks=7)
+    try:
+        stored, direct = BinnedSource(tiny_capture, 2, blocks), BinnedSource(tiny_capture, 2)
+        assert stored.frame_step == 20 and blocks.n_blocks == 120
+        edges = np.array([40, 60, 200, 1000, 2400])
+        np.testing.assert_allclose(stored.sum_ranges(edges), direct.sum_ranges(edges), rtol=0, atol=1e-6)
+        # ranges off the block grid are counted from the capture
+        odd = np.array([5, 60, 75])
+        assert not blocks.covers(odd)
+        np.testing.assert_array_equal(stored.sum_ranges(odd), direct.sum_ranges(odd))
+        # it pickles as the capture and the binning, without this process's file
+        import pickle
+
+        assert pickle.loads(pickle.dumps(stored)).blocks is None
+    finally:
+        blocks.close()
+
+
+def test_block_size_holds_every_group_boundary():
+    from photonpano.binning import block_size
+
+    assert block_size(np.arange(0, 100001, 125), 500) == 25
+    assert block_size(np.arange(0, 6001, 85), 340) == 17
+    assert block_size(np.array([0, 92, 185, 370]), 370) == 1  # no grid: count directly
