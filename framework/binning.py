@@ -91,9 +91,10 @@ class BinnedBlocks:
     """Binned photon counts of consecutive blocks of frames, counted once and kept on disk.
 
     Every level merges (and the first mosaic template composites) the same photons
-    again. Binned k x k and summed over blocks of ``block`` frames, a capture shrinks
-    ``8 k^2 / 2`` times or more (254x496 binary frames bit-packed, k = 2, blocks of 25:
-    126 MB per 100 000 frames against 1.57 GB): counted once, in parallel, into an
+    again. Binned k x k and summed over blocks of ``block`` frames into one byte per
+    binned pixel, a bit-packed capture shrinks ``block k^2 / 8`` times (254x496 frames,
+    k = 2, blocks of 25: 126 MB per 100 000 frames against 1.57 GB): counted once, in
+    parallel, into an
     anonymous temporary file, any range of whole blocks is then read back and added in
     a fraction of a counting pass. Reads go through ordinary file reads (the page
     cache), not a memory map, so the process's resident memory does not grow with the
@@ -255,8 +256,9 @@ class RegistrationGrid:
     def count_once(self, boundaries: NDArray[np.int64], group_size: int, executor: Any) -> None:
         """Count the binned photons once for every level (:class:`BinnedBlocks`), where that pays.
 
-        Only with binning (a full-resolution store would be half the size of a packed
-        cube), binary frames, an executor of this process, and a block grid of at least
+        Only with binning (at full resolution, blocks of 25 frames would shrink a
+        packed cube only about three times), binary frames, an executor of this
+        process, and a block grid of at least
         4 frames that holds every group boundary (:func:`block_size`); otherwise, or if
         the temporary file cannot be written, every level counts from the capture.
 
