@@ -56,44 +56,60 @@ def _sum_packed_ranges(cube, edges, lanes, out):  # pragma: no cover - compiled
             t = stop
 
 
-def sum_packed_ranges(cube: NDArray[np.uint8], edges: NDArray[np.int64]) -> NDArray[np.uint16]:
+def sum_packed_ranges(cube: NDArray[np.uint8], edges: NDArray[np.int64],
+                      out: NDArray[np.uint16] | None = None) -> NDArray[np.uint16]:
     """Count photon detections of bit-packed binary frames over consecutive frame ranges.
 
     Args:
         cube: (T, H, W/8) uint8 bit-packed binary frames (MSB first); a memory map is
             fine, only the frames in ``edges[0]:edges[-1]`` are touched.
         edges: (B + 1,) increasing frame indices; range ``b`` is ``edges[b]:edges[b+1]``.
+        out: (B, H, W) uint16 C-contiguous counts to add to (e.g. the parts of the same
+            ranges counted from an earlier chunk of frames); None: start from zeros.
 
     Returns:
-        (B, H, W) uint16 detection counts per range (a range may hold at most 65535
-        frames).
+        (B, H, W) uint16 detection counts per range (``out`` if given; a range may hold
+        at most 65535 frames).
 
     Raises:
         ValueError: if the edges are not increasing, leave the cube or a range is too long.
     """
     edges = _check_edges(edges, len(cube))
-    out = np.zeros((len(edges) - 1, cube.shape[1], cube.shape[2] * 8), dtype=np.uint16)
+    shape = (len(edges) - 1, cube.shape[1], cube.shape[2] * 8)
+    if out is None:
+        out = np.zeros(shape, dtype=np.uint16)
+    elif out.shape != shape or out.dtype != np.uint16 or not out.flags.c_contiguous:
+        raise ValueError(f"out must be a C-contiguous uint16 array of shape {shape}")
     if len(edges) > 1:
         block = np.asarray(cube[edges[0]:edges[-1]])
         _sum_packed_ranges(block, edges - edges[0], _LANES, out)
     return out
 
 
-def sum_unpacked_ranges(frames: NDArray, edges: NDArray[np.int64]) -> NDArray[np.uint16]:
+def sum_unpacked_ranges(frames: NDArray, edges: NDArray[np.int64],
+                        out: NDArray[np.uint16] | None = None) -> NDArray[np.uint16]:
     """Count detections of unpacked (T, H, W) 0/1 binary frames over frame ranges.
 
     Args:
         frames: (T, H, W) uint8 or bool binary frames.
         edges: (B + 1,) increasing frame indices, as in :func:`sum_packed_ranges`.
+        out: (B, H, W) uint16 counts to add to, as in :func:`sum_packed_ranges`.
 
     Returns:
-        (B, H, W) uint16 detection counts per range.
+        (B, H, W) uint16 detection counts per range (``out`` if given).
     """
     edges = _check_edges(edges, len(frames))
-    out = np.empty((len(edges) - 1,) + frames.shape[1:], dtype=np.uint16)
+    sums = np.empty((len(edges) - 1,) + frames.shape[1:], dtype=np.uint16)
     for b in range(len(edges) - 1):
-        np.sum(frames[edges[b]:edges[b + 1]], axis=0, dtype=np.uint16, out=out[b])
+        np.sum(frames[edges[b]:edges[b + 1]], axis=0, dtype=np.uint16, out=sums[b])
+    if out is None:
+        return sums
+    out += sums
     return out
+
+
+sum_packed_ranges.adds_into_out = True  # type: ignore[attr-defined]
+sum_unpacked_ranges.adds_into_out = True  # type: ignore[attr-defined]
 
 
 def _check_edges(edges, n_frames: int) -> NDArray[np.int64]:

@@ -202,7 +202,10 @@ def sum_ranges_by_blocks(edges: NDArray[np.int64], n_frames: int,
         blocks: ``blocks(start, stop)`` yields ``(block_start, frames)`` for consecutive
             in-memory blocks covering frames ``start:stop``.
         count: ``count(block, local_edges) -> (b, *out_shape)`` sums a block over the
-            ranges ``local_edges`` (relative to the block's first frame).
+            ranges ``local_edges`` (relative to the block's first frame). A count
+            function with the attribute ``adds_into_out = True`` (e.g.
+            :func:`photonpano.photons.sum_packed_ranges`) is called with ``out=`` the
+            rows of its ranges instead, and adds into them: no second pass.
         out_shape: shape of one range's sum, e.g. ``(H, W)``.
         out_dtype: dtype of the sums.
 
@@ -220,11 +223,15 @@ def sum_ranges_by_blocks(edges: NDArray[np.int64], n_frames: int,
     out = np.zeros((max(len(edges) - 1, 0),) + tuple(out_shape), dtype=out_dtype)
     if len(edges) < 2:
         return out
+    adds = getattr(count, "adds_into_out", False)
     for pos, block in blocks(int(edges[0]), int(edges[-1])):
         end = pos + len(block)
         inner = edges[(edges > pos) & (edges < end)]
         local = np.concatenate([[pos], inner, [end]]).astype(np.int64)
-        pieces = count(block, local - pos)
-        # each piece is the part of one range that lies in this block
-        out[np.searchsorted(edges, local[:-1], side="right") - 1] += pieces
+        # each piece is the part of one range that lies in this block: consecutive ranges
+        first = int(np.searchsorted(edges, pos, side="right")) - 1
+        if adds:
+            count(block, local - pos, out=out[first:first + len(local) - 1])
+        else:
+            out[first:first + len(local) - 1] += count(block, local - pos)
     return out
