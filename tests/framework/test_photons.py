@@ -74,3 +74,20 @@ def test_tone_map_table_is_within_one_level_of_the_srgb_curve():
     image = tone_map(flux)
     assert image.dtype == np.uint8 and np.abs(image - exact).max() <= 1
     assert (image[:3] == 0).all() and image.max() == 255
+
+
+def test_counting_kernels_add_into_the_callers_rows():
+    """`out=` accumulates (the streaming loop's chunks add into the same ranges) and is checked."""
+    from photonpano.photons import sum_packed_ranges, sum_unpacked_ranges
+
+    rng = np.random.default_rng(3)
+    frames = (rng.random((40, 6, 16)) < 0.3).astype(np.uint8)
+    cube = np.packbits(frames, axis=-1)
+    edges = np.array([0, 10, 40])
+    expected = np.stack([frames[0:10].sum(0), frames[10:40].sum(0)]).astype(np.uint16)
+    for count, data in ((sum_packed_ranges, cube), (sum_unpacked_ranges, frames)):
+        out = np.full((2, 6, 16), 5, np.uint16)
+        assert count(data, edges, out=out) is out
+        np.testing.assert_array_equal(out, expected + 5)
+    with pytest.raises(ValueError, match="C-contiguous uint16"):
+        sum_packed_ranges(cube, edges, out=np.zeros((2, 6, 16), np.int32))
