@@ -152,3 +152,11 @@ def test_block_size_holds_every_group_boundary():
     assert block_size(np.arange(0, 100001, 125), 500) == 25
     assert block_size(np.arange(0, 6001, 85), 340) == 17
     assert block_size(np.array([0, 92, 185, 370]), 370) == 1  # no grid: count directly
+
+
+def test_bin_counts_does_not_overflow_long_ranges():
+    from photonpano.binning import bin_counts
+
+    counts = np.full((1, 4, 4), 60000, np.uint16)  # a range of 60 000 frames, every frame a detection
+    assert bin_counts(counts, 2, mean=False)[0, 0, 0] == 240000
+    assert bin_counts(counts, 2)[0, 0, 0] == 60000
