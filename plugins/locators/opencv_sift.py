@@ -34,7 +34,7 @@ class OpenCVSiftConfig(LocatorConfig):
     or 0.5 here with ``registration_binning: 1``) it detects at the sensor's own
     resolution, about 4x faster than full resolution; the first level only initialises
     the later levels' refinement against the panorama. For the finest keypoints (e.g.
-    with ``level_schemes: [pairwise]``) use ``registration_binning: 1`` and 1.0 here."""
+    with ``level_schemes: [pairwise]``) use ``registration_binning: 1`` and keep 1.0 here."""
     contrast_threshold: Annotated[float, Field(gt=0)] = 0.02
     """SIFT contrast threshold (OpenCV's default is 0.04; merged frames are low-contrast)."""
     ratio: Annotated[float, Field(gt=0, lt=1)] = 0.75
