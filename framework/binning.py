@@ -23,9 +23,9 @@ from numpy.typing import NDArray
 
 from . import geometry
 from .records import LocateResult, Panorama
-from .stages import PhotonSource
+from .stages import LocatorConfig, PhotonSource
 
-__all__ = ["BinnedSource", "BinnedBlocks", "RegistrationGrid", "bin_counts", "block_size",
+__all__ = ["BinnedSource", "BinnedBlocks", "RegistrationGrid", "bin_counts", "block_size", "in_merged_pixels",
            "auto_binning", "registration_binning", "MIN_BINNED_SIDE"]
 
 MIN_BINNED_SIDE = 100
@@ -59,6 +59,30 @@ def registration_binning(spec: Any, source: PhotonSource) -> int:
         raise StageError("spec", "registration_binning", f"binning {factor}x{factor} leaves frames of "
                          f"{source.height}x{source.width} pixels smaller than 16 pixels")
     return factor
+
+
+def in_merged_pixels(config: LocatorConfig, binning: int) -> LocatorConfig:
+    """A locator config with its lengths in sensor pixels turned into pixels of k x k binned merged frames.
+
+    Convention for every locator (:class:`~photonpano.stages.LocatorConfig`): a field
+    whose name ends in ``_px`` is a length in sensor pixels (an inlier threshold, a
+    largest correction, a border). Float lengths are divided by ``binning``, integer
+    ones rounded up; the framework builds locators from this copy.
+
+    Args:
+        config: the spec's locator config.
+        binning: sensor pixels per merged-frame pixel along each axis (>= 1).
+
+    Returns:
+        ``config`` itself when ``binning`` is 1, else an updated copy.
+    """
+    if binning == 1:
+        return config
+    update = {}
+    for name, value in config:
+        if name.endswith("_px") and isinstance(value, (int, float)) and not isinstance(value, bool):
+            update[name] = -(-value // binning) if isinstance(value, int) else value / binning
+    return config.model_copy(update=update)
 
 
 def bin_counts(counts: NDArray, factor: int, dtype: Any = np.float32, *, mean: bool = True) -> NDArray:
@@ -250,6 +274,7 @@ class RegistrationGrid:
         """Set up the grid of ``source`` binned ``factor`` x ``factor``."""
         self.factor = int(factor)
         self.source = source if self.factor == 1 else BinnedSource(source, self.factor)
+        self.blocks: BinnedBlocks | None = None
         self._to_binned = geometry.scale_matrix(1.0 / self.factor)
         self._to_sensor = np.linalg.inv(self._to_binned)
 
@@ -281,13 +306,13 @@ class RegistrationGrid:
             logging.getLogger(__name__).warning("counting photons per level: no room for the binned block "
                                                 "store (%s)", err)
             return
+        self.blocks = blocks
         self.source = BinnedSource(capture, self.factor, blocks)
 
     def close(self) -> None:
         """Delete the block store, if any."""
-        blocks = getattr(self.source, "blocks", None)
-        if blocks is not None:
-            blocks.close()
+        if self.blocks is not None:
+            self.blocks.close()
 
     def inward(self, homographies: NDArray[np.float64]) -> NDArray[np.float64]:
         """(..., 3, 3) frame-to-panorama homographies in sensor pixels -> binned pixels."""

@@ -82,14 +82,17 @@ def estimate_motion(source: PhotonSource, resampler: Resampler, merger: Merger, 
         raise ValueError(f"level 1 cannot use the {schemes[0].name} scheme: it refines an existing estimate")
     grid = RegistrationGrid(source, binning)
     try:
+        resampled = {}  # each level's groups and the time it took to re-sample them
+        for level in range(start_level, len(schemes) + 1):
+            t0 = time.perf_counter()
+            resampled[level] = _resample(resampler, n, group_size, level), time.perf_counter() - t0
         counted = time.perf_counter()
         if len(schemes) > start_level:  # two or more passes over the photons: count them once
-            levels = [_resample(resampler, n, group_size, level) for level in range(start_level, len(schemes) + 1)]
-            grid.count_once(np.concatenate([np.r_[g.start, g.stop] for g in levels]), group_size, executor)
+            boundaries = np.concatenate([np.r_[g.start, g.stop] for g, _ in resampled.values()])
+            grid.count_once(boundaries, group_size, executor)
         counted = time.perf_counter() - counted  # merge work: reported with the first level's merge
         for level in range(start_level, len(schemes) + 1):
-            scheme, t0 = schemes[level - 1], time.perf_counter()
-            groups = _resample(resampler, n, group_size, level)
+            scheme, (groups, resample_s) = schemes[level - 1], resampled[level]
             t1 = time.perf_counter()
             task = LevelTask(level, grid.source, merger, groups, grid.inward(homographies), group_size, executor,
                              keep_merged, grid.template_inward(template),
@@ -103,7 +106,7 @@ def estimate_motion(source: PhotonSource, resampler: Resampler, merger: Merger, 
             homographies, template = _gauge(updated, homographies, located.template)
             t3 = time.perf_counter()
             first = counted if level == start_level else 0.0
-            timings = {"resample": t1 - t0, "merge": located.merge_s + first, "locate": t2 - t1 - located.merge_s,
+            timings = {"resample": resample_s, "merge": located.merge_s + first, "locate": t2 - t1 - located.merge_s,
                        "interpolate": t3 - t2}
             if on_level is not None:
                 on_level(LevelResult(level, scheme.name, groups, dataclasses.replace(located, template=template),

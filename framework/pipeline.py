@@ -211,7 +211,7 @@ class Stages:
     def __init__(self, spec: BaseModel, source: PhotonSource) -> None:
         """Build every stage of ``spec`` for ``source``."""
         from .adaptive import plan_group_size
-        from .binning import registration_binning
+        from .binning import in_merged_pixels, registration_binning
         from .coarse import CascadeLocator
         from .schemes import MosaicScheme, PairwiseScheme
         from .spec import level_schemes
@@ -219,7 +219,7 @@ class Stages:
         self.spec, self.source = spec, source
         self.plan = plan_group_size(spec.group_size, source)
         self.binning = registration_binning(spec, source)
-        self.locator = spec.locator.in_merged_pixels(self.binning).build()
+        self.locator = in_merged_pixels(spec.locator, self.binning).build()
         if self.plan.auto:  # explicit group sizes keep the plain locator
             # the check bins sensor pixels in blocks of at least 2, counted in merged-frame pixels
             blocks = max(2, self.plan.binning) / self.binning
@@ -227,7 +227,7 @@ class Stages:
         self.resampler, self.merger = spec.resampler.build(), spec.merger.build()
         self.interpolator = spec.interpolator.build()
         built = {"pairwise": PairwiseScheme(self.locator, tuple(spec.pair_offsets)),
-                 "mosaic": MosaicScheme(spec.mosaic.locator.in_merged_pixels(self.binning).build,
+                 "mosaic": MosaicScheme(in_merged_pixels(spec.mosaic.locator, self.binning).build,
                                         spec.mosaic.template.build,
                                         subbatch_px=spec.mosaic.subbatch_px)}
         self.schemes = [built[name] for name in level_schemes(spec)]

@@ -178,32 +178,17 @@ class Merger(abc.ABC):
 
 
 class LocatorConfig(StageConfig):
-    """Config base of locators; ``build()`` returns a :class:`Locator`."""
+    """Config base of locators; ``build()`` returns a :class:`Locator`.
+
+    A field whose name ends in ``_px`` is a length in sensor pixels, whatever resolution
+    the merged frames are registered at: the framework builds the locator from a copy
+    in merged-frame pixels (:func:`photonpano.binning.in_merged_pixels`).
+    """
 
     stage: ClassVar[str] = "locator"
     template_defaults: ClassVar[dict[str, Any]] = {}
     """Settings suggested for registering against a low-noise panorama (the ``mosaic``
     scheme's locator starts from them; fields the spec gives win)."""
-
-    def in_merged_pixels(self, binning: int) -> LocatorConfig:
-        """This config with its lengths in sensor pixels turned into pixels of k x k binned merged frames.
-
-        Convention for every locator: a field whose name ends in ``_px`` is a length in
-        sensor pixels (an inlier threshold, a largest correction, a border), whatever
-        resolution the merged frames are registered at (``registration_binning``,
-        :mod:`photonpano.binning`). The framework builds locators from this copy: float
-        lengths are divided by ``binning``, integer ones rounded up.
-
-        Args:
-            binning: sensor pixels per merged-frame pixel along each axis (>= 1).
-        """
-        if binning == 1:
-            return self
-        update = {}
-        for name, value in self:
-            if name.endswith("_px") and isinstance(value, (int, float)) and not isinstance(value, bool):
-                update[name] = -(-value // binning) if isinstance(value, int) else value / binning
-        return self.model_copy(update=update)
 
 
 class Locator(abc.ABC):

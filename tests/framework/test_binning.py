@@ -59,15 +59,16 @@ def test_auto_binning_keeps_100_pixels_on_the_short_side():
 
 
 def test_locator_lengths_are_sensor_pixels_whatever_the_binning(host):
+    from photonpano.binning import in_merged_pixels
     from photonpano.spec import validate_spec
 
     spec = validate_spec({"source": "simulate", "locator": {"plugin": "opencv-sift", "reprojection_px": 1.5}}, host)
-    binned = spec.locator.in_merged_pixels(2)
+    binned = in_merged_pixels(spec.locator, 2)
     assert binned.reprojection_px == 0.75 and binned.ecc_max_change_px == 1.0
     assert binned.max_features == spec.locator.max_features  # not a length
-    assert spec.locator.in_merged_pixels(1) is spec.locator
-    orb = validate_spec({"source": "simulate", "locator": {"plugin": "opencv-orb", "border_px": 7}},
-                        host).locator.in_merged_pixels(2)
+    assert in_merged_pixels(spec.locator, 1) is spec.locator
+    orb = in_merged_pixels(validate_spec({"source": "simulate", "locator": {"plugin": "opencv-orb", "border_px": 7}},
+                                         host).locator, 2)
     assert orb.border_px == 4  # integers round up
 
 
