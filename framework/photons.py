@@ -202,6 +202,8 @@ def draw_binary_frames(out: NDArray[np.uint8], intensity: Callable[[int], NDArra
     import os
     from concurrent.futures import ThreadPoolExecutor
 
+    import cv2
+
     from .progress import start_task
 
     frames = len(out)
@@ -215,8 +217,14 @@ def draw_binary_frames(out: NDArray[np.uint8], intensity: Callable[[int], NDArra
 
     workers = max(1, min(os.cpu_count() or 1, frames // 1000))
     bounds = np.linspace(0, frames, workers * 4 + 1).astype(int)
-    with ThreadPoolExecutor(workers) as pool:
-        list(pool.map(render, bounds[:-1], bounds[1:]))
+    cv_threads = cv2.getNumThreads()
+    if workers > 1:  # OpenCV's own threads inside ours: 20 000 frames 7.7 -> 7.4 s on 2 cores
+        cv2.setNumThreads(1)
+    try:
+        with ThreadPoolExecutor(workers) as pool:
+            list(pool.map(render, bounds[:-1], bounds[1:]))
+    finally:
+        cv2.setNumThreads(cv_threads)
 
 
 def flux_mle(
