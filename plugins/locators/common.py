@@ -31,7 +31,7 @@ from pydantic import Field
 __all__ = ["Features", "PairResult", "FrameCache", "CachingLocator", "FeatureLocator", "PolishConfig",
            "frame_key", "to_registrations", "keypoint_mask", "ecc_image", "ecc_polish", "corner_change",
            "check_pairs", "MotionModel", "MOTION_PARAMETERS", "robust_method", "robust_motion", "gric",
-           "ratio_test_motion", "DirectLocator"]
+           "ratio_test_motion", "ratio_matches", "IntegralL2Matcher", "DirectLocator"]
 
 
 @dataclass(frozen=True)
@@ -558,7 +558,8 @@ def ratio_test_motion(matcher: Any, points_a: NDArray, descriptors_a: NDArray, p
     """Match descriptors of frame b to frame a, keep Lowe's ratio-test survivors, fit :func:`robust_motion`.
 
     Args:
-        matcher: an OpenCV ``DescriptorMatcher`` (e.g. ``cv2.BFMatcher``) for the descriptors.
+        matcher: an OpenCV ``DescriptorMatcher`` (e.g. ``cv2.BFMatcher``) for the
+            descriptors, or an :class:`IntegralL2Matcher` (see :func:`ratio_matches`).
         points_a: (Ka, 2) keypoints of frame a, pixels (photonpano's convention).
         descriptors_a: (Ka, D) their descriptors.
         points_b: (Kb, 2) keypoints of frame b.
@@ -572,11 +573,84 @@ def ratio_test_motion(matcher: Any, points_a: NDArray, descriptors_a: NDArray, p
     """
     if len(points_a) < 4 or len(points_b) < 4:
         return PairResult()
-    knn = matcher.knnMatch(descriptors_b, descriptors_a, k=2)
-    good = [p[0] for p in knn if len(p) == 2 and p[0].distance < config.ratio * p[1].distance]
-    if len(good) < max(4, config.min_inliers):
-        return PairResult(matches=len(good))
-    src = np.asarray(points_b, np.float32)[[m.queryIdx for m in good]]
-    dst = np.asarray(points_a, np.float32)[[m.trainIdx for m in good]]
+    query, train = ratio_matches(matcher, descriptors_b, descriptors_a, config.ratio)
+    if len(query) < max(4, config.min_inliers):
+        return PairResult(matches=len(query))
+    src = np.asarray(points_b, np.float32)[query]
+    dst = np.asarray(points_a, np.float32)[train]
     return robust_motion(src, dst, motion=config.motion, method=config.method, threshold_px=config.reprojection_px,
                          min_inliers=config.min_inliers, refine=config.refine != "none")
+
+
+def ratio_matches(matcher: Any, descriptors_query: NDArray, descriptors_train: NDArray,
+                  ratio: float) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+    """Lowe's ratio test: each query descriptor's nearest train descriptor, if clearly the nearest.
+
+    Lowe, "Distinctive image features from scale-invariant keypoints", IJCV 2004, Sec. 7.1:
+    a match is kept when its distance is below ``ratio`` times the second-nearest's.
+
+    Args:
+        matcher: an OpenCV ``DescriptorMatcher`` (its ``knnMatch`` with k = 2), or an
+            object with this function's signature as a ``ratio_matches`` method
+            (:class:`IntegralL2Matcher`).
+        descriptors_query: (Kq, D) descriptors of the query frame (frame b of a pair).
+        descriptors_train: (Kt, D) descriptors of the train frame (frame a).
+        ratio: the threshold, in (0, 1).
+
+    Returns:
+        ``(query, train)``: (M,) int64 indices of the kept matches, in query order.
+    """
+    if hasattr(matcher, "ratio_matches"):
+        return matcher.ratio_matches(descriptors_query, descriptors_train, ratio)
+    knn = matcher.knnMatch(descriptors_query, descriptors_train, k=2)
+    good = [p[0] for p in knn if len(p) == 2 and p[0].distance < ratio * p[1].distance]
+    return (np.array([m.queryIdx for m in good], np.int64).reshape(-1),
+            np.array([m.trainIdx for m in good], np.int64).reshape(-1))
+
+
+class IntegralL2Matcher:
+    """Brute-force L2 matching of integer-valued descriptors (OpenCV SIFT's) as one BLAS product.
+
+    OpenCV's SIFT descriptors are 128 integers in 0..255 stored as float32, so every
+    squared distance ``|q|^2 - 2 q.t + |t|^2`` and every partial sum of it is an integer
+    below 2**24, exact in float32 whatever order the matrix product sums in: the
+    distances, hence the ratio test's decisions, are those of
+    ``cv2.BFMatcher(cv2.NORM_L2)`` (a tie for the nearest fails the test either way), at
+    about a fifth of its time (300 x 300 SIFT descriptors: 0.32 against 1.7 ms on one
+    core). It assumes what :meth:`exact` checks (the caller checks each frame's
+    descriptors once, e.g. when describing it): other float32 descriptors would be
+    matched with rounded distances.
+
+    Run it with the BLAS limited to one thread inside a thread pool (the
+    :class:`~photonpano.executor.ThreadExecutor` does): OpenBLAS's own threads,
+    called from two threads at once, ran it 2.4x slower.
+    """
+
+    @staticmethod
+    def exact(descriptors: NDArray) -> bool:
+        """Whether the (K, D) float32 descriptors are integers whose squared distances are exact in float32."""
+        d = np.asarray(descriptors)
+        if d.ndim != 2 or d.dtype != np.float32 or not d.size:
+            return False
+        low, high = float(d.min()), float(d.max())
+        return low >= 0 and 2 * d.shape[1] * high * high < 2 ** 24 and bool(np.array_equal(d, np.rint(d)))
+
+    def ratio_matches(self, descriptors_query: NDArray, descriptors_train: NDArray,
+                      ratio: float) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+        """:func:`ratio_matches` for (Kq, D) and (Kt, D) float32 descriptors that are :meth:`exact`."""
+        q, t = np.asarray(descriptors_query, np.float32), np.asarray(descriptors_train, np.float32)
+        if len(t) < 2:  # knnMatch's rule: no second neighbour, no match
+            return np.zeros(0, np.int64), np.zeros(0, np.int64)
+        squared = q @ t.T
+        squared *= -2
+        squared += np.einsum("ij,ij->i", t, t)[None]
+        squared += np.einsum("ij,ij->i", q, q)[:, None]
+        rows = np.arange(len(q))
+        nearest = squared.argmin(axis=1)
+        first = squared[rows, nearest]
+        squared[rows, nearest] = np.inf
+        second = squared.min(axis=1)
+        # distances as OpenCV's (float32 square roots), compared in double as the knnMatch path is
+        keep = np.sqrt(first).astype(np.float64) < ratio * np.sqrt(second).astype(np.float64)
+        query = np.flatnonzero(keep)
+        return query, nearest[query].astype(np.int64)

@@ -16,7 +16,15 @@ from photonpano import hookimpl
 from photonpano.stages import LocatorConfig
 from pydantic import Field
 
-from .common import FeatureLocator, Features, MotionModel, PairResult, keypoint_mask, ratio_test_motion
+from .common import (
+    FeatureLocator,
+    Features,
+    IntegralL2Matcher,
+    MotionModel,
+    PairResult,
+    keypoint_mask,
+    ratio_test_motion,
+)
 
 __all__ = ["OpenCVSiftConfig", "OpenCVSiftLocator"]
 
@@ -87,6 +95,7 @@ class OpenCVSiftLocator(FeatureLocator):
         self._sift = cv2.SIFT_create(nfeatures=config.max_features,
                                      contrastThreshold=config.contrast_threshold)
         self._matcher = cv2.BFMatcher(cv2.NORM_L2)
+        self._exact_matcher = IntegralL2Matcher()
 
     def features(self, image: NDArray[np.uint8], mask: NDArray[np.bool_]):
         """Detect and describe SIFT keypoints of one merged frame.
@@ -116,9 +125,14 @@ class OpenCVSiftLocator(FeatureLocator):
 
     def describe(self, image: NDArray[np.uint8], mask: NDArray[np.bool_],
                  flux: NDArray[np.float32]) -> Features:
-        """Return :meth:`features` as :class:`Features` (``flux`` is unused)."""
+        """Return :meth:`features` as :class:`Features` (``flux`` is unused).
+
+        Whether the descriptors are integers that :class:`IntegralL2Matcher` matches
+        exactly (OpenCV's are) is checked here, once per frame.
+        """
         points, descriptors = self.features(image, mask)
-        return Features(points.astype(np.float64), descriptors, native=(points, descriptors))
+        return Features(points.astype(np.float64), descriptors,
+                        native=(points, descriptors, IntegralL2Matcher.exact(descriptors)))
 
     def match(self, feat_a, feat_b) -> PairResult:
         """Estimate the homography mapping frame b's pixels to frame a's.
@@ -131,12 +145,18 @@ class OpenCVSiftLocator(FeatureLocator):
         Returns:
             The pair's result; ``homography`` is (3, 3) float64.
         """
-        (pts_a, desc_a), (pts_b, desc_b) = _native(feat_a), _native(feat_b)
-        return ratio_test_motion(self._matcher, pts_a, desc_a, pts_b, desc_b, self.config)
+        (pts_a, desc_a, exact_a), (pts_b, desc_b, exact_b) = _native(feat_a), _native(feat_b)
+        # both frames' descriptors exact integers (checked by describe): the same matches, faster
+        matcher = self._exact_matcher if exact_a and exact_b else self._matcher
+        return ratio_test_motion(matcher, pts_a, desc_a, pts_b, desc_b, self.config)
 
 
 def _native(features):
-    return features.native if isinstance(features, Features) else features
+    """``(points, descriptors, exact)`` of :class:`Features` or of a :meth:`~OpenCVSiftLocator.features` tuple."""
+    if isinstance(features, Features):
+        return features.native
+    points, descriptors = features
+    return points, descriptors, False
 
 
 @hookimpl

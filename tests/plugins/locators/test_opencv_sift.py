@@ -38,3 +38,44 @@ def test_opencv_sift_flags_unrelated_frames_instead_of_raising():
     result = OpenCVSiftConfig().build().register_pairs(merged, np.array([[0, 1], [1, 2]]), np.stack([np.eye(3)] * 2))
     assert not result.ok.any()
     assert result.homographies.shape == (2, 3, 3)
+
+
+def test_blas_matcher_keeps_exactly_the_matches_of_opencvs_brute_force_matcher():
+    from photonpano.plugins.locators.common import IntegralL2Matcher, ratio_matches
+
+    source, target = cv2.imread(str(DATA / "source.png")), cv2.imread(str(DATA / "target.png"))
+    locator = OpenCVSiftConfig().build()
+    gray = [cv2.cvtColor(i, cv2.COLOR_BGR2GRAY) for i in (source, target)]
+    rng = np.random.default_rng(1)
+    noisy = [np.clip(g + rng.normal(0, 12, g.shape), 0, 255).astype(np.uint8) for g in gray]  # merged-frame noise
+    descriptors = [locator.features(image, np.ones(image.shape, bool))[1] for image in gray + noisy]
+    brute, blas = cv2.BFMatcher(cv2.NORM_L2), IntegralL2Matcher()
+    kept = 0
+    for i, train in enumerate(descriptors):
+        assert IntegralL2Matcher.exact(train) and len(train) > 100
+        for j, query in enumerate(descriptors):
+            if i != j:
+                for ratio in (0.6, 0.75, 0.9):
+                    expected, found = ratio_matches(brute, query, train, ratio), ratio_matches(blas, query, train, ratio)
+                    assert np.array_equal(expected[0], found[0]) and np.array_equal(expected[1], found[1])
+                    kept += len(found[0])
+    assert kept > 1000
+    # descriptors that are not small integers would lose the exactness: they are refused
+    assert not IntegralL2Matcher.exact(descriptors[0] + np.float32(0.5))
+    assert not IntegralL2Matcher.exact(descriptors[0] * np.float32(16))
+    assert not IntegralL2Matcher.exact(descriptors[0].astype(np.float64))
+
+
+def test_threaded_runs_keep_the_blas_to_one_thread_and_restore_it():
+    from photonpano.executor import ThreadExecutor
+    from threadpoolctl import threadpool_info
+
+    def blas_threads():
+        return [pool["num_threads"] for pool in threadpool_info() if pool["user_api"] == "blas"]
+
+    before = blas_threads()
+    assert before  # numpy's OpenBLAS is loaded
+    with ThreadExecutor(2) as executor:
+        inside = executor.map(lambda _: blas_threads(), range(2))
+    assert all(threads == 1 for pools in inside for threads in pools)
+    assert blas_threads() == before
