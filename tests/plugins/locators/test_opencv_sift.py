@@ -56,7 +56,8 @@ def test_blas_matcher_keeps_exactly_the_matches_of_opencvs_brute_force_matcher()
         for j, query in enumerate(descriptors):
             if i != j:
                 for ratio in (0.6, 0.75, 0.9):
-                    expected, found = ratio_matches(brute, query, train, ratio), ratio_matches(blas, query, train, ratio)
+                    expected = ratio_matches(brute, query, train, ratio)
+                    found = ratio_matches(blas, query, train, ratio)
                     assert np.array_equal(expected[0], found[0]) and np.array_equal(expected[1], found[1])
                     kept += len(found[0])
     assert kept > 1000
