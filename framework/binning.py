@@ -118,9 +118,8 @@ class BinnedBlocks:
     again. Binned k x k and summed over blocks of ``block`` frames into one byte per
     binned pixel, a bit-packed capture shrinks ``block k^2 / 8`` times (254x496 frames,
     k = 2, blocks of 25: 126 MB per 100 000 frames against 1.57 GB): counted once, in
-    parallel, into an
-    anonymous temporary file, any range of whole blocks is then read back and added in
-    a fraction of a counting pass. Reads go through ordinary file reads (the page
+    parallel, into an anonymous temporary file, any range of whole blocks is then read
+    back and added in a fraction of a counting pass. Reads go through ordinary file reads (the page
     cache), not a memory map, so the process's resident memory does not grow with the
     capture.
 
@@ -283,9 +282,9 @@ class RegistrationGrid:
 
         Only with binning (at full resolution, blocks of 25 frames would shrink a
         packed cube only about three times), binary frames, an executor of this
-        process, and a block grid of at least
-        4 frames that holds every group boundary (:func:`block_size`); otherwise, or if
-        the temporary file cannot be written, every level counts from the capture.
+        process, and a block grid of at least 4 frames that holds every group boundary
+        (:func:`block_size`); otherwise, or if the temporary file cannot be written,
+        every level counts from the capture.
 
         Args:
             boundaries: frame indices where the levels' groups start or stop.

@@ -86,11 +86,11 @@ def estimate_motion(source: PhotonSource, resampler: Resampler, merger: Merger, 
         for level in range(start_level, len(schemes) + 1):
             t0 = time.perf_counter()
             resampled[level] = _resample(resampler, n, group_size, level), time.perf_counter() - t0
-        counted = time.perf_counter()
+        t_count = time.perf_counter()
         if len(schemes) > start_level:  # two or more passes over the photons: count them once
             boundaries = np.concatenate([np.r_[g.start, g.stop] for g, _ in resampled.values()])
             grid.count_once(boundaries, group_size, executor)
-        counted = time.perf_counter() - counted  # merge work: reported with the first level's merge
+        count_s = time.perf_counter() - t_count  # merge work: reported with the first level's merge
         for level in range(start_level, len(schemes) + 1):
             scheme, (groups, resample_s) = schemes[level - 1], resampled[level]
             t1 = time.perf_counter()
@@ -105,7 +105,7 @@ def estimate_motion(source: PhotonSource, resampler: Resampler, merger: Merger, 
             updated = _interpolate(interpolator, groups, current, keyframes, homographies, source, level)
             homographies, template = _gauge(updated, homographies, located.template)
             t3 = time.perf_counter()
-            first = counted if level == start_level else 0.0
+            first = count_s if level == start_level else 0.0
             timings = {"resample": resample_s, "merge": located.merge_s + first, "locate": t2 - t1 - located.merge_s,
                        "interpolate": t3 - t2}
             if on_level is not None:
