@@ -22,6 +22,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from . import geometry
+from .jit import cached_njit
 from .records import LocateResult, Panorama
 from .stages import LocatorConfig, PhotonSource
 
@@ -111,6 +112,21 @@ def bin_counts(counts: NDArray, factor: int, dtype: Any = np.float32, *, mean: b
     return out
 
 
+@cached_njit(nogil=True)
+def _sum_block_ranges(stored, starts, scale, out):  # pragma: no cover - compiled
+    for r in range(len(starts) - 1):
+        total = out[r]
+        first = stored[starts[r]]
+        for i in range(first.size):
+            total[i] = first[i]
+        for b in range(starts[r] + 1, starts[r + 1]):
+            block = stored[b]
+            for i in range(block.size):
+                total[i] += block[i]
+        for i in range(total.size):
+            total[i] *= scale
+
+
 class BinnedBlocks:
     """Binned photon counts of consecutive blocks of frames, counted once and kept on disk.
 
@@ -171,9 +187,11 @@ class BinnedBlocks:
         blocks = np.asarray(edges, np.int64) // self.block
         first, last = int(blocks[0]), int(blocks[-1])
         raw = os.pread(self._file.fileno(), (last - first) * self._block_bytes, first * self._block_bytes)
-        stored = np.frombuffer(raw, self.dtype).reshape(last - first, self.height, self.width)
-        sums = np.add.reduceat(stored, blocks[:-1] - first, axis=0, dtype=np.float32)
-        sums *= np.float32(1.0 / self.factor ** 2)
+        stored = np.frombuffer(raw, self.dtype).reshape(last - first, self.height * self.width)
+        # sequential float32 sums of integer counts < 2^24: exact; 10-30x faster than np.add.reduceat's cast
+        sums = np.empty((len(blocks) - 1, self.height, self.width), np.float32)
+        _sum_block_ranges(stored, blocks - first, np.float32(1.0 / self.factor ** 2),
+                          sums.reshape(len(blocks) - 1, -1))
         return sums
 
     def close(self) -> None:
