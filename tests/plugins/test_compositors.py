@@ -177,6 +177,25 @@ def test_square_drops_match_their_overlap_areas(scale, pixfrac):
     np.testing.assert_allclose(acc, expected, rtol=1e-4, atol=1e-3)
 
 
+def test_drops_just_over_a_canvas_pixel_are_one_canvas_pixel():
+    """Drops within SIDE_TOLERANCE of a canvas pixel are one canvas pixel: within the excess of the exact drop."""
+    from photonpano.plugins.compositors._splat import SIDE_TOLERANCE, splat_square
+
+    rng = np.random.default_rng(5)
+    counts = rng.integers(0, 40, (2, 9, 12)).astype(np.uint16)
+    n_frames, weights, shape = np.array([7, 9]), np.ones((9, 12), np.float32), (14, 17)
+    homographies = np.array([[[1, 0, 1.3], [0, 1, 2.6], [0, 0, 1]], [[1, 0, 3.45], [0, 1, 0.7], [0, 0, 1]]], float)
+    excess = SIDE_TOLERANCE / 2
+    out = {}
+    for pixfrac in (1.0, 1.0 + excess):
+        out[pixfrac] = np.zeros((*shape, 2), np.float32)
+        splat_square(counts, n_frames, homographies, weights, out[pixfrac], pixfrac)
+    np.testing.assert_array_equal(out[1.0], out[1.0 + excess])
+    exact = _square_drops_reference(counts, n_frames, homographies, weights, shape, 1.0 + excess)
+    # each weight moves by at most the excess, and a canvas pixel takes at most 4 drops per image
+    assert np.abs(out[1.0][..., 0] - exact[..., 0]).max() <= 4 * excess * 2 * counts.max()
+
+
 def test_point_drops_land_in_the_pixel_of_their_centre():
     """Point drops add each count to the canvas pixel whose square holds the centre."""
     from photonpano import geometry
