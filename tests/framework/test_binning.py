@@ -14,6 +14,11 @@ def test_bin_counts_is_the_mean_of_each_block_and_drops_the_remainder():
     assert binned.shape == (2, 2, 3) and binned.dtype == np.float32
     expected = counts[:, :4, :6].reshape(2, 2, 2, 3, 2).mean(axis=(2, 4))
     np.testing.assert_allclose(binned, expected)
+    # integer block sums (the block store's compiled 2x2 path, and the general one)
+    for factor in (2, 3):
+        h, w = 5 // factor * factor, 7 // factor * factor
+        sums = counts[:, :h, :w].reshape(2, h // factor, factor, w // factor, factor).sum(axis=(2, 4))
+        np.testing.assert_array_equal(bin_counts(counts, factor, np.uint16, mean=False), sums)
 
 
 def test_binned_source_keeps_the_detection_probability(tiny_capture):
