@@ -52,7 +52,7 @@ def _row_inside(m, y, w, off, hi_u, hi_v):
     return True
 
 
-@cached_njit(nogil=True, fastmath=True, error_model="numpy")  # no ZeroDivisionError branch: vectorises
+@cached_njit(nogil=True, fastmath=True, error_model="numpy")
 def _row_cells(m, y, off, side, xs, js, is_, axs, ays):
     """Cells and weights of the drops of frame row ``y``, for rows :func:`_row_inside`.
 
@@ -62,7 +62,10 @@ def _row_cells(m, y, off, side, xs, js, is_, axs, ays):
     left (top) edge is at ``u + off`` (``v + off``) that fall in column ``j`` (row ``i``).
     ``m`` is (3, 3) float32 and ``y`` a float32 (an integer row index would promote the
     loop to float64, half as fast); a branch-free loop the compiler vectorises (valid
-    where ``u + off, v + off >= 0``: truncation is the floor there).
+    where ``u + off, v + off >= 0``: truncation is the floor there). Compiled with
+    numpy's error model (a division by zero gives inf instead of raising, which keeps a
+    branch out of the loop): the row's ends lie on the canvas, so its denominators,
+    linear along the row, have no zero.
     """
     # the matrix in scalars: the loop's stores could alias ``m``, which would stop vectorisation
     a00, a10, a20 = m[0, 0], m[1, 0], m[2, 0]
