@@ -90,8 +90,9 @@ def splat_point(counts, n_frames, homographies, weights, acc):
         n_frames: (B,) int64 frames behind each count image.
         homographies: (B, 3, 3) float64 frame-to-canvas homographies.
         weights: (H, W) float32 weight of each frame pixel (0 skips it).
-        acc: (Hc, Wc, 2) float32 accumulated counts (``[..., 0]``) and frames
-            (``[..., 1]``), updated in place (interleaved: one cache line for both).
+        acc: (Hc, Wc, 2) float32 C-contiguous accumulated counts (``[..., 0]``) and
+            frames (``[..., 1]``), updated in place (interleaved: one cache line for
+            both; :func:`splat_square` adds through its flat view).
     """
     nb, h, w = counts.shape
     hc, wc = acc.shape[0], acc.shape[1]
