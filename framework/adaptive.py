@@ -28,6 +28,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from .jit import cached_njit
+
 __all__ = ["CaptureProbe", "GroupPlan", "probe_capture", "choose_group_size", "plan_group_size",
            "binned_image", "normalised_correlation"]
 
@@ -118,13 +120,45 @@ def binned_image(image: NDArray[np.floating], factor: int, mask: NDArray[np.bool
 
 def normalised_correlation(a: NDArray[np.floating], b: NDArray[np.floating],
                            valid: NDArray[np.bool_]) -> float:
-    """Pearson correlation of two images over ``valid`` pixels (0 with fewer than 16)."""
-    if int(valid.sum()) < 16:
+    """Pearson correlation of two images over ``valid`` pixels (0 with fewer than 16).
+
+    Args:
+        a: (H, W) float32 or float64 image.
+        b: (H, W) image of the same shape and dtype.
+        valid: (H, W) bool pixels to compare.
+
+    Returns:
+        The correlation in [-1, 1], computed in float64 in two passes (means, then
+        centred products), in one compiled loop that releases the GIL: the check of
+        every level-1 pair calls this (0.36 ms per 127x248 pair in numpy, mostly
+        masked copies held under the GIL).
+    """
+    a, b = np.ascontiguousarray(a), np.ascontiguousarray(b, dtype=np.asarray(a).dtype)
+    if a.dtype not in (np.float32, np.float64):
+        a, b = a.astype(np.float64), b.astype(np.float64)
+    return float(_masked_correlation(a.reshape(-1), b.reshape(-1), np.ascontiguousarray(valid).reshape(-1)))
+
+
+@cached_njit(nogil=True)
+def _masked_correlation(a, b, valid):  # pragma: no cover - compiled
+    n, sum_a, sum_b = 0, 0.0, 0.0
+    for i in range(a.size):
+        if valid[i]:
+            n += 1
+            sum_a += a[i]
+            sum_b += b[i]
+    if n < 16:
         return 0.0
-    x, y = a[valid].astype(np.float64), b[valid].astype(np.float64)
-    x, y = x - x.mean(), y - y.mean()
-    denominator = math.sqrt(float((x * x).sum() * (y * y).sum()))
-    return float((x * y).sum() / denominator) if denominator > 0 else 0.0
+    mean_a, mean_b = sum_a / n, sum_b / n
+    aa, bb, ab = 0.0, 0.0, 0.0
+    for i in range(a.size):
+        if valid[i]:
+            x, y = a[i] - mean_a, b[i] - mean_b
+            aa += x * x
+            bb += y * y
+            ab += x * y
+    denominator = math.sqrt(aa * bb)
+    return ab / denominator if denominator > 0 else 0.0
 
 
 def _shift_and_correlation(a: NDArray[np.float32], b: NDArray[np.float32]

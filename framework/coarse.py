@@ -169,35 +169,47 @@ class CascadeLocator(Locator):
 
     def register_pairs(self, merged: MergedFrames, pairs: NDArray[np.int64],
                        initial: NDArray[np.float64]) -> PairRegistrations:
-        """Register with the primary locator, then check and rescue on binned frames (see the module)."""
+        """Register with the primary locator, then check and rescue on binned frames (see the module).
+
+        The binned frames, then the pairs' checks and rescues, run on the executor's
+        threads (OpenCV and the compiled correlation release the GIL); a Dask
+        executor's tasks would ship the frames to other processes, so there they run
+        here, one after another.
+        """
+        from .executor import SerialExecutor
+
         found = self.primary.register_pairs(merged, pairs, initial)
-        homographies, inliers, ok = found.homographies.copy(), found.inliers.copy(), found.ok.copy()
-        cache: dict[int, tuple[NDArray, NDArray]] = {}
+        executor = self.executor if getattr(self.executor, "in_process", False) else SerialExecutor()
+        frames = [int(i) for i in np.unique(pairs)]
+        binned = dict(zip(frames, executor.map(
+            lambda i: binned_frame(merged.flux[i], merged.masks[i], self.factor), frames)))
 
-        def frame(i: int) -> tuple[NDArray, NDArray]:
-            if i not in cache:
-                cache[i] = binned_frame(merged.flux[i], merged.masks[i], self.factor)
-            return cache[i]
-
-        stats = self._stats
-        for p, (i, j) in enumerate(pairs):
-            a, b = frame(int(i)), frame(int(j))
+        def check(p: int) -> tuple[NDArray[np.float64], int, bool, float, bool]:
+            """Pair p's (homography, inliers, ok, correlation, rescued)."""
+            a, b = binned[int(pairs[p, 0])], binned[int(pairs[p, 1])]
             need = self.min_overlap * max(int(b[1].sum()), 1)
-            cc = -1.0
-            if ok[p]:
-                stats["checked"] += 1
-                cc, overlap = warped_correlation(a, b, homographies[p], self.factor)
-                if cc < self.min_correlation or overlap < need:
-                    ok[p] = False
-                    stats["rejected_by_check"] += 1
-            if not ok[p]:
-                h, cc, overlap = register_binned(a, b, initial[p], self.factor)
+            homography, inliers = found.homographies[p], int(found.inliers[p])
+            if found.ok[p]:
+                cc, overlap = warped_correlation(a, b, homography, self.factor)
                 if cc >= self.min_correlation and overlap >= need:
-                    homographies[p], ok[p] = h, True
-                    inliers[p] = max(8, int(round(100 * cc ** 2)))
-                    stats["rescued"] += 1
-            stats["correlations"].append(cc)
-        return PairRegistrations(homographies, found.matches, inliers, ok)
+                    return homography, inliers, True, cc, False
+            h, cc, overlap = register_binned(a, b, initial[p], self.factor)
+            if cc >= self.min_correlation and overlap >= need:
+                return h, max(8, int(round(100 * cc ** 2))), True, cc, True
+            return homography, inliers, False, cc, False
+
+        checked = executor.map(check, range(len(pairs)))
+        if not checked:
+            return found
+        ok = np.array([c[2] for c in checked], bool)
+        rescued = np.array([c[4] for c in checked], bool)
+        stats = self._stats
+        stats["checked"] += int(found.ok.sum())
+        stats["rejected_by_check"] += int((found.ok & ~(ok & ~rescued)).sum())
+        stats["rescued"] += int(rescued.sum())
+        stats["correlations"].extend(c[3] for c in checked)
+        return PairRegistrations(np.stack([c[0] for c in checked]), found.matches,
+                                 np.array([c[1] for c in checked], found.inliers.dtype), ok)
 
     def take_statistics(self) -> dict[str, Any]:
         """Return the check's figures since the last call (JSON-ready) and reset them.

