@@ -3,7 +3,8 @@
 Consecutive registrations are chained into keyframe homographies
 (:func:`chain_keyframes`); with longer-offset pairs the keyframes are solved jointly
 (:func:`refine_keyframes`), a robust Levenberg-Marquardt over the eight homography
-parameters (:func:`robust_least_squares`) with a banded normal-equation solve.
+parameters (:func:`robust_least_squares`) with normal equations assembled pair by pair
+(:class:`PairJacobian`) and a banded solve (:class:`NormalMatrix`).
 """
 
 from __future__ import annotations
@@ -17,7 +18,8 @@ from . import geometry
 from .errors import StageError
 from .records import PairRegistrations
 
-__all__ = ["chain_keyframes", "refine_keyframes", "robust_least_squares", "pairs_at_offsets", "corner_disagreement"]
+__all__ = ["chain_keyframes", "refine_keyframes", "robust_least_squares", "PairJacobian", "NormalMatrix",
+           "pairs_at_offsets", "corner_disagreement"]
 
 
 def chain_keyframes(current: NDArray[np.float64], pairs: PairRegistrations) -> NDArray[np.float64]:
@@ -81,8 +83,6 @@ def refine_keyframes(initial: NDArray[np.float64], pair_index: NDArray[np.int64]
     Returns:
         (G, 3, 3) float64 refined keyframe homographies.
     """
-    from scipy.sparse import csr_matrix
-
     g = len(initial)
     use = pairs.ok & (pair_index[:, 0] != pair_index[:, 1])
     if g < 2 or not use.any():
@@ -96,7 +96,6 @@ def refine_keyframes(initial: NDArray[np.float64], pair_index: NDArray[np.int64]
     # Each keyframe is solved as a small update of its starting value, K_g = initial_g @ H(d_g):
     # the 8 parameters of d_g are all of order 1e-3 and well conditioned, whereas the
     # absolute parameters of keyframes far along a pan (hundreds of pixels) are not.
-    rows = np.arange(e * 18).reshape(e, 9, 2)
     points_b = np.broadcast_to(grid, (e, 9, 2))
 
     def project(k: NDArray[np.float64], points: NDArray[np.float64]):
@@ -114,10 +113,10 @@ def refine_keyframes(initial: NDArray[np.float64], pair_index: NDArray[np.int64]
 
     def point_jacobian(k: NDArray[np.float64], q: NDArray[np.float64]):
         """Map (E, 9, 2) points q by fixed (E, 3, 3) homographies; return them and d(out)/d(q)."""
-        qh = np.concatenate([q, np.ones(q.shape[:-1] + (1,))], axis=-1)
-        out = np.einsum("eij,epj->epi", k, qh)
-        u = out[..., :2] / out[..., 2:3]
-        jac = (k[:, None, :2, :2] - u[..., :, None] * k[:, None, 2:3, :2]) / out[..., 2:3, None]
+        out = q @ k[:, :2, :2].swapaxes(-1, -2) + k[:, None, :2, 2]  # (E, 9, 2) numerators
+        d = q @ k[:, 2, :2, None] + k[:, None, 2, 2:3]  # (E, 9, 1) denominators
+        u = out / d
+        jac = (k[:, None, :2, :2] - u[..., :, None] * k[:, None, 2:3, :2]) / d[..., None]
         return u, jac  # (E, 9, 2), (E, 9, 2, 2)
 
     def updates(free: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -139,23 +138,131 @@ def refine_keyframes(initial: NDArray[np.float64], pair_index: NDArray[np.int64]
         w = geometry.apply(np.linalg.inv(update[a]), z)     # undo frame a's update
         _, dh = project(update[a], w)                       # d proj(H_a w) / d(params of a)
         _, jw = point_jacobian(update[a], w)                # d proj(H_a w) / dw
-        jw_inv = np.linalg.inv(jw)
-        # H_a w = z: dw/dparams_a = -inv(jw) dh; dw/dz = inv(jw)
+        # H_a w = z: dw/dparams_a = -inv(jw) dh; dw/dz = inv(jw) (2x2 inverses in closed form)
+        det = jw[..., 0, 0] * jw[..., 1, 1] - jw[..., 0, 1] * jw[..., 1, 0]
+        jw_inv = np.stack([np.stack([jw[..., 1, 1], -jw[..., 0, 1]], -1),
+                           np.stack([-jw[..., 1, 0], jw[..., 0, 0]], -1)], -2) / det[..., None, None]
         residual = mapped - w
-        ja = np.einsum("epij,epjk->epik", jw_inv, dh)
-        jb = -np.einsum("epij,epjk,epkl->epil", jw_inv, dz, dy)
-        return residual, ja, -jb
+        return residual, jw_inv @ dh, -(jw_inv @ dz @ dy)  # d residual / d(params of a), (of b)
 
-    def linearise(free: NDArray[np.float64]) -> tuple[NDArray[np.float64], csr_matrix]:
+    def linearise(free: NDArray[np.float64]) -> tuple[NDArray[np.float64], PairJacobian]:
         residual, ja, jb = evaluate(free)
-        blocks = [(ja * weight[..., None], a), (-jb * weight[..., None], b)]
-        r = np.concatenate([np.repeat(rows[idx > 0].reshape(-1), 8) for _, idx in blocks])
-        c = np.concatenate([(8 * (idx[idx > 0] - 1))[:, None, None, None] + np.arange(8)
-                            + np.zeros((1, 9, 2, 1), np.int64) for _, idx in blocks]).reshape(-1)
-        v = np.concatenate([jac[idx > 0].reshape(-1) for jac, idx in blocks])
-        return (residual * weight).ravel(), csr_matrix((v, (r, c)), shape=(e * 18, (g - 1) * 8))
+        return (residual * weight).ravel(), PairJacobian((ja * weight[..., None]).reshape(e, 18, 8),
+                                                          (jb * weight[..., None]).reshape(e, 18, 8), a - 1, b - 1,
+                                                          g - 1)
 
     return initial @ updates(robust_least_squares(linearise, np.zeros((g - 1) * 8)))
+
+
+class PairJacobian:
+    """The Jacobian of a pose graph's residuals: each pair's residuals depend on two blocks of unknowns.
+
+    Pair e's R residuals depend on the D unknowns of block ``first_block[e]`` (columns
+    ``D * block .. D * block + D - 1``) through ``first[e]`` and on those of
+    ``second_block[e]`` through ``second[e]``; block -1 is held fixed (it has no
+    columns). Its normal equations are assembled block by block, without a sparse
+    matrix product (:meth:`normal_equations`).
+
+    Args:
+        first: (E, R, D) float64 derivatives by the first block's unknowns.
+        second: (E, R, D) float64 derivatives by the second block's unknowns.
+        first_block: (E,) int64 block of each pair's first derivatives (-1: fixed).
+        second_block: (E,) int64 block of each pair's second derivatives (-1: fixed).
+        n_blocks: number of blocks; the unknowns are ``n_blocks * D``.
+    """
+
+    def __init__(self, first: NDArray[np.float64], second: NDArray[np.float64], first_block: NDArray[np.int64],
+                 second_block: NDArray[np.int64], n_blocks: int) -> None:
+        self.first, self.second = first, second
+        self.first_block, self.second_block = np.asarray(first_block), np.asarray(second_block)
+        self.n_blocks = int(n_blocks)
+
+    def normal_equations(self, weights: NDArray[np.float64], residual: NDArray[np.float64]
+                         ) -> tuple[NormalMatrix, NDArray[np.float64]]:
+        """``J^T W J`` and ``J^T W r`` for residual weights ``W = diag(weights)``.
+
+        Args:
+            weights: (E * R,) float64 weight of each residual (pair-major, as ``residual``).
+            residual: (E * R,) float64 residuals.
+
+        Returns:
+            ``(normal, gradient)``: the (N, N) :class:`NormalMatrix` and the (N,) float64
+            gradient, N = ``n_blocks * D``.
+        """
+        e, r, d = self.first.shape
+        n = self.n_blocks * d
+        w = weights.reshape(e, r)
+        wr = w * residual.reshape(e, r)
+        columns = np.arange(d)
+        sides = ((self.first, self.first_block), (self.second, self.second_block))
+        gradient = np.zeros(n)
+        for jac, block in sides:
+            keep = block >= 0
+            index = (d * block[keep])[:, None] + columns
+            gradient += np.bincount(index.ravel(), np.einsum("erd,er->ed", jac[keep], wr[keep]).ravel(), minlength=n)
+        rows, cols, values = [], [], []
+        for left, row_block in sides:
+            weighted = left * w[..., None]
+            for right, col_block in sides:
+                keep = (row_block >= 0) & (col_block >= 0) & (row_block <= col_block)
+                product = weighted[keep].swapaxes(1, 2) @ right[keep]  # (K, D, D)
+                rows.append(np.broadcast_to((d * row_block[keep])[:, None, None] + columns[:, None], product.shape))
+                cols.append(np.broadcast_to((d * col_block[keep])[:, None, None] + columns, product.shape))
+                values.append(product)
+        flat = [np.concatenate([x.reshape(-1) for x in part]) for part in (rows, cols, values)]
+        return NormalMatrix(*flat, n), gradient
+
+
+class NormalMatrix:
+    """A symmetric positive definite (N, N) matrix given by entries on and above its diagonal.
+
+    Entries may repeat (they are summed). Pose graphs order their unknowns in time and
+    pair frames a bounded offset apart, so the matrix is banded: it is stored in LAPACK's
+    upper band form and solved by banded Cholesky (``solveh_banded``, ``N u^2`` for
+    bandwidth u), several times faster than a general sparse LU; wider bands (loop
+    closures) fall back to SuperLU.
+
+    Args:
+        rows: (K,) int64 row of each entry.
+        cols: (K,) int64 column of each entry (entries below the diagonal are ignored).
+        values: (K,) float64 values.
+        n: matrix size N.
+        max_band_bytes: largest band storage; wider bands are kept sparse.
+
+    Attributes:
+        diagonal: (N,) float64 diagonal.
+    """
+
+    def __init__(self, rows: NDArray[np.int64], cols: NDArray[np.int64], values: NDArray[np.float64], n: int,
+                 max_band_bytes: float = 2 ** 28) -> None:
+        upper = cols >= rows
+        self.rows, self.cols, self.values, self.n = rows[upper], cols[upper], values[upper], int(n)
+        on = self.rows == self.cols
+        self.diagonal = np.bincount(self.rows[on], self.values[on], minlength=self.n)
+        self.band = int((self.cols - self.rows).max(initial=0))
+        self._ab = None
+        if (self.band + 1) * self.n * 8 <= max_band_bytes:
+            index = (self.band + self.rows - self.cols) * self.n + self.cols
+            self._ab = np.bincount(index, self.values, minlength=(self.band + 1) * self.n).reshape(-1, self.n)
+
+    def solve(self, damping: NDArray[np.float64], rhs: NDArray[np.float64]) -> NDArray[np.float64]:
+        """Solve ``(A + diag(damping)) x = rhs`` for (N,) float64 ``x``."""
+        from scipy.linalg import LinAlgError, solveh_banded
+        from scipy.sparse import coo_matrix, diags
+        from scipy.sparse.linalg import spsolve
+
+        if self._ab is not None:
+            ab = self._ab.copy()
+            ab[self.band] += damping
+            try:
+                return solveh_banded(ab, rhs, check_finite=False)
+            except LinAlgError:
+                pass
+        off = self.rows != self.cols
+        full = coo_matrix((np.concatenate([self.values, self.values[off]]),
+                           (np.concatenate([self.rows, self.cols[off]]), np.concatenate([self.cols, self.rows[off]]))),
+                          shape=(self.n, self.n))
+        return spsolve((full + diags(damping)).tocsc(), rhs)
 
 
 def robust_least_squares(linearise: Callable[[NDArray[np.float64]], tuple[NDArray[np.float64], Any]],
@@ -167,14 +274,14 @@ def robust_least_squares(linearise: Callable[[NDArray[np.float64]], tuple[NDArra
     iteratively reweighted least squares: each step solves the damped, reweighted normal
     equations ``(J^T W J + lambda diag(J^T W J)) dx = -J^T W r`` with
     ``W = diag(1 / sqrt(1 + r^2 / f^2))`` by a direct factorisation
-    (:func:`_solve_normal_equations`: banded Cholesky, else SuperLU). For pose graphs,
-    whose normal matrix is banded, this is 3-4x faster than scipy's ``least_squares``
-    with ``lsmr`` (which it replaced) and linear in the number of keyframes. Reference:
+    (:class:`NormalMatrix`: banded Cholesky, else SuperLU). For pose graphs, whose
+    normal matrix is banded, this is 3-4x faster than scipy's ``least_squares`` with
+    ``lsmr`` (which it replaced) and linear in the number of keyframes. Reference:
     Triggs et al., "Bundle Adjustment - A Modern Synthesis", 2000, Secs. 4.3 and 6.
 
     Args:
         linearise: ``linearise(x)`` returns the residuals ((R,) float64) and their
-            (R, N) sparse Jacobian at ``x``.
+            Jacobian at ``x``: an (R, N) scipy sparse matrix, or a :class:`PairJacobian`.
         x0: (N,) float64 start.
         f_scale: residual scale of the loss (residuals' units); beyond it residuals are
             progressively down-weighted.
@@ -187,16 +294,21 @@ def robust_least_squares(linearise: Callable[[NDArray[np.float64]], tuple[NDArra
     def loss(res: NDArray[np.float64]) -> float:
         return float(np.sum(2 * f_scale ** 2 * (np.sqrt(1 + (res / f_scale) ** 2) - 1)))
 
+    def normal_equations(jacobian: Any, w: NDArray[np.float64]) -> tuple[NormalMatrix, NDArray[np.float64]]:
+        if isinstance(jacobian, PairJacobian):
+            return jacobian.normal_equations(w, residual)
+        weighted = jacobian.T.multiply(w).tocsr()
+        normal = (weighted @ jacobian).tocoo()
+        return NormalMatrix(normal.row, normal.col, normal.data, len(x)), weighted @ residual
+
     x = np.asarray(x0, np.float64)
     residual, jacobian = linearise(x)
     cost, damping = loss(residual), 1e-3
     for _ in range(max_iterations):
-        w = 1 / np.sqrt(1 + (residual / f_scale) ** 2)
-        weighted = jacobian.T.multiply(w).tocsr()
-        normal, gradient = (weighted @ jacobian).tocoo(), weighted @ residual
-        scale = np.maximum(normal.diagonal(), 1e-12)
+        normal, gradient = normal_equations(jacobian, 1 / np.sqrt(1 + (residual / f_scale) ** 2))
+        scale = np.maximum(normal.diagonal, 1e-12)
         while True:
-            step = -_solve_normal_equations(normal, damping * scale, gradient)
+            step = -normal.solve(damping * scale, gradient)
             trial = x + step
             trial_residual, trial_jacobian = linearise(trial)
             trial_cost = loss(trial_residual)
@@ -212,33 +324,6 @@ def robust_least_squares(linearise: Callable[[NDArray[np.float64]], tuple[NDArra
         if converged:
             break
     return x
-
-
-def _solve_normal_equations(normal: Any, damping: NDArray[np.float64], rhs: NDArray[np.float64],
-                            max_band_bytes: float = 2 ** 28) -> NDArray[np.float64]:
-    """Solve ``(N + diag(damping)) x = rhs`` for a sparse symmetric positive definite N (COO).
-
-    A pose graph's unknowns are ordered in time and its pairs span a bounded offset, so N
-    is banded: LAPACK's banded Cholesky (``solveh_banded``) costs ``n u^2`` for
-    bandwidth u, several times faster than a general sparse LU. Wider bands (loop
-    closures) fall back to SuperLU.
-    """
-    from scipy.linalg import LinAlgError, solveh_banded
-    from scipy.sparse import diags
-    from scipy.sparse.linalg import spsolve
-
-    n = len(rhs)
-    upper = normal.col >= normal.row
-    band = int((normal.col - normal.row).max(initial=0))
-    if (band + 1) * n * 8 <= max_band_bytes:
-        ab = np.zeros((band + 1, n))
-        ab[band + normal.row[upper] - normal.col[upper], normal.col[upper]] = normal.data[upper]
-        ab[band] += damping
-        try:
-            return solveh_banded(ab, rhs, check_finite=False)
-        except LinAlgError:
-            pass
-    return spsolve((normal + diags(damping)).tocsc(), rhs)
 
 
 def pairs_at_offsets(count: int, offsets: tuple[int, ...]) -> NDArray[np.int64]:

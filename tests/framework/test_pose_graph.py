@@ -38,3 +38,29 @@ def test_long_pan_is_recovered_without_shrinking_the_keyframes():
     after = np.abs(geometry.apply(solved, corners) - geometry.apply(truth, corners)).max()
     assert before > 3.0
     assert after < 0.3, f"largest corner error {after:.3f} px"
+
+
+def test_pair_jacobian_normal_equations_equal_the_dense_products():
+    """Block-by-block assembly == J^T W J and J^T W r of the dense Jacobian (fixed block -1, repeated pairs)."""
+    from photonpano.posegraph import NormalMatrix, PairJacobian
+
+    rng = np.random.default_rng(3)
+    e, r, d, blocks = 40, 6, 3, 7
+    first_block, second_block = rng.integers(-1, blocks, e), rng.integers(-1, blocks, e)
+    first, second = rng.normal(size=(e, r, d)), rng.normal(size=(e, r, d))
+    weights, residual = rng.uniform(0.1, 1, e * r), rng.normal(size=e * r)
+    dense = np.zeros((e * r, blocks * d))
+    for k in range(e):
+        for jac, block in ((first[k], first_block[k]), (second[k], second_block[k])):
+            if block >= 0:
+                dense[k * r:(k + 1) * r, block * d:(block + 1) * d] += jac
+    normal, gradient = PairJacobian(first, second, first_block, second_block, blocks).normal_equations(
+        weights, residual)
+    expected = dense.T @ (weights[:, None] * dense)
+    np.testing.assert_allclose(gradient, dense.T @ (weights * residual), atol=1e-12)
+    np.testing.assert_allclose(normal.diagonal, np.diag(expected), atol=1e-12)
+    damping, rhs = rng.uniform(0.5, 1, blocks * d), rng.normal(size=blocks * d)
+    solution = np.linalg.solve(expected + np.diag(damping), rhs)
+    np.testing.assert_allclose(normal.solve(damping, rhs), solution, atol=1e-9)
+    sparse = NormalMatrix(normal.rows, normal.cols, normal.values, blocks * d, max_band_bytes=0)  # SuperLU
+    np.testing.assert_allclose(sparse.solve(damping, rhs), solution, atol=1e-9)
