@@ -26,21 +26,23 @@ __all__ = [
     "tone_map",
 ]
 
-# _LANES[v] spreads the 8 bits of byte v (MSB first) into the 8 bytes of a uint64
-# (little-endian lane k holds bit 7 - k), so one 64-bit add counts 8 pixels at once.
-_LANES = np.zeros(256, dtype=np.uint64)
-for _v in range(256):
-    for _k in range(8):
-        _LANES[_v] |= np.uint64(((_v >> (7 - _k)) & 1) << (8 * _k))
+_SPREAD = np.uint64(0x8040201008040201)
+_LOW_BITS = np.uint64(0x0101010101010101)
 
 
-@cached_njit(nogil=True)
-def _sum_packed_ranges(cube, edges, lanes, out):  # pragma: no cover - compiled
+@cached_njit(nogil=True, error_model="numpy")
+def _sum_packed_ranges(cube, edges, out):  # pragma: no cover - compiled
+    # Byte v times 0x8040201008040201 holds copies of v shifted by 9k bits (k = 0..7, no
+    # overlap, so no carries): bit 7 - k of copy k lands on bit 8k + 7. Shifted down by
+    # 7 and masked, byte k of the uint64 (little-endian) is pixel k's bit (MSB first),
+    # and one 64-bit add counts 8 pixels. Pure arithmetic, it vectorises (a 256-entry
+    # table lookup does not): 0.33 vs 0.59 ns per packed byte.
     rows, nbytes = cube.shape[1], cube.shape[2]
     acc = np.zeros(rows * nbytes, dtype=np.uint64)
-    # Little-endian: byte k of acc[i] is the count of pixel 8 * i + k, so the uint8 view
-    # of the accumulator is already the (rows, 8 * nbytes) count image.
+    # byte k of acc[i] is the count of pixel 8 * i + k, so the uint8 view of the
+    # accumulator is already the (rows, 8 * nbytes) count image
     counts = acc.view(np.uint8)
+    seven = np.uint64(7)
     for b in range(len(edges) - 1):
         flat = out[b].reshape(rows * nbytes * 8)
         t = edges[b]
@@ -50,7 +52,7 @@ def _sum_packed_ranges(cube, edges, lanes, out):  # pragma: no cover - compiled
             for u in range(t, stop):
                 frame = cube[u].reshape(rows * nbytes)
                 for i in range(rows * nbytes):
-                    acc[i] += lanes[frame[i]]
+                    acc[i] += ((np.uint64(frame[i]) * _SPREAD) >> seven) & _LOW_BITS
             for i in range(rows * nbytes * 8):
                 flat[i] += counts[i]
             t = stop
@@ -82,7 +84,7 @@ def sum_packed_ranges(cube: NDArray[np.uint8], edges: NDArray[np.int64],
         raise ValueError(f"out must be a C-contiguous uint16 array of shape {shape}")
     if len(edges) > 1:
         block = np.asarray(cube[edges[0]:edges[-1]])
-        _sum_packed_ranges(block, edges - edges[0], _LANES, out)
+        _sum_packed_ranges(block, edges - edges[0], out)
     return out
 
 

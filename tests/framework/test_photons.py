@@ -15,6 +15,15 @@ def test_sum_packed_ranges_matches_unpacked_sum():
     np.testing.assert_array_equal(photons.sum_unpacked_ranges(frames, edges), want)
 
 
+def test_sum_packed_ranges_counts_every_byte_value():
+    """Each of the 256 byte values, in every byte position, spreads into its 8 pixels (MSB first)."""
+    values = (np.arange(600)[:, None, None] * 7 + np.arange(3)[None, :, None] * 31 + np.arange(4)) % 256
+    packed = values.astype(np.uint8)  # (600, 3, 4): every value in every position, 600 > 2 x 255 frames
+    edges = np.array([0, 1, 256, 600])
+    want = np.stack([np.unpackbits(packed[a:b], axis=-1).sum(0) for a, b in zip(edges[:-1], edges[1:])])
+    np.testing.assert_array_equal(photons.sum_packed_ranges(packed, edges), want)
+
+
 @pytest.mark.parametrize("edges", [[5, 5], [0, 701], [-1, 3]])
 def test_sum_ranges_rejects_bad_edges(edges):
     with pytest.raises(ValueError):
