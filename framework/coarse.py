@@ -37,6 +37,14 @@ def _to_binned(factor: int) -> NDArray[np.float64]:
     return geometry.scale_matrix(1.0 / factor) @ geometry.translation(-(factor - 1) / 2, -(factor - 1) / 2)
 
 
+def _in_binned(homography: NDArray[np.float64], factor: int, *, back: bool = False) -> NDArray[np.float64]:
+    """A (3, 3) homography of full-resolution pixels in pixels of blocks of ``factor`` (``back``: the reverse)."""
+    if factor == 1:
+        return homography
+    s = _to_binned(factor)
+    return np.linalg.inv(s) @ homography @ s if back else s @ homography @ np.linalg.inv(s)
+
+
 def binned_frame(flux: NDArray[np.float32], mask: NDArray[np.bool_], factor: int, blur: int = 5
                  ) -> tuple[NDArray[np.float32], NDArray[np.bool_]]:
     """A merged frame as a binned, blurred square-root flux image for direct registration.
@@ -80,8 +88,7 @@ def warped_correlation(a: tuple[NDArray, NDArray], b: tuple[NDArray, NDArray],
         ``(correlation, overlap)``: Pearson correlation over the binned pixels valid in
         both, and their number.
     """
-    s = _to_binned(factor)
-    moved, inside = _warp(b[0], b[1], s @ homography @ np.linalg.inv(s))
+    moved, inside = _warp(b[0], b[1], _in_binned(homography, factor))
     both = inside & a[1]
     return normalised_correlation(a[0], moved, both), int(both.sum())
 
@@ -104,8 +111,7 @@ def register_binned(a: tuple[NDArray, NDArray], b: tuple[NDArray, NDArray], init
     """
     import cv2
 
-    s = _to_binned(factor)
-    start = s @ initial @ np.linalg.inv(s)
+    start = _in_binned(initial, factor)
     moved, inside = _warp(b[0], b[1], start)
     h, w = moved.shape
     window = cv2.createHanningWindow((w, h), cv2.CV_32F)
@@ -121,7 +127,7 @@ def register_binned(a: tuple[NDArray, NDArray], b: tuple[NDArray, NDArray], init
     except cv2.error:
         return initial, -1.0, 0
     correction = np.vstack([warp.astype(np.float64), [0, 0, 1]])
-    found = geometry.normalize(np.linalg.inv(s) @ correction @ start @ s)
+    found = geometry.normalize(_in_binned(correction @ start, factor, back=True))
     return found, float(cc), int((inside & a[1]).sum())
 
 

@@ -13,6 +13,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from . import geometry
+from .jit import cached_njit
 
 __all__ = ["subbatch_edges", "WarpAccumulator", "merge_groups"]
 
@@ -56,15 +57,25 @@ def subbatch_edges(homographies: NDArray[np.float64], width: int, height: int,
     forced = np.zeros(k + 1, dtype=bool)
     if breaks is not None:
         forced[np.clip(np.asarray(breaks, dtype=np.int64), 0, k)] = True
-    edges = [0]
-    travelled = 0.0
-    for i, s in enumerate(step.tolist(), start=1):  # K iterations of scalar work: cheap
-        travelled += s
+    edges = np.empty(k + 1, dtype=np.int64)
+    used = _travel_edges(step, forced, float(tolerance_px), int(first_frame), int(frame_step), edges)
+    return edges[:used]
+
+
+@cached_njit(nogil=True)
+def _travel_edges(step, forced, tolerance_px, first_frame, frame_step, edges):  # pragma: no cover - compiled
+    # a scan with resets, one scalar step per frame: compiled, it does not hold the GIL
+    # (every merge and panorama runs it, on the executor's threads)
+    edges[0] = 0
+    used, travelled = 1, 0.0
+    for i in range(1, len(step) + 1):
+        travelled += step[i - 1]
         if forced[i] or (travelled >= tolerance_px and (first_frame + i) % frame_step == 0):
-            edges.append(i)
+            edges[used] = i
+            used += 1
             travelled = 0.0
-    edges.append(k)
-    return np.asarray(edges, dtype=np.int64)
+    edges[used] = len(step) + 1
+    return used + 1
 
 
 _IDENTITY = np.eye(3)

@@ -116,6 +116,8 @@ def pyramid_homography(homography: NDArray[np.float64], level: int) -> NDArray[n
     """
     from photonpano import geometry
 
+    if level == 0:  # S is the identity (and this the common case: one level, at every registration)
+        return homography / homography[2, 2]
     s = geometry.scale_matrix(0.5 ** level)
     out = s @ homography @ np.linalg.inv(s)
     return out / out[2, 2]
@@ -178,7 +180,7 @@ class OpenCVEccLocator(DirectLocator):
             h = pyramid_homography(full, -level)
         height, width = pyramid_b[0][0].shape
         overlap = self._overlap(pyramid_a[0][1], pyramid_b[0][1], h)
-        trusted_b = int(pyramid_b[0][1].sum())
+        trusted_b = int(np.count_nonzero(pyramid_b[0][1]))
         ok = (cc >= cfg.min_correlation and corner_change(h, initial, width, height) <= cfg.max_change_px
               and overlap >= cfg.min_overlap * max(trusted_b, 1))
         return PairResult(h, 0, overlap, bool(ok))
