@@ -175,7 +175,7 @@ class OpenCVEccLocator(DirectLocator):
                 return PairResult(initial)
             full = np.eye(3)
             full[:warp.shape[0]] = warp
-            if not np.all(np.isfinite(full)) or abs(full[2, 2]) < 1e-12:
+            if not np.isfinite(full).all() or abs(full[2, 2]) < 1e-12:
                 return PairResult(initial)
             h = pyramid_homography(full, -level)
         height, width = pyramid_b[0][0].shape
