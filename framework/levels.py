@@ -142,7 +142,7 @@ def _interpolate(interpolator: Interpolator, groups: Groups, current: NDArray[np
     correction = keyframes @ np.linalg.inv(current)
     update = interpolator.interpolate(groups.reference, correction, len(homographies), groups)
     updated = geometry.normalize(update @ homographies)
-    if not plausible(np.linalg.inv(homographies) @ updated, source.width, source.height).all():
+    if not plausible(geometry.invert(homographies) @ updated, source.width, source.height).all():
         raise StageError("interpolator", type(interpolator).__name__,
                          f"level {level}: the interpolated update folds or rescales some frames")
     return updated

@@ -36,3 +36,11 @@ def test_scale_matrix_keeps_pixel_edges():
 def test_footprint_bounds_of_translation():
     h = geometry.translation(10, -3)[None]
     assert geometry.footprint_bounds(h, 8, 4) == (9.5, -3.5, 17.5, 0.5)
+
+
+def test_invert_equals_numpy_inverse():
+    """The closed-form inverse of a stack of homographies equals np.linalg.inv to rounding."""
+    rng = np.random.default_rng(2)
+    h = geometry.homographies_from_params(rng.normal(0, [1e-2] * 4 + [200, 100] + [1e-5] * 2, (500, 8)))
+    np.testing.assert_allclose(geometry.invert(h), np.linalg.inv(h), rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(geometry.invert(h[0]) @ h[0], np.eye(3), atol=1e-12)
