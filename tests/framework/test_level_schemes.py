@@ -106,3 +106,28 @@ def test_pure_tasks_pickle_with_their_executor_and_progress():
         assert executor.map(lambda x: x * x, [1, 2, 3], done=done.append) == [1, 4, 9]
     assert sorted(done) == [1, 4, 9]
     pickle.loads(pickle.dumps(start_task("level 1", 3)))(1)  # no display here: nothing happens
+
+
+def test_interpolator_warm_up_runs_in_the_background_and_its_errors_do_not_stop_the_run():
+    """The level loop calls ``Interpolator.warm_up`` off the critical path; a failing warm-up changes nothing."""
+    import threading
+
+    from photonpano.executor import SerialExecutor
+    from photonpano.pipeline import Stages
+
+    spec = _spec(source={"plugin": "simulate", "frames": 2400, "height": 128, "width": 248, "vibration_px": 2},
+                 group_size=300, levels=2)
+    source = spec.source.build()
+    reference = Stages(spec, source).estimate_motion(SerialExecutor())
+    stages, called = Stages(spec, source), []
+
+    def failing_warm_up():
+        called.append(threading.current_thread() is not threading.main_thread())
+        raise ImportError("a library the interpolator needs later")
+
+    stages.interpolator.warm_up = failing_warm_up
+    np.testing.assert_array_equal(stages.estimate_motion(SerialExecutor()), reference)
+    for thread in threading.enumerate():
+        if thread.name == "photonpano-warm-up":
+            thread.join(10)
+    assert called == [True]
