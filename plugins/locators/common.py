@@ -402,10 +402,13 @@ def ecc_image(flux: NDArray[np.float32], mask: NDArray[np.bool_]) -> NDArray[np.
     Returns:
         (H, W) float32 image.
     """
+    import cv2
+
     image = np.nan_to_num(flux, nan=0.0).astype(np.float32, copy=False)
     trusted = mask & np.isfinite(flux)
-    # ECC is invariant to gain and offset: the scale only keeps the numbers near 1
-    mean = float(np.mean(image, where=trusted)) if trusted.any() else 0.0
+    # ECC is invariant to gain and offset: the scale only keeps the numbers near 1. OpenCV's
+    # masked mean (double sums) releases the GIL; numpy's `where=` mean held it 0.25 ms per frame.
+    mean = cv2.mean(image, mask=trusted.view(np.uint8))[0]
     return image / np.float32(2 * mean) if mean > 0 else image
 
 
