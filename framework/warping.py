@@ -137,7 +137,7 @@ class WarpAccumulator:
         _, h, w = counts.shape
         th, tw = self.counts.shape
         hs = geometry.normalize(np.asarray(homographies, np.float64))
-        identity = np.all(hs == _IDENTITY, axis=(1, 2)) if (h, w) == (th, tw) else np.zeros(len(hs), bool)
+        identity = (hs == _IDENTITY).all(axis=(1, 2)) if (h, w) == (th, tw) else np.zeros(len(hs), bool)
         # footprint bounding boxes, and whether each warp is affine to 0.01 px, vectorised
         edges = geometry.apply(hs, geometry.corners(w, h, edges=True))  # (B, 4, 2)
         x0 = np.maximum(np.floor(edges[..., 0].min(axis=1)), 0).astype(np.int64)
