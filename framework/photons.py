@@ -30,7 +30,7 @@ _SPREAD = np.uint64(0x8040201008040201)
 _LOW_BITS = np.uint64(0x0101010101010101)
 
 
-@cached_njit(nogil=True, error_model="numpy")
+@cached_njit(nogil=True)
 def _sum_packed_ranges(cube, edges, out):  # pragma: no cover - compiled
     # Byte v times 0x8040201008040201 holds copies of v shifted by 9k bits (k = 0..7, no
     # overlap, so no carries): bit 7 - k of copy k lands on bit 8k + 7. Shifted down by
