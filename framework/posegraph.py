@@ -294,18 +294,20 @@ def robust_least_squares(linearise: Callable[[NDArray[np.float64]], tuple[NDArra
     def loss(res: NDArray[np.float64]) -> float:
         return float(np.sum(2 * f_scale ** 2 * (np.sqrt(1 + (res / f_scale) ** 2) - 1)))
 
-    def normal_equations(jacobian: Any, w: NDArray[np.float64]) -> tuple[NormalMatrix, NDArray[np.float64]]:
+    def normal_equations(jacobian: Any, w: NDArray[np.float64],
+                         res: NDArray[np.float64]) -> tuple[NormalMatrix, NDArray[np.float64]]:
+        """``J^T W J`` and ``J^T W r`` for either kind of Jacobian."""
         if isinstance(jacobian, PairJacobian):
-            return jacobian.normal_equations(w, residual)
+            return jacobian.normal_equations(w, res)
         weighted = jacobian.T.multiply(w).tocsr()
         normal = (weighted @ jacobian).tocoo()
-        return NormalMatrix(normal.row, normal.col, normal.data, len(x)), weighted @ residual
+        return NormalMatrix(normal.row, normal.col, normal.data, weighted.shape[0]), weighted @ res
 
     x = np.asarray(x0, np.float64)
     residual, jacobian = linearise(x)
     cost, damping = loss(residual), 1e-3
     for _ in range(max_iterations):
-        normal, gradient = normal_equations(jacobian, 1 / np.sqrt(1 + (residual / f_scale) ** 2))
+        normal, gradient = normal_equations(jacobian, 1 / np.sqrt(1 + (residual / f_scale) ** 2), residual)
         scale = np.maximum(normal.diagonal, 1e-12)
         while True:
             step = -normal.solve(damping * scale, gradient)
