@@ -46,8 +46,8 @@ def normalize(homographies: NDArray[np.float64]) -> NDArray[np.float64]:
 def invert(homographies: NDArray[np.float64]) -> NDArray[np.float64]:
     """Invert homographies in closed form (the adjugate over the determinant).
 
-    For stacks of many homographies (one per binary frame) this is 2.5 times faster than
-    ``np.linalg.inv``, which factorises each 3x3 matrix on its own (100 000: 19 vs 48 ms);
+    For stacks of many homographies (one per binary frame) this is 7 times faster than
+    ``np.linalg.inv``, which factorises each 3x3 matrix on its own (100 000: 6 vs 43 ms);
     the two agree to rounding (5e-16 relative) for the homographies of a capture.
 
     Args:
@@ -57,11 +57,15 @@ def invert(homographies: NDArray[np.float64]) -> NDArray[np.float64]:
         (..., 3, 3) float64 inverses (not normalised); inf or NaN where a determinant is 0.
     """
     h = np.asarray(homographies, dtype=np.float64)
-    r0, r1, r2 = h[..., 0, :], h[..., 1, :], h[..., 2, :]
-    c0, c1, c2 = np.cross(r1, r2), np.cross(r2, r0), np.cross(r0, r1)
-    det = np.einsum("...i,...i->...", r0, c0)
+    a, b, c, d, e, f, g, k, m = h.reshape(-1, 9).T.copy()  # one contiguous row per entry
+    adjugate = np.empty((9, len(a)))
+    adjugate[0], adjugate[1], adjugate[2] = e * m - f * k, c * k - b * m, b * f - c * e
+    adjugate[3], adjugate[4], adjugate[5] = f * g - d * m, a * m - c * g, c * d - a * f
+    adjugate[6], adjugate[7], adjugate[8] = d * k - e * g, b * g - a * k, a * e - b * d
+    det = a * adjugate[0] + b * adjugate[3] + c * adjugate[6]
     with np.errstate(divide="ignore", invalid="ignore"):
-        return np.stack([c0, c1, c2], axis=-1) / det[..., None, None]
+        adjugate /= det
+    return adjugate.T.reshape(h.shape)
 
 
 def params_from_homographies(homographies: NDArray[np.float64]) -> NDArray[np.float64]:

@@ -33,14 +33,23 @@ def plausible(homographies: NDArray[np.float64], width: int, height: int,
     Returns:
         (P,) bool.
     """
-    q = geometry.apply(homographies, geometry.corners(width, height))  # (P, 4, 2)
-    edge = np.roll(q, -1, axis=1) - q
-    cross = edge[..., 0] * np.roll(edge, -1, axis=1)[..., 1] - edge[..., 1] * np.roll(edge, -1, axis=1)[..., 0]
-    shoelace = q[..., 0] * np.roll(q[..., 1], -1, axis=1) - np.roll(q[..., 0], -1, axis=1) * q[..., 1]
-    area = 0.5 * np.abs(np.sum(shoelace, axis=1))
-    ratio = area / ((width - 1) * (height - 1))
-    finite = np.all(np.isfinite(q), axis=(1, 2))
-    return finite & np.all(cross > 0, axis=1) & (ratio < max_area_change) & (ratio > 1 / max_area_change)
+    # one contiguous row per matrix entry: the level loop checks one homography per binary
+    # frame (100 000: 9 ms, against 28 ms through (P, 4, 2) corner arrays)
+    h = np.asarray(homographies, dtype=np.float64).reshape(-1, 9).T.copy()
+    qx, qy = [], []
+    for x, y in geometry.corners(width, height):  # clockwise
+        den = h[6] * x + h[7] * y + h[8]
+        qx.append((h[0] * x + h[1] * y + h[2]) / den)
+        qy.append((h[3] * x + h[4] * y + h[5]) / den)
+    ok = np.ones(h.shape[1], bool)
+    twice_area = np.zeros(h.shape[1])
+    for k in range(4):
+        i, j = (k + 1) % 4, (k + 2) % 4
+        ok &= np.isfinite(qx[k]) & np.isfinite(qy[k])
+        ok &= (qx[i] - qx[k]) * (qy[j] - qy[i]) - (qy[i] - qy[k]) * (qx[j] - qx[i]) > 0  # turns the same way
+        twice_area += qx[k] * qy[i] - qx[i] * qy[k]  # shoelace
+    ratio = 0.5 * np.abs(twice_area) / ((width - 1) * (height - 1))
+    return ok & (ratio < max_area_change) & (ratio > 1 / max_area_change)
 
 
 def bridge(current: NDArray[np.float64], measured: NDArray[np.float64], ok: NDArray[np.bool_]) -> NDArray[np.float64]:

@@ -85,6 +85,29 @@ def test_tone_map_table_is_within_one_level_of_the_srgb_curve():
     assert (image[:3] == 0).all() and image.max() == 255
 
 
+def test_tone_map_kernel_equals_the_numpy_formula():
+    """The compiled 8-bit path is the table lookup of clip(flux * (top / white) + 0.5) in float32, NaN -> 0."""
+    from photonpano.photons import _srgb_table, tone_map
+
+    def reference(f, percentile=99.5):
+        values = f[np.isfinite(f)]
+        white = float(np.partition(values, int(round((values.size - 1) * percentile / 100)))[
+            int(round((values.size - 1) * percentile / 100))]) if values.size else 1.0
+        white = white if white > 0 else 1.0
+        table = _srgb_table()
+        index = f * np.float32((len(table) - 1) / white) + np.float32(0.5)
+        return table[np.nan_to_num(np.clip(index, 0, len(table) - 1), nan=0.0).astype(np.int32)]
+
+    rng = np.random.default_rng(8)
+    for trial in range(12):
+        f = rng.gamma(2.0, 1000.0, tuple(rng.integers(1, 90, 2))).astype(np.float32)
+        f[rng.random(f.shape) < 0.1] = np.nan
+        f[rng.random(f.shape) < 0.02] = (np.inf, -np.inf, -3.0)[trial % 3]
+        for flux in (f, f.T, np.full_like(f, np.nan), np.zeros_like(f)):  # strided, unobserved, black
+            np.testing.assert_array_equal(tone_map(flux), reference(np.asarray(flux)))
+    np.testing.assert_array_equal(tone_map(f.astype(np.float64), percentile=50), reference(f, 50))
+
+
 def test_counting_kernels_add_into_the_callers_rows():
     """`out=` accumulates (the streaming loop's chunks add into the same ranges) and is checked."""
     from photonpano.photons import sum_packed_ranges, sum_unpacked_ranges
