@@ -79,6 +79,54 @@ def _travel_edges(step, forced, tolerance_px, first_frame, frame_step, edges):  
 
 
 _IDENTITY = np.eye(3)
+_IDENTITY_WARP, _AFFINE_WARP, _PERSPECTIVE_WARP = 0, 1, 2
+
+
+@cached_njit(nogil=True)
+def _footprints(hs, width, height, target_width, target_height, same_grid, boxes, kinds):  # pragma: no cover
+    # Per warp of WarpAccumulator.add_many, compiled (it runs once per block or group of
+    # every merge, and its ~15 numpy calls held the GIL): normalise hs[b] in place; its
+    # footprint's bounding box on the target, clipped, as x0, y0, x1, y1 (x1, y1
+    # exclusive, one pixel of margin); and its kind: the identity (on the same grid),
+    # affine (the perspective terms move no pixel-centre corner by 0.01 px or more) or
+    # perspective. Returns False if some H[2, 2] is 0.
+    for b in range(len(hs)):
+        scale = hs[b, 2, 2]
+        if scale == 0:
+            return False
+        identity = True
+        for i in range(3):
+            for j in range(3):
+                hs[b, i, j] /= scale
+                if hs[b, i, j] != (1.0 if i == j else 0.0):
+                    identity = False
+        h = hs[b]
+        lo_x, lo_y, hi_x, hi_y = np.inf, np.inf, -np.inf, -np.inf
+        deviation, nowhere = 0.0, False
+        for corner in range(4):
+            right, bottom = corner == 1 or corner == 2, corner >= 2
+            # footprint edges (the outer edges of the frame's corner pixels)
+            x, y = (width - 0.5 if right else -0.5), (height - 0.5 if bottom else -0.5)
+            den = x * h[2, 0] + y * h[2, 1] + h[2, 2]
+            u, v = (x * h[0, 0] + y * h[0, 1] + h[0, 2]) / den, (x * h[1, 0] + y * h[1, 1] + h[1, 2]) / den
+            if np.isnan(u) or np.isnan(v):
+                nowhere = True
+            else:
+                lo_x, hi_x, lo_y, hi_y = min(lo_x, u), max(hi_x, u), min(lo_y, v), max(hi_y, v)
+            # corner pixel centres, with and without the perspective terms
+            x, y = (width - 1.0 if right else 0.0), (height - 1.0 if bottom else 0.0)
+            den = x * h[2, 0] + y * h[2, 1] + h[2, 2]
+            linear_u, linear_v = x * h[0, 0] + y * h[0, 1] + h[0, 2], x * h[1, 0] + y * h[1, 1] + h[1, 2]
+            deviation = max(deviation, abs(linear_u / den - linear_u), abs(linear_v / den - linear_v))
+        if nowhere:  # an empty box
+            lo_x, lo_y, hi_x, hi_y = 0.0, 0.0, -1.0, -1.0
+        boxes[b, 0] = min(max(np.floor(lo_x), 0.0), target_width)
+        boxes[b, 1] = min(max(np.floor(lo_y), 0.0), target_height)
+        boxes[b, 2] = max(min(np.ceil(hi_x) + 1.0, target_width), 0.0)
+        boxes[b, 3] = max(min(np.ceil(hi_y) + 1.0, target_height), 0.0)
+        kinds[b] = _IDENTITY_WARP if identity and same_grid else (
+            _AFFINE_WARP if deviation < 0.01 else _PERSPECTIVE_WARP)
+    return True
 
 
 class WarpAccumulator:
@@ -136,17 +184,13 @@ class WarpAccumulator:
             return
         _, h, w = counts.shape
         th, tw = self.counts.shape
-        hs = geometry.normalize(np.asarray(homographies, np.float64))
-        identity = (hs == _IDENTITY).all(axis=(1, 2)) if (h, w) == (th, tw) else np.zeros(len(hs), bool)
-        # footprint bounding boxes, and whether each warp is affine to 0.01 px, vectorised
-        edges = geometry.apply(hs, geometry.corners(w, h, edges=True))  # (B, 4, 2)
-        x0 = np.maximum(np.floor(edges[..., 0].min(axis=1)), 0).astype(np.int64)
-        y0 = np.maximum(np.floor(edges[..., 1].min(axis=1)), 0).astype(np.int64)
-        x1 = np.minimum(np.ceil(edges[..., 0].max(axis=1)) + 1, tw).astype(np.int64)
-        y1 = np.minimum(np.ceil(edges[..., 1].max(axis=1)) + 1, th).astype(np.int64)
-        corners = geometry.corners(w, h)
-        linear = corners @ np.swapaxes(hs[:, :2, :2], 1, 2) + hs[:, None, :2, 2]
-        affine = np.abs(geometry.apply(hs, corners) - linear).max(axis=(1, 2)) < 0.01
+        hs = np.array(homographies, np.float64)  # normalised in place below
+        boxes = np.empty((len(hs), 4), np.int64)
+        kinds = np.empty(len(hs), np.int8)
+        if not _footprints(hs, w, h, tw, th, (h, w) == (th, tw), boxes, kinds):
+            raise ValueError("degenerate homography: H[2, 2] == 0")
+        x0, y0, x1, y1 = boxes.T
+        identity, affine = kinds == _IDENTITY_WARP, kinds == _AFFINE_WARP
         ones = self._ones.get((h, w))
         if ones is None:
             ones = self._ones[(h, w)] = np.ones((h, w), np.float32)

@@ -10,7 +10,8 @@ not grow with the capture.
 from __future__ import annotations
 
 import time
-from typing import Callable
+from concurrent.futures import ThreadPoolExecutor
+from typing import Callable, Iterator
 
 import numpy as np
 from numpy.typing import NDArray
@@ -60,9 +61,22 @@ def _overlapping(pairs: NDArray[np.int64], keyframes: NDArray[np.float64], width
     return pairs[keep], expected[keep]
 
 
+def _merged_windows(merge: Callable[[NDArray[np.int64]], MergedFrames], windows: list[NDArray[np.int64]],
+                    ahead: bool) -> Iterator[MergedFrames]:
+    """Yield ``merge(window)`` for each window; with ``ahead``, the next one merges on a helper thread meanwhile."""
+    if not ahead:
+        yield from (merge(index) for index in windows)
+        return
+    with ThreadPoolExecutor(1, thread_name_prefix="photonpano-merge-ahead") as helper:
+        pending = helper.submit(merge, windows[0]) if windows else None
+        for k in range(len(windows)):
+            done, pending = pending, helper.submit(merge, windows[k + 1]) if k + 1 < len(windows) else None
+            yield done.result()
+
+
 def locate_keyframes(locator: Locator, merge: Callable[[NDArray[np.int64]], MergedFrames],
                      current: NDArray[np.float64], pair_offsets: tuple[int, ...], width: int, height: int, *,
-                     window: int = 32, min_overlap: float = 0.5, outlier_px: float = 1.0
+                     window: int = 32, min_overlap: float = 0.5, outlier_px: float = 1.0, merge_ahead: bool = False
                      ) -> tuple[NDArray[np.float64], NDArray[np.int64], PairRegistrations]:
     """Register merged frames pairwise and solve for the homographies of their reference frames.
 
@@ -79,7 +93,7 @@ def locate_keyframes(locator: Locator, merge: Callable[[NDArray[np.int64]], Merg
     Merged frames stream: ``merge`` is called on consecutive windows of ``window``
     groups and steps 1 and 2 run as they arrive (one ``register_pairs`` call per
     window), keeping only the merged frames that later pairs reach back to. Memory is
-    thus bounded by ``2 x window + max(pair_offsets)`` merged frames whatever the
+    thus bounded by ``3 x window + max(pair_offsets)`` merged frames whatever the
     capture length; the pose graph (step 3) holds only the pair homographies.
 
     Args:
@@ -93,6 +107,9 @@ def locate_keyframes(locator: Locator, merge: Callable[[NDArray[np.int64]], Merg
         window: groups merged and registered at a time.
         min_overlap: predicted overlap (fraction of the frame) needed to try a pair.
         outlier_px: smallest rejection threshold, in pixels (corner distance).
+        merge_ahead: merge each next window on a helper thread while this one registers
+            (``merge`` must then be callable from another thread). With a thread pool
+            behind both, its workers stay busy across each window's last tasks.
 
     Returns:
         ``(keyframes, pair_index, pairs)``: (G, 3, 3) float64 homographies, (P, 2)
@@ -112,11 +129,12 @@ def locate_keyframes(locator: Locator, merge: Callable[[NDArray[np.int64]], Merg
     # One locator call per window: its consecutive pairs, and the longer pairs ending in the
     # previous window, whose overlap the chain up to there predicts. A frame is thus used
     # by consecutive calls only, and a locator's per-call cache describes it once.
+    merged = _merged_windows(merge, windows, merge_ahead)
     for w in range(len(windows) + 1):
         index, initial = [np.zeros((0, 2), np.int64)], [np.zeros((0, 3, 3))]
         if w < len(windows):
             new = windows[w]
-            ring.put(new, merge(new))
+            ring.put(new, next(merged))
             index.append(np.stack([new - 1, new], axis=1)[new > 0])
             initial.append(predicted[index[-1][:, 0]])
         n_chain = len(index[-1])
@@ -213,8 +231,9 @@ class PairwiseScheme(LevelScheme):
         self.locator.executor = task.executor
         self.locator.reset_cache_stats()
         try:
-            keyframes, pair_index, pairs = locate_keyframes(self.locator, merge, task.current, self.pair_offsets,
-                                                            task.source.width, task.source.height)
+            keyframes, pair_index, pairs = locate_keyframes(
+                self.locator, merge, task.current, self.pair_offsets, task.source.width, task.source.height,
+                merge_ahead=task.executor.in_process and task.executor.workers > 1)
         except StageError as err:
             raise StageError("locator", type(self.locator).__name__, f"level {task.level}: {err.reason}") from None
         return LocateResult(keyframes, pairs, pair_index, merged=MergedFrames.concat(*kept) if kept else None,
