@@ -7,9 +7,10 @@ threads lives here, compiled without the GIL.
 
 from __future__ import annotations
 
+import numpy as np
 from photonpano.jit import cached_njit
 
-__all__ = ["capped_transfer_error"]
+__all__ = ["capped_transfer_error", "normalised_flux"]
 
 
 @cached_njit(nogil=True)
@@ -32,3 +33,31 @@ def capped_transfer_error(model, src, dst, sigma2, cap):  # pragma: no cover - c
         error = (u * u + v * v) / sigma2
         total += cap if error > cap else error
     return total
+
+
+@cached_njit(nogil=True)
+def normalised_flux(flux, trusted, out):  # pragma: no cover - compiled
+    """``out = nan_to_num(flux) / (2 * mean)``, the mean over trusted finite pixels (as is where it is not > 0).
+
+    Args:
+        flux: (N,) float32, NaN where unobserved.
+        trusted: (N,) bool.
+        out: (N,) float32, written.
+    """
+    top = np.finfo(np.float32).max
+    total, count = 0.0, 0
+    for i in range(flux.size):
+        value = flux[i]
+        if np.isnan(value):
+            value = np.float32(0.0)
+        elif np.isinf(value):
+            value = top if value > 0 else -top
+        elif trusted[i]:
+            total += value
+            count += 1
+        out[i] = value
+    mean = total / count if count else 0.0
+    if mean > 0:
+        scale = np.float32(2 * mean)
+        for i in range(out.size):
+            out[i] /= scale
