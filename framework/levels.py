@@ -87,13 +87,14 @@ def estimate_motion(source: PhotonSource, resampler: Resampler, merger: Merger, 
         for level in range(start_level, len(schemes) + 1):
             t0 = time.perf_counter()
             resampled[level] = _resample(resampler, n, group_size, level), time.perf_counter() - t0
+        # the interpolator's first call may import libraries (scipy.interpolate: 0.17 s): load
+        # them while the photons are counted (compiled, GIL-free) and level 1 runs
+        threading.Thread(target=_warm_up, args=(interpolator,), name="photonpano-warm-up", daemon=True).start()
         t_count = time.perf_counter()
         if len(schemes) > start_level:  # two or more passes over the photons: count them once
             boundaries = np.concatenate([np.r_[g.start, g.stop] for g, _ in resampled.values()])
             grid.count_once(boundaries, group_size, executor)
         count_s = time.perf_counter() - t_count  # merge work: reported with the first level's merge
-        # the interpolator's first call may import libraries (scipy.interpolate: 0.17 s): load them while level 1 runs
-        threading.Thread(target=_warm_up, args=(interpolator,), name="photonpano-warm-up", daemon=True).start()
         for level in range(start_level, len(schemes) + 1):
             scheme, (groups, resample_s) = schemes[level - 1], resampled[level]
             t1 = time.perf_counter()
