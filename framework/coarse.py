@@ -33,8 +33,12 @@ __all__ = ["CascadeLocator", "register_binned", "binned_frame"]
 
 
 def _to_binned(factor: int) -> NDArray[np.float64]:
-    """(3, 3) map from full-resolution pixels to pixels of blocks of ``factor`` (centres at integers)."""
-    return geometry.scale_matrix(1.0 / factor) @ geometry.translation(-(factor - 1) / 2, -(factor - 1) / 2)
+    """(3, 3) map from full-resolution pixels to pixels of blocks of ``factor`` (centres at integers).
+
+    Binned pixel ``u`` is centred on full-resolution ``factor * u + (factor - 1) / 2``
+    (:func:`~photonpano.adaptive.binned_image`), so ``u = (x + 0.5) / factor - 0.5``.
+    """
+    return geometry.scale_matrix(1.0 / factor)
 
 
 def _in_binned(homography: NDArray[np.float64], factor: int, *, back: bool = False) -> NDArray[np.float64]:

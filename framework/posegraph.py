@@ -248,8 +248,6 @@ class NormalMatrix:
     def solve(self, damping: NDArray[np.float64], rhs: NDArray[np.float64]) -> NDArray[np.float64]:
         """Solve ``(A + diag(damping)) x = rhs`` for (N,) float64 ``x``."""
         from scipy.linalg import LinAlgError, solveh_banded
-        from scipy.sparse import coo_matrix, diags
-        from scipy.sparse.linalg import spsolve
 
         if self._ab is not None:
             ab = self._ab.copy()
@@ -258,6 +256,9 @@ class NormalMatrix:
                 return solveh_banded(ab, rhs, check_finite=False)
             except LinAlgError:
                 pass
+        from scipy.sparse import coo_matrix, diags
+        from scipy.sparse.linalg import spsolve
+
         off = self.rows != self.cols
         full = coo_matrix((np.concatenate([self.values, self.values[off]]),
                            (np.concatenate([self.rows, self.cols[off]]), np.concatenate([self.cols, self.rows[off]]))),
