@@ -94,6 +94,8 @@ class OpenCVBinaryLocator(FeatureLocator):
         Returns:
             Features with (K, 2) float64 points and (K, 32) uint8 descriptors.
         """
+        import cv2
+
         allowed = keypoint_mask(mask, self.config.border_px)
         keypoints, descriptors = self._detector.detectAndCompute(image, allowed)
         if descriptors is None or not keypoints:
@@ -101,7 +103,7 @@ class OpenCVBinaryLocator(FeatureLocator):
         if self._max_features and len(keypoints) > self._max_features:
             order = np.argsort([-k.response for k in keypoints])[:self._max_features]
             keypoints, descriptors = [keypoints[i] for i in order], descriptors[order]
-        return Features(np.array([k.pt for k in keypoints], np.float64), descriptors)
+        return Features(cv2.KeyPoint_convert(keypoints).astype(np.float64), descriptors)
 
     def match(self, feat_a: Features, feat_b: Features) -> PairResult:
         """Ratio-test matching by Hamming distance and a robust motion model (b to a)."""

@@ -119,7 +119,7 @@ class OpenCVSiftLocator(FeatureLocator):
         keypoints, descriptors = self._sift.detectAndCompute(image, allowed)
         if descriptors is None or not keypoints:
             return np.zeros((0, 2), np.float32), np.zeros((0, 128), np.float32)
-        points = np.float32([k.pt for k in keypoints])
+        points = cv2.KeyPoint_convert(keypoints)  # (K, 2) float32, in C++ (a list of k.pt held the GIL 0.1 ms)
         # pixel centres at integers: resized pixel x_s covers full-resolution (x_s + 0.5) / s - 0.5
         return (points + 0.5) / np.float32(scale) - 0.5 if scale != 1.0 else points, descriptors
 
