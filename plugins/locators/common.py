@@ -401,14 +401,19 @@ def ecc_image(flux: NDArray[np.float32], mask: NDArray[np.bool_]) -> NDArray[np.
 
     Returns:
         (H, W) float32 image.
+
+    Raises:
+        ValueError: if ``flux`` and ``mask`` differ in shape.
     """
     from ._compiled import normalised_flux
 
     # ECC is invariant to gain and offset: the scale only keeps the numbers near 1. One
     # compiled pass (runs once per merged frame and panorama view, on the workers).
-    flux = np.ascontiguousarray(flux, np.float32)
+    flux, mask = np.ascontiguousarray(flux, np.float32), np.ascontiguousarray(mask, bool)
+    if flux.shape != mask.shape:
+        raise ValueError(f"ecc_image: flux {flux.shape} and mask {mask.shape} differ in shape")
     image = np.empty(flux.shape, np.float32)
-    normalised_flux(flux.reshape(-1), np.ascontiguousarray(mask, bool).reshape(-1), image.reshape(-1))
+    normalised_flux(flux.reshape(-1), mask.reshape(-1), image.reshape(-1))
     return image
 
 
