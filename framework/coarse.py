@@ -32,20 +32,16 @@ from .stages import Locator, MergedFrames, PairRegistrations
 __all__ = ["CascadeLocator", "register_binned", "binned_frame"]
 
 
-def _to_binned(factor: int) -> NDArray[np.float64]:
-    """(3, 3) map from full-resolution pixels to pixels of blocks of ``factor`` (centres at integers).
+def _in_binned(homography: NDArray[np.float64], factor: int, *, back: bool = False) -> NDArray[np.float64]:
+    """A (3, 3) homography of full-resolution pixels in pixels of blocks of ``factor`` (``back``: the reverse).
 
     Binned pixel ``u`` is centred on full-resolution ``factor * u + (factor - 1) / 2``
-    (:func:`~photonpano.adaptive.binned_image`), so ``u = (x + 0.5) / factor - 0.5``.
+    (:func:`~photonpano.adaptive.binned_image`), so ``u = (x + 0.5) / factor - 0.5``:
+    :func:`~photonpano.geometry.scale_matrix`'s map, as for ``RegistrationGrid``.
     """
-    return geometry.scale_matrix(1.0 / factor)
-
-
-def _in_binned(homography: NDArray[np.float64], factor: int, *, back: bool = False) -> NDArray[np.float64]:
-    """A (3, 3) homography of full-resolution pixels in pixels of blocks of ``factor`` (``back``: the reverse)."""
     if factor == 1:
         return homography
-    s = _to_binned(factor)
+    s = geometry.scale_matrix(1.0 / factor)
     return np.linalg.inv(s) @ homography @ s if back else s @ homography @ np.linalg.inv(s)
 
 

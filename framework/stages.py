@@ -266,9 +266,10 @@ class Interpolator(abc.ABC):
     def warm_up(self) -> None:
         """Load what the first :meth:`interpolate` call needs (e.g. import its libraries).
 
-        Called by the level loop in a background thread while level 1 registers, so
-        that a slow first import is not on the run's critical path; errors are ignored
-        there (the first real call raises them). The default does nothing.
+        Called by the level loop in a background thread while the photons are counted
+        and level 1 registers, so that a slow first import is not on the run's critical
+        path; errors are ignored there (the first real call raises them). The default
+        does nothing.
         """
 
 
