@@ -213,9 +213,9 @@ def _mosaic_model(host: PluginHost) -> type[BaseModel]:
     model.__doc__ = ("The mosaic level scheme registers each merged frame against the panorama of the current "
                      "estimate (frame-to-mosaic alignment): `locator` registers, `template` composites that "
                      "panorama. A locator here starts from its `template_defaults` (opencv-ecc: one pyramid level, "
-                     "10 iterations, on the merged frames of `registration_binning`). The former "
-                     "`refine_locator: X` is read as `mosaic: {locator: X}`, and `refine_locator: null` as "
-                     "`level_schemes: [pairwise]`.")
+                     "at most 10 iterations, stopping when the correlation gains less than 1e-4, on the merged "
+                     "frames of `registration_binning`). The former `refine_locator: X` is read as "
+                     "`mosaic: {locator: X}`, and `refine_locator: null` as `level_schemes: [pairwise]`.")
     return model
 
 

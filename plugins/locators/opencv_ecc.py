@@ -39,12 +39,15 @@ class OpenCVEccConfig(LocatorConfig):
 
     plugin: Literal["opencv-ecc"] = "opencv-ecc"
     template_defaults: ClassVar[dict[str, Any]] = {"pyramid_levels": 1, "finest_level": 0, "iterations": 10,
-                                                   "blur": 5}
+                                                   "epsilon": 1e-4, "blur": 5}
     """Against the panorama (the ``mosaic`` scheme) the residual motion is about a pixel, so
     one pyramid level and a few iterations suffice; with the default ``registration_binning:
     2`` the merged frames are already at half resolution, which is enough against a
     low-noise template (0.14 vs 0.13 px trajectory RMSE at 100k frames for 2.5x less ECC
-    time, measured when ECC itself stopped at half resolution)."""
+    time, measured when ECC itself stopped at half resolution). ``epsilon: 1e-4`` stops
+    after two or three iterations: over 300 level-3 registrations of the benchmark's pan
+    the result moved a corner 0.007 px (95th percentile) from that of ``1e-5``, for 17 %
+    less ECC time; trajectory RMSE unchanged (0.0805 vs 0.0804 px)."""
     pyramid_levels: Annotated[int, Field(ge=1, le=6)] = 3
     """Pyramid levels (1 = full resolution only); each level halves the image, so the
     coarsest level tolerates an initial error of about 2**(levels-1) times a few pixels."""
