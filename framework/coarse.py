@@ -148,6 +148,7 @@ class CascadeLocator(Locator):
         self.min_correlation = min_correlation
         self.min_overlap = min_overlap
         self._stats = self._empty()
+        self._binned: dict[bytes, tuple[NDArray[np.float32], NDArray[np.bool_]]] = {}
 
     @staticmethod
     def _empty() -> dict[str, Any]:
@@ -180,15 +181,21 @@ class CascadeLocator(Locator):
         The binned frames, then the pairs' checks and rescues, run on the executor's
         threads (OpenCV and the compiled correlation release the GIL); a Dask
         executor's tasks would ship the frames to other processes, so there they run
-        here, one after another.
+        here, one after another. Each frame is binned once per content
+        (:meth:`~photonpano.records.MergedFrames.content_key`): frames that the previous
+        call used are reused, others are dropped.
         """
         from .executor import SerialExecutor
 
         found = self.primary.register_pairs(merged, pairs, initial)
         executor = self.executor if getattr(self.executor, "in_process", False) else SerialExecutor()
         frames = [int(i) for i in np.unique(pairs)]
-        binned = dict(zip(frames, executor.map(
-            lambda i: binned_frame(merged.flux[i], merged.masks[i], self.factor), frames)))
+        keys = {i: merged.content_key(i, flux=True) for i in frames}
+        missing = [i for i in frames if keys[i] not in self._binned]
+        computed = dict(zip(missing, executor.map(
+            lambda i: binned_frame(merged.flux[i], merged.masks[i], self.factor), missing)))
+        binned = {i: computed[i] if i in computed else self._binned[keys[i]] for i in frames}
+        self._binned = {keys[i]: binned[i] for i in frames}
 
         def check(p: int) -> tuple[NDArray[np.float64], int, bool, float, bool]:
             """Pair p's (homography, inliers, ok, correlation, rescued)."""

@@ -7,6 +7,8 @@ pixels. Homographies map pixel coordinates (x right, y down, pixel centres at in
 
 from __future__ import annotations
 
+import hashlib
+import threading
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -50,6 +52,10 @@ class Groups:
         return Groups(self.start[index], self.stop[index], self.reference[index])
 
 
+_identity_lock = threading.Lock()
+_next_identity = 0
+
+
 @dataclass(frozen=True)
 class MergedFrames:
     """Merged virtual exposures, each in the pixel grid of its group's reference frame.
@@ -59,21 +65,58 @@ class MergedFrames:
         frames: (G, H, W) float32 number of binary frames behind each pixel.
         images: (G, H, W) uint8 tone-mapped sRGB images for the locator.
         masks: (G, H, W) bool pixels observed by enough frames to be trusted.
+        ids: optional (G,) int64 content identities from :meth:`new_ids`, given by a
+            producer that knows when a frame's content is new (the pairwise scheme's
+            ring of merged frames): equal ids mean identical frames, in this process.
+            Without them (None), :meth:`content_key` digests the pixels.
     """
 
     flux: NDArray[np.float32]
     frames: NDArray[np.float32]
     images: NDArray[np.uint8]
     masks: NDArray[np.bool_]
+    ids: NDArray[np.int64] | None = None
 
     def __len__(self) -> int:
         return len(self.flux)
 
     @staticmethod
     def concat(*parts: MergedFrames) -> MergedFrames:
-        """Return the merged frames of ``parts`` one after another."""
+        """Return the merged frames of ``parts`` one after another (with ids if every part has them)."""
         fields = ("flux", "frames", "images", "masks")
-        return MergedFrames(*(np.concatenate([getattr(p, f) for p in parts]) for f in fields))
+        ids = np.concatenate([p.ids for p in parts]) if all(p.ids is not None for p in parts) else None
+        return MergedFrames(*(np.concatenate([getattr(p, f) for p in parts]) for f in fields), ids=ids)
+
+    @staticmethod
+    def new_ids(count: int) -> NDArray[np.int64]:
+        """Return ``count`` content identities never returned before in this process ((count,) int64)."""
+        global _next_identity
+        with _identity_lock:
+            first, _next_identity = _next_identity, _next_identity + count
+        return np.arange(first, first + count, dtype=np.int64)
+
+    def content_key(self, index: int, *, flux: bool = False) -> bytes:
+        """Return a cache key of frame ``index``'s content: equal keys mean identical frames.
+
+        Args:
+            index: frame index.
+            flux: whether the data to be cached derives from the float32 flux (digested
+                then) rather than from the uint8 image and the mask; ignored with ``ids``,
+                which identify every array of a frame.
+
+        Returns:
+            With ``ids``: ``b"id"`` and the frame's id (10 bytes). Otherwise the 16-byte
+            BLAKE2b digest of the arrays (about 0.1 ms per 127 x 248 frame).
+        """
+        if self.ids is not None:
+            return b"id" + int(self.ids[index]).to_bytes(8, "little", signed=True)
+        digest = hashlib.blake2b(digest_size=16)
+        if flux:
+            digest.update(np.ascontiguousarray(self.flux[index]).data)
+        else:
+            digest.update(np.ascontiguousarray(self.images[index]).data)
+            digest.update(np.ascontiguousarray(self.masks[index]).data)
+        return digest.digest()
 
 
 @dataclass(frozen=True)

@@ -28,7 +28,11 @@ __all__ = ["PairwiseScheme", "locate_keyframes"]
 
 
 class _MergedRing:
-    """Merged frames of the last ``capacity`` groups, group j in slot ``j % capacity``."""
+    """Merged frames of the last ``capacity`` groups, group j in slot ``j % capacity``.
+
+    Each put gives its slots new content ids (:attr:`MergedFrames.ids`), so a locator's
+    per-frame caches know a frame seen by an earlier call without digesting its pixels.
+    """
 
     def __init__(self, capacity: int) -> None:
         self.capacity = capacity
@@ -38,10 +42,12 @@ class _MergedRing:
         if self.frames is None:
             shape = (self.capacity,) + merged.flux.shape[1:]
             self.frames = MergedFrames(*(np.zeros(shape, getattr(merged, f).dtype)
-                                         for f in ("flux", "frames", "images", "masks")))
+                                         for f in ("flux", "frames", "images", "masks")),
+                                       ids=np.full(self.capacity, -1, np.int64))
         slots = index % self.capacity
         for f in ("flux", "frames", "images", "masks"):
             getattr(self.frames, f)[slots] = getattr(merged, f)
+        self.frames.ids[slots] = MergedFrames.new_ids(len(slots))
 
     def register(self, locator: Locator, pairs: NDArray[np.int64], initial: NDArray[np.float64],
                  width: int, height: int) -> PairRegistrations:

@@ -19,7 +19,6 @@ Only numpy at module level; OpenCV is imported inside functions.
 from __future__ import annotations
 
 import abc
-import hashlib
 from dataclasses import dataclass, field
 from typing import Annotated, Any, Literal
 
@@ -74,24 +73,18 @@ class PairResult:
 
 
 def frame_key(merged: MergedFrames, index: int, *, flux: bool = False) -> bytes:
-    """Return a digest of merged frame ``index``'s content, a cache key.
+    """Return a cache key of merged frame ``index``'s content (:meth:`MergedFrames.content_key`).
 
     Args:
         merged: the merged frames.
         index: frame index into ``merged``.
-        flux: digest the float32 flux (for data derived from it) instead of the uint8
-            image and the mask.
+        flux: key data derived from the float32 flux (instead of the uint8 image and
+            the mask).
 
     Returns:
-        16 bytes (BLAKE2b); equal keys mean identical frames.
+        The frame's id (``merged.ids``) or a 16-byte digest; equal keys mean identical frames.
     """
-    digest = hashlib.blake2b(digest_size=16)
-    if flux:
-        digest.update(np.ascontiguousarray(merged.flux[index]).data)
-    else:
-        digest.update(np.ascontiguousarray(merged.images[index]).data)
-        digest.update(np.ascontiguousarray(merged.masks[index]).data)
-    return digest.digest()
+    return merged.content_key(index, flux=flux)
 
 
 class FrameCache:

@@ -149,3 +149,27 @@ def test_binned_check_maps_homographies_to_binned_pixels_exactly():
         core = inside & valid_a
         core[:2], core[-2:], core[:, :2], core[:, -2:] = False, False, False, False
         assert np.abs(warped - a)[core].mean() < 0.06, factor
+
+
+def test_cascade_bins_each_frame_once_across_calls_and_drops_frames_no_longer_used(monkeypatch):
+    """A frame used by consecutive calls is binned once (by content id, or digest without ids)."""
+    from photonpano import coarse
+
+    merged = _noisy_pair((6.0, -3.0), photons_per_pixel=1.5)
+    binned = []
+    original = coarse.binned_frame
+    monkeypatch.setattr(coarse, "binned_frame", lambda *a, **k: binned.append(1) or original(*a, **k))
+    cascade = coarse.CascadeLocator(_Fixed(np.array([[1, 0, 6.0], [0, 1, -3.0], [0, 0, 1]]), ok=True), binning=3)
+    pairs, initial = np.array([[0, 1]]), np.eye(3)[None]
+    first = cascade.register_pairs(merged, pairs, initial)
+    assert len(binned) == 2
+    again = cascade.register_pairs(merged, pairs, initial)  # same content, no ids: digests match
+    assert len(binned) == 2
+    np.testing.assert_array_equal(first.homographies, again.homographies)
+    with_ids = MergedFrames(merged.flux, merged.frames, merged.images, merged.masks, ids=MergedFrames.new_ids(2))
+    cascade.register_pairs(with_ids, pairs, initial)  # ids are other keys: binned anew, old entries dropped
+    cascade.register_pairs(with_ids, np.array([[1, 0]]), initial)
+    assert len(binned) == 4 and len(cascade._binned) == 2
+    renewed = MergedFrames(merged.flux, merged.frames, merged.images, merged.masks, ids=MergedFrames.new_ids(2))
+    cascade.register_pairs(renewed, pairs, initial)  # same pixels, new ids: the producer says new content
+    assert len(binned) == 6

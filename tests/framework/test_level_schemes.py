@@ -131,3 +131,28 @@ def test_interpolator_warm_up_runs_in_the_background_and_its_errors_do_not_stop_
         if thread.name == "photonpano-warm-up":
             thread.join(10)
     assert called == [True]
+
+
+def test_merged_frames_content_keys_follow_ids_or_pixels():
+    """Equal keys mean identical frames: ids when the producer gives them, else a digest of the pixels."""
+    from photonpano.records import MergedFrames
+    from photonpano.schemes.pairwise import _MergedRing
+
+    rng = np.random.default_rng(0)
+    flux = rng.random((3, 8, 10), dtype=np.float32)
+    plain = MergedFrames(flux, np.ones_like(flux), (flux * 255).astype(np.uint8), flux > 0.1)
+    copy = MergedFrames(flux.copy(), np.ones_like(flux), (flux * 255).astype(np.uint8), flux > 0.1)
+    assert plain.content_key(0) == copy.content_key(0) != plain.content_key(1)
+    assert plain.content_key(0, flux=True) != plain.content_key(0)
+    first, second = MergedFrames.new_ids(2), MergedFrames.new_ids(1)
+    assert len(set(first) | set(second)) == 3
+    ring = _MergedRing(4)
+    ring.put(np.arange(3), plain)
+    keys = [ring.frames.content_key(i) for i in range(3)]
+    assert len(set(keys)) == 3
+    ring.put(np.array([3, 4]), MergedFrames(*(getattr(plain, f)[:2] for f in ("flux", "frames", "images", "masks"))))
+    # group 4 reuses slot 0 with the pixels of the frame already there: it is still new content
+    assert ring.frames.content_key(0) != keys[0] and ring.frames.content_key(1) == keys[1]
+    both = MergedFrames.concat(ring.frames, ring.frames)
+    assert both.ids is not None and both.content_key(5) == ring.frames.content_key(1)
+    assert MergedFrames.concat(ring.frames, plain).ids is None
