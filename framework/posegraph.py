@@ -21,6 +21,9 @@ from .records import PairRegistrations
 __all__ = ["chain_keyframes", "refine_keyframes", "robust_least_squares", "PairJacobian", "NormalMatrix",
            "pairs_at_offsets", "corner_disagreement"]
 
+MAX_BAND_BYTES = 2 ** 28
+"""Largest band storage of a :class:`NormalMatrix` (256 MiB); wider bands (loop closures) stay sparse."""
+
 
 def chain_keyframes(current: NDArray[np.float64], pairs: PairRegistrations) -> NDArray[np.float64]:
     """Chain consecutive pair registrations into homographies of the keyframes.
@@ -91,65 +94,29 @@ def refine_keyframes(initial: NDArray[np.float64], pair_index: NDArray[np.int64]
     gx, gy = np.meshgrid(np.linspace(0, width - 1, 3), np.linspace(0, height - 1, 3))
     grid = np.stack([gx.ravel(), gy.ravel()], axis=1)  # (9, 2) points of frame b
     mapped = geometry.apply(pairs.homographies[use], grid)  # (E, 9, 2) points of frame a
-    weight = np.sqrt(np.maximum(pairs.inliers[use], 1) / max(np.median(pairs.inliers[use]), 1))[:, None, None]
-    e = len(a)
+    weight = np.sqrt(np.maximum(pairs.inliers[use], 1) / max(np.median(pairs.inliers[use]), 1))
     # Each keyframe is solved as a small update of its starting value, K_g = initial_g @ H(d_g):
     # the 8 parameters of d_g are all of order 1e-3 and well conditioned, whereas the
     # absolute parameters of keyframes far along a pan (hundreds of pixels) are not.
-    points_b = np.broadcast_to(grid, (e, 9, 2))
+    # Residuals and Jacobians are compiled (one pass over the pairs, on one core while the
+    # workers wait): _posegraph_compiled.pair_residuals.
+    from ._posegraph_compiled import pair_residuals
 
-    def project(k: NDArray[np.float64], points: NDArray[np.float64]):
-        """Map (E, 9, 2) points by (E, 3, 3) homographies; return them and d(point)/d(p1..p8)."""
-        x, y = points[..., 0], points[..., 1]
-        nx = k[:, None, 0, 0] * x + k[:, None, 0, 1] * y + k[:, None, 0, 2]
-        ny = k[:, None, 1, 0] * x + k[:, None, 1, 1] * y + k[:, None, 1, 2]
-        d = k[:, None, 2, 0] * x + k[:, None, 2, 1] * y + k[:, None, 2, 2]
-        u, v = nx / d, ny / d
-        zero = np.zeros_like(u)
-        # p1..p8 of H = [[1+p1, p3, p5], [p2, 1+p4, p6], [p7, p8, 1]] (paper Eq. 4)
-        du = np.stack([x, zero, y, zero, np.ones_like(u), zero, -u * x, -u * y], axis=-1) / d[..., None]
-        dv = np.stack([zero, x, zero, y, zero, np.ones_like(u), -v * x, -v * y], axis=-1) / d[..., None]
-        return np.stack([u, v], axis=-1), np.stack([du, dv], axis=-2)  # (E, 9, 2), (E, 9, 2, 8)
-
-    def point_jacobian(k: NDArray[np.float64], q: NDArray[np.float64]):
-        """Map (E, 9, 2) points q by fixed (E, 3, 3) homographies; return them and d(out)/d(q)."""
-        out = q @ k[:, :2, :2].swapaxes(-1, -2) + k[:, None, :2, 2]  # (E, 9, 2) numerators
-        d = q @ k[:, 2, :2, None] + k[:, None, 2, 2:3]  # (E, 9, 1) denominators
-        u = out / d
-        jac = (k[:, None, :2, :2] - u[..., :, None] * k[:, None, 2:3, :2]) / d[..., None]
-        return u, jac  # (E, 9, 2), (E, 9, 2, 2)
+    relative0 = np.linalg.inv(initial[a]) @ initial[b]  # (E, 3, 3) starting b-to-a maps
 
     def updates(free: NDArray[np.float64]) -> NDArray[np.float64]:
         """(G, 3, 3) keyframe updates H(d_g), the gauge keyframe's the identity."""
         return geometry.homographies_from_params(np.concatenate([np.zeros((1, 8)), free.reshape(g - 1, 8)]))
 
-    relative0 = np.linalg.inv(initial[a]) @ initial[b]  # (E, 3, 3) starting b-to-a maps
-
-    def evaluate(free: NDArray[np.float64]):
-        """Residuals in frame a's pixels, ``M x - inv(K_a) K_b x``, and their Jacobians.
+    def linearise(free: NDArray[np.float64]) -> tuple[NDArray[np.float64], PairJacobian]:
+        """Weighted residuals in frame a's pixels, ``M x - inv(K_a) K_b x``, and their Jacobian.
 
         Measured in the frame's own pixels (as Brown and Lowe do), not on the panorama:
         there, shrinking every keyframe would shrink every residual, a degenerate
         direction the solver follows on long captures.
         """
-        update = updates(free)
-        y, dy = project(update[b], points_b)                # frame b after its update
-        z, dz = point_jacobian(relative0, y)                # into frame a's starting pixels
-        w = geometry.apply(np.linalg.inv(update[a]), z)     # undo frame a's update
-        _, dh = project(update[a], w)                       # d proj(H_a w) / d(params of a)
-        _, jw = point_jacobian(update[a], w)                # d proj(H_a w) / dw
-        # H_a w = z: dw/dparams_a = -inv(jw) dh; dw/dz = inv(jw) (2x2 inverses in closed form)
-        det = jw[..., 0, 0] * jw[..., 1, 1] - jw[..., 0, 1] * jw[..., 1, 0]
-        jw_inv = np.stack([np.stack([jw[..., 1, 1], -jw[..., 0, 1]], -1),
-                           np.stack([-jw[..., 1, 0], jw[..., 0, 0]], -1)], -2) / det[..., None, None]
-        residual = mapped - w
-        return residual, jw_inv @ dh, -(jw_inv @ dz @ dy)  # d residual / d(params of a), (of b)
-
-    def linearise(free: NDArray[np.float64]) -> tuple[NDArray[np.float64], PairJacobian]:
-        residual, ja, jb = evaluate(free)
-        return (residual * weight).ravel(), PairJacobian((ja * weight[..., None]).reshape(e, 18, 8),
-                                                          (jb * weight[..., None]).reshape(e, 18, 8), a - 1, b - 1,
-                                                          g - 1)
+        residual, ja, jb = pair_residuals(free, relative0, mapped, grid, weight, a, b)
+        return residual, PairJacobian(ja, jb, a - 1, b - 1, g - 1)
 
     return initial @ updates(robust_least_squares(linearise, np.zeros((g - 1) * 8)))
 
@@ -191,6 +158,17 @@ class PairJacobian:
         """
         e, r, d = self.first.shape
         n = self.n_blocks * d
+        both = (self.first_block >= 0) & (self.second_block >= 0)
+        band = d * int(np.abs(self.first_block[both] - self.second_block[both]).max(initial=0)) + d - 1
+        if (band + 1) * n * 8 <= MAX_BAND_BYTES:  # compiled, straight into the band (one pass over the pairs)
+            from ._posegraph_compiled import banded_normal_equations
+
+            ab, gradient = banded_normal_equations(
+                np.ascontiguousarray(self.first, np.float64), np.ascontiguousarray(self.second, np.float64),
+                self.first_block.astype(np.int64), self.second_block.astype(np.int64),
+                np.ascontiguousarray(weights, np.float64), np.ascontiguousarray(residual, np.float64),
+                self.n_blocks, band)
+            return NormalMatrix.from_band(ab), gradient
         w = weights.reshape(e, r)
         wr = w * residual.reshape(e, r)
         columns = np.arange(d)
@@ -234,16 +212,34 @@ class NormalMatrix:
     """
 
     def __init__(self, rows: NDArray[np.int64], cols: NDArray[np.int64], values: NDArray[np.float64], n: int,
-                 max_band_bytes: float = 2 ** 28) -> None:
+                 max_band_bytes: float = MAX_BAND_BYTES) -> None:
         upper = cols >= rows
-        self.rows, self.cols, self.values, self.n = rows[upper], cols[upper], values[upper], int(n)
-        on = self.rows == self.cols
-        self.diagonal = np.bincount(self.rows[on], self.values[on], minlength=self.n)
-        self.band = int((self.cols - self.rows).max(initial=0))
-        self._ab = None
+        rows, cols, values, self.n = rows[upper], cols[upper], values[upper], int(n)
+        on = rows == cols
+        self.diagonal = np.bincount(rows[on], values[on], minlength=self.n)
+        self.band = int((cols - rows).max(initial=0))
+        self._ab = self._entries = None
         if (self.band + 1) * self.n * 8 <= max_band_bytes:
-            index = (self.band + self.rows - self.cols) * self.n + self.cols
-            self._ab = np.bincount(index, self.values, minlength=(self.band + 1) * self.n).reshape(-1, self.n)
+            index = (self.band + rows - cols) * self.n + cols
+            self._ab = np.bincount(index, values, minlength=(self.band + 1) * self.n).reshape(-1, self.n)
+        else:
+            self._entries = rows, cols, values
+
+    @classmethod
+    def from_band(cls, ab: NDArray[np.float64]) -> NormalMatrix:
+        """The matrix of a (u + 1, N) float64 upper band ``ab[u + i - j, j] = A[i, j]`` (kept, not copied)."""
+        matrix = cls.__new__(cls)
+        matrix.band, matrix.n = ab.shape[0] - 1, ab.shape[1]
+        matrix._ab, matrix._entries = ab, None
+        matrix.diagonal = ab[matrix.band].copy()
+        return matrix
+
+    def entries(self) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.float64]]:
+        """``(rows, cols, values)``: (K,) int64, int64 and float64 entries on and above the diagonal."""
+        if self._entries is not None:
+            return self._entries
+        k, cols = np.nonzero(self._ab)
+        return cols - (self.band - k), cols, self._ab[k, cols]
 
     def solve(self, damping: NDArray[np.float64], rhs: NDArray[np.float64]) -> NDArray[np.float64]:
         """Solve ``(A + diag(damping)) x = rhs`` for (N,) float64 ``x``."""
@@ -253,15 +249,16 @@ class NormalMatrix:
             ab = self._ab.copy()
             ab[self.band] += damping
             try:
-                return solveh_banded(ab, rhs, check_finite=False)
+                return solveh_banded(ab, rhs, overwrite_ab=True, check_finite=False)
             except LinAlgError:
                 pass
         from scipy.sparse import coo_matrix, diags
         from scipy.sparse.linalg import spsolve
 
-        off = self.rows != self.cols
-        full = coo_matrix((np.concatenate([self.values, self.values[off]]),
-                           (np.concatenate([self.rows, self.cols[off]]), np.concatenate([self.cols, self.rows[off]]))),
+        rows, cols, values = self.entries()
+        off = rows != cols
+        full = coo_matrix((np.concatenate([values, values[off]]),
+                           (np.concatenate([rows, cols[off]]), np.concatenate([cols, rows[off]]))),
                           shape=(self.n, self.n))
         return spsolve((full + diags(damping)).tocsc(), rhs)
 
