@@ -174,6 +174,11 @@ class CascadeLocator(Locator):
         """Zero the primary locator's counters."""
         self.primary.reset_cache_stats()
 
+    def end_level(self) -> None:
+        """Drop the binned frames kept across calls, and the primary locator's cached data."""
+        self._binned = {}
+        self.primary.end_level()
+
     def register_pairs(self, merged: MergedFrames, pairs: NDArray[np.int64],
                        initial: NDArray[np.float64]) -> PairRegistrations:
         """Register with the primary locator, then check and rescue on binned frames (see the module).

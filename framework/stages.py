@@ -232,6 +232,13 @@ class Locator(abc.ABC):
     def reset_cache_stats(self) -> None:
         """Zero the counters of :meth:`cache_stats` (a locator without a cache does nothing)."""
 
+    def end_level(self) -> None:
+        """Drop per-frame data kept across calls: the framework calls this when a level's registrations are done.
+
+        The next level merges every frame anew, so nothing cached can be reused; the
+        counters of :meth:`cache_stats` are kept. Default: nothing.
+        """
+
 
 # --- interpolator: homographies for every binary frame ---------------------------
 

@@ -242,5 +242,7 @@ class PairwiseScheme(LevelScheme):
                 merge_ahead=task.executor.in_process and task.executor.workers > 1)
         except StageError as err:
             raise StageError("locator", type(self.locator).__name__, f"level {task.level}: {err.reason}") from None
+        finally:
+            self.locator.end_level()
         return LocateResult(keyframes, pairs, pair_index, merged=MergedFrames.concat(*kept) if kept else None,
                             merge_s=merge_s, locator_cache=self.locator.cache_stats() or None)

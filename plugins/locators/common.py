@@ -199,6 +199,11 @@ class CachingLocator(Locator):
         for cache in self._caches.values():
             cache.hits = cache.misses = 0
 
+    def end_level(self) -> None:
+        """Drop the cached data (the counters are kept; see :meth:`Locator.end_level`)."""
+        for cache in self._caches.values():
+            cache.retain(set())
+
 
 class PolishConfig(LocatorConfig):
     """Config base of feature locators with the optional least-squares or ECC polish."""

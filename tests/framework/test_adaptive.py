@@ -173,3 +173,5 @@ def test_cascade_bins_each_frame_once_across_calls_and_drops_frames_no_longer_us
     renewed = MergedFrames(merged.flux, merged.frames, merged.images, merged.masks, ids=MergedFrames.new_ids(2))
     cascade.register_pairs(renewed, pairs, initial)  # same pixels, new ids: the producer says new content
     assert len(binned) == 6
+    cascade.end_level()  # the next level merges every frame anew: nothing is kept
+    assert not cascade._binned

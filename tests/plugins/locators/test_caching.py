@@ -73,3 +73,14 @@ def test_a_locator_told_frames_are_used_once_hashes_none(four_frames, monkeypatc
     reused = config.build().register_pairs(four_frames, CHAIN, _eye(3))
     assert hashed  # the default keys every frame by content
     np.testing.assert_array_equal(found.homographies, reused.homographies)
+
+
+def test_end_of_level_drops_the_cached_data_and_keeps_the_counters(four_frames):
+    locator = OpenCVSiftConfig(refine="lm").build()
+    locator.register_pairs(four_frames, CHAIN, _eye(3))
+    assert locator.cache_stats()["entries"] == 4
+    locator.end_level()  # the framework, when a level's registrations are done
+    stats = locator.cache_stats()
+    assert stats["entries"] == 0 and stats["features_misses"] == 4
+    locator.register_pairs(four_frames, EXTRA, _eye(2))
+    assert locator.cache_stats()["features_misses"] == 4 + 4
