@@ -148,7 +148,7 @@ class CascadeLocator(Locator):
         self.min_correlation = min_correlation
         self.min_overlap = min_overlap
         self._stats = self._empty()
-        self._binned: dict[bytes, tuple[NDArray[np.float32], NDArray[np.bool_]]] = {}
+        self._binned: dict[tuple[bytes, bytes], tuple[NDArray[np.float32], NDArray[np.bool_]]] = {}
 
     @staticmethod
     def _empty() -> dict[str, Any]:
@@ -195,7 +195,8 @@ class CascadeLocator(Locator):
         found = self.primary.register_pairs(merged, pairs, initial)
         executor = self.executor if getattr(self.executor, "in_process", False) else SerialExecutor()
         frames = [int(i) for i in np.unique(pairs)]
-        keys = {i: merged.content_key(i, flux=True) for i in frames}
+        # a binned frame reads the flux and the mask: key both (one id when the frames carry ids)
+        keys = {i: (merged.content_key(i), merged.content_key(i, flux=True)) for i in frames}
         missing = [i for i in frames if keys[i] not in self._binned]
         computed = dict(zip(missing, executor.map(
             lambda i: binned_frame(merged.flux[i], merged.masks[i], self.factor), missing)))

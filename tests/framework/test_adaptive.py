@@ -175,3 +175,8 @@ def test_cascade_bins_each_frame_once_across_calls_and_drops_frames_no_longer_us
     assert len(binned) == 6
     cascade.end_level()  # the next level merges every frame anew: nothing is kept
     assert not cascade._binned
+    masked = merged.masks.copy()
+    masked[1, :20] = False  # same flux, another mask: another binned frame
+    cascade.register_pairs(MergedFrames(merged.flux, merged.frames, merged.images, merged.masks), pairs, initial)
+    cascade.register_pairs(MergedFrames(merged.flux, merged.frames, merged.images, masked), pairs, initial)
+    assert len(binned) == 6 + 2 + 1
