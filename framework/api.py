@@ -131,7 +131,8 @@ def load(out_dir: str | Path, host: Any = None) -> RunResult:
     Returns:
         A :class:`~photonpano.pipeline.RunResult` with ``homographies`` (T, 3, 3)
         float64, ``panorama`` (Hc, Wc) float32 flux in photons/s, ``summary`` (the
-        ``run.json`` content) and ``spec``.
+        ``run.json`` content), ``spec`` and ``uncertainty`` ((T,) float64 per-frame
+        sigma in pixels, None for a run without ``uncertainty.npy``).
 
     Raises:
         PhotonpanoError: if the folder holds no finished run (``run.json`` is written
@@ -148,10 +149,13 @@ def load(out_dir: str | Path, host: Any = None) -> RunResult:
         summary = json.loads(summary_path.read_text())
         homographies = np.load(folder / "homographies.npy", allow_pickle=False)
         panorama = np.load(folder / "panorama.npy", allow_pickle=False)
+        sigma_path = folder / "uncertainty.npy"
+        uncertainty = np.load(sigma_path, allow_pickle=False) if sigma_path.is_file() else None
     except (OSError, ValueError) as exc:
         raise PhotonpanoError(f"{folder}: cannot read the run: {exc}") from None
     try:
         spec: Any = validate_spec(summary["spec"], host or PluginHost(), origin=str(summary_path))
     except PhotonpanoError:
         spec = summary["spec"]
-    return RunResult(spec=spec, homographies=homographies, panorama=panorama, summary=summary, out_dir=folder)
+    return RunResult(spec=spec, homographies=homographies, panorama=panorama, summary=summary, out_dir=folder,
+                     uncertainty=uncertainty)

@@ -379,5 +379,8 @@ class RegistrationGrid:
 
         regs = located.registrations
         regs = dataclasses.replace(regs, homographies=self.outward(regs.homographies))
+        cross = located.crosscheck
+        if cross is not None:
+            cross = dataclasses.replace(cross, homographies=self.outward(cross.homographies))
         return dataclasses.replace(located, keyframes=self.outward(located.keyframes), registrations=regs,
-                                   template=self.template_outward(located.template))
+                                   template=self.template_outward(located.template), crosscheck=cross)

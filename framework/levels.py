@@ -33,7 +33,8 @@ def estimate_motion(source: PhotonSource, resampler: Resampler, merger: Merger, 
                     keep_merged: bool = False, on_level: Callable[[LevelResult], None] | None = None,
                     progress: Callable[[str, int], Callable[[int], None]] | None = None, start_level: int = 1,
                     initial: NDArray[np.float64] | None = None,
-                    template: Panorama | None = None, binning: int = 1) -> NDArray[np.float64]:
+                    template: Panorama | None = None, binning: int = 1,
+                    crosscheck: bool = True) -> NDArray[np.float64]:
     """Estimate a homography for every binary frame by stratified re-sampling.
 
     One level per scheme. Each level re-samples groups, has its scheme merge them with
@@ -66,6 +67,9 @@ def estimate_motion(source: PhotonSource, resampler: Resampler, merger: Merger, 
             binning and two or more levels to run, the binned photons are counted once
             for all of them (:meth:`~photonpano.binning.RegistrationGrid.count_once`;
             its time is part of the first level's ``merge``).
+        crosscheck: have the last level's scheme also register its consecutive merged
+            frames against each other, held out of the fit (the evidence of
+            :mod:`photonpano.uncertainty`).
 
     Returns:
         (T, 3, 3) float64 frame-to-panorama homographies, where panorama coordinates are
@@ -101,6 +105,7 @@ def estimate_motion(source: PhotonSource, resampler: Resampler, merger: Merger, 
             task = LevelTask(level, grid.source, merger, groups, grid.inward(homographies), group_size, executor,
                              keep_merged, grid.template_inward(template),
                              next_template=level < len(schemes) and schemes[level].needs_template,
+                             crosscheck=crosscheck and level == len(schemes),
                              progress=progress(f"level {level}: merge + locate", len(groups)) if progress else None)
             located = grid.located_outward(scheme.locate(task))
             t2 = time.perf_counter()

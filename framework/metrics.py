@@ -207,8 +207,9 @@ def canvas_from_scene_homography(homographies: np.ndarray, to_canvas: np.ndarray
     return canvas_from_pano @ np.linalg.inv(error.alignment)
 
 
-def plot_trajectory(path: Path, homographies: np.ndarray, to_canvas: np.ndarray, source, error) -> None:
-    """Plot the frame centres over time in canvas pixels, and the per-frame error if known.
+def plot_trajectory(path: Path, homographies: np.ndarray, to_canvas: np.ndarray, source, error,
+                    uncertainty: np.ndarray | None = None) -> None:
+    """Plot the frame centres over time in canvas pixels, the predicted and (if known) actual per-frame error.
 
     Args:
         path: the PNG to write.
@@ -216,6 +217,8 @@ def plot_trajectory(path: Path, homographies: np.ndarray, to_canvas: np.ndarray,
         to_canvas: (T, 3, 3) frame-to-canvas homographies (``homographies.npy``).
         source: the capture (frame size, frame rate, ground truth).
         error: the :class:`~photonpano.metrics.TrajectoryError` of the estimate, or None.
+        uncertainty: (T,) float64 predicted 1-sigma error per frame in pixels
+            (:mod:`photonpano.uncertainty`), drawn as a band from 0 to 2 sigma, or None.
     """
     import matplotlib
 
@@ -226,7 +229,7 @@ def plot_trajectory(path: Path, homographies: np.ndarray, to_canvas: np.ndarray,
 
     centre = np.array([[(source.width - 1) / 2, (source.height - 1) / 2]])
     t = np.arange(len(to_canvas)) / source.frame_rate_hz
-    panels = 3 if error is not None else 2
+    panels = 3 if error is not None or uncertainty is not None else 2
     fig, axes = plt.subplots(panels, 1, figsize=(8, 2.2 * panels + 0.6), sharex=True)
     est = geometry.apply(to_canvas, centre)[:, 0]
     truth = None
@@ -239,11 +242,17 @@ def plot_trajectory(path: Path, homographies: np.ndarray, to_canvas: np.ndarray,
         axes[axis].plot(t, est[:, axis], color="C0", lw=1, label="estimated")
         axes[axis].set_ylabel(f"centre {name} (canvas px)")
     axes[0].legend(loc="best")
+    if uncertainty is not None:
+        band = np.where(np.isfinite(uncertainty), 2 * uncertainty, np.nan)
+        axes[2].fill_between(t, 0, band, color="C1", alpha=0.3, lw=0, label="predicted 2 sigma")
     if error is not None:
-        axes[2].plot(t, error.per_frame_px, color="C3", lw=1)
-        axes[2].set_ylabel("error (scene px)")
+        axes[2].plot(t, error.per_frame_px, color="C3", lw=1, label="actual")
         axes[2].set_title(f"per-frame mean corner error after global alignment (RMSE {error.rmse_px:.3f} px)",
                           fontsize=9)
+    if panels == 3:
+        axes[2].set_ylabel("error (px)")
+        axes[2].set_ylim(bottom=0)
+        axes[2].legend(loc="upper right", fontsize=8)
     axes[-1].set_xlabel("time (s)")
     fig.tight_layout()
     fig.savefig(path, dpi=100)

@@ -67,6 +67,10 @@ class RunResult:
         summary: the ``run.json`` content (versions, spec, timings, per-level
             statistics, ground truth report if known).
         out_dir: the output folder, or None for a run kept in memory.
+        uncertainty: (T,) float64 predicted 1-sigma error of each binary frame's corner
+            positions in panorama pixels (``uncertainty.npy``; inf where nothing
+            measured it; :mod:`photonpano.uncertainty`), or None if the run had no
+            evidence for it.
     """
 
     spec: BaseModel
@@ -74,6 +78,7 @@ class RunResult:
     panorama: NDArray[np.float32]
     summary: dict[str, Any]
     out_dir: Path | None = None
+    uncertainty: NDArray[np.float64] | None = None
 
 
 def run_pipeline(spec: BaseModel, out_dir: Path | None, host: PluginHost, *, force: bool = False,
@@ -155,9 +160,13 @@ def _run_into(spec: BaseModel, folder, host: PluginHost) -> RunResult:
         spec, source, on_level=on_level, progress=progress, resume=start, report=confidence,
         checkpoint=folder.save_checkpoint if folder is not None else None)
     timings.update(stage_timings)
+    frame_sigma = confidence.pop("frame_uncertainty", None)
+    sigma = frame_sigma.sigma_px if frame_sigma is not None else None
 
     if folder is not None:
         folder.save_npy("homographies.npy", pano.homographies)
+        if sigma is not None:
+            folder.save_npy("uncertainty.npy", sigma)
         folder.save_npy("panorama.npy", pano.flux)
         folder.write_with("panorama.tif", lambda path: write_flux_tiff(path, pano.flux))
         if spec.outputs.panorama_png:
@@ -186,11 +195,12 @@ def _run_into(spec: BaseModel, folder, host: PluginHost) -> RunResult:
         error = source_trajectory_error(homographies, source)
     if folder is not None and spec.outputs.trajectory_plot:
         folder.write_with("trajectory.png",
-                          lambda path: plot_trajectory(path, homographies, pano.homographies, source, error))
+                          lambda path: plot_trajectory(path, homographies, pano.homographies, source, error, sigma))
     host.hook.photonpano_run_finished(spec=spec, summary=summary, out_dir=out_dir)
     if folder is not None:
         folder.commit(json.dumps(summary, indent=2, default=json_default))
-    return RunResult(spec=spec, homographies=pano.homographies, panorama=pano.flux, summary=summary, out_dir=out_dir)
+    return RunResult(spec=spec, homographies=pano.homographies, panorama=pano.flux, summary=summary, out_dir=out_dir,
+                     uncertainty=sigma)
 
 
 class Stages:
@@ -299,8 +309,11 @@ def reconstruct(spec: BaseModel, source: PhotonSource, *, on_level: Callable[[Le
         resume: a :class:`~photonpano.outputs.Checkpoint` to continue from (None: level 1).
         report: filled, if given, with the confidence report of ``run.json``:
             ``status``, ``warnings``, ``group_size`` (the plan: chosen m and why, see
-            :class:`~photonpano.adaptive.GroupPlan`) and ``panorama_agreement``
-            (:func:`~photonpano.quality.panorama_agreement`).
+            :class:`~photonpano.adaptive.GroupPlan`), ``panorama_agreement``
+            (:func:`~photonpano.quality.panorama_agreement`), ``uncertainty`` (the
+            summary of the per-frame uncertainty, None if there was no evidence) and
+            ``frame_uncertainty`` (the :class:`~photonpano.uncertainty.FrameUncertainty`
+            itself, or None; not JSON: a caller writing ``run.json`` takes it out).
 
     Returns:
         ``(homographies, level_statistics, panorama, timings_s)``: (T, 3, 3) float64
@@ -313,10 +326,14 @@ def reconstruct(spec: BaseModel, source: PhotonSource, *, on_level: Callable[[Le
     from .outputs import Checkpoint
     from .quality import agreement_binning, assess, panorama_agreement
 
+    from .uncertainty import frame_uncertainty
+
     stats: list[dict[str, Any]] = list(resume.statistics) if resume is not None else []
     stages = Stages(spec, source)
+    last: list[LevelResult] = []
 
     def level_done(result: LevelResult) -> None:
+        last[:] = [result]
         if on_level is not None:
             on_level(result)
         stats.append(stages.level_statistics(result))
@@ -338,9 +355,11 @@ def reconstruct(spec: BaseModel, source: PhotonSource, *, on_level: Callable[[Le
         plan = stages.plan
         agreement = panorama_agreement(source, stages.merger, homographies, pano, plan.group_size,
                                        agreement_binning(plan))
-        status, warnings = assess(plan, stats, agreement)
+        uncertainty = frame_uncertainty(last[0], source.width, source.height) if last else None
+        summary = uncertainty.summary(source.frame_rate_hz) if uncertainty is not None else None
+        status, warnings = assess(plan, stats, agreement, summary)
         report.update(status=status, warnings=warnings, group_size=plan.record(),
-                      panorama_agreement=agreement)
+                      panorama_agreement=agreement, uncertainty=summary, frame_uncertainty=uncertainty)
         timings["confidence"] = time.perf_counter() - t0
     return homographies, stats, pano, timings
 

@@ -126,7 +126,7 @@ def agreement_binning(plan: GroupPlan, photons: float = 20.0) -> int:
 
 
 def assess(plan: GroupPlan, levels: list[dict[str, Any]],
-           agreement: dict[str, Any] | None) -> tuple[str, list[str]]:
+           agreement: dict[str, Any] | None, uncertainty: dict[str, Any] | None = None) -> tuple[str, list[str]]:
     """Decide ``status`` and the warnings of a run from its figures.
 
     Args:
@@ -134,6 +134,10 @@ def assess(plan: GroupPlan, levels: list[dict[str, Any]],
         levels: per-level statistics rows, each with a ``"quality"`` entry from
             :func:`level_figures` (and ``"registration_check"`` where the binned check ran).
         agreement: :func:`panorama_agreement`'s result, or None if it was not measured.
+        uncertainty: the per-frame uncertainty's summary
+            (:meth:`~photonpano.uncertainty.FrameUncertainty.summary`), or None: frame
+            ranges whose predicted error exceeds its limit, or that rest on failed or
+            extrapolated registrations, are warned about by frames and seconds.
 
     Returns:
         ``(status, warnings)``: ``"ok"`` when no warning was raised, else ``"degraded"``;
@@ -166,7 +170,33 @@ def assess(plan: GroupPlan, levels: list[dict[str, Any]],
         if (q.get("pose_graph_residual_px") or 0) > t["residual_px"]:
             warnings.append(f"level {k}: registered pairs disagree with the solved trajectory by "
                             f"{q['pose_graph_residual_px']:.1f} px (median)")
+    if uncertainty is not None:
+        warnings.extend(_uncertainty_warnings(uncertainty))
     if agreement is not None and not agreement["median"] >= t["agreement"]:
         warnings.append(f"merged frames agree poorly with the panorama at their pose (median correlation "
                         f"{agreement['median']:.2f} < {t['agreement']})")
     return ("degraded" if warnings else "ok"), warnings
+
+
+def _uncertainty_warnings(summary: dict[str, Any], listed: int = 4) -> list[str]:
+    """One line per frame range that is unverified or predicted above the limit (at most ``listed`` each)."""
+    def span(entry: dict[str, Any]) -> str:
+        (a, b), (s0, s1) = entry["frames"], entry["seconds"]
+        return f"frames {a}-{b} ({s0:.4g}-{s1:.4g} s)"
+
+    def worst(entry: dict[str, Any]) -> str:
+        return "unknown" if entry["max_px"] is None else f"{entry['max_px']:.2g} px"
+
+    lines = []
+    unverified = summary["unverified"]
+    if unverified:
+        lines.append("the trajectory rests on failed (bridged) or extrapolated registrations at "
+                     + ", ".join(span(e) for e in unverified[:listed])
+                     + (f" and {len(unverified) - listed} more ranges" if len(unverified) > listed else ""))
+    above = summary["above_limit"]
+    if above:
+        worst_first = sorted(above, key=lambda e: -(e["max_px"] if e["max_px"] is not None else np.inf))
+        lines.append(f"held-out registrations predict errors above {summary['limit_px']:g} px at "
+                     + ", ".join(f"{span(e)}: up to {worst(e)}" for e in worst_first[:listed])
+                     + (f" and {len(above) - listed} more ranges" if len(above) > listed else ""))
+    return lines

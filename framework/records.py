@@ -221,6 +221,11 @@ class LocateResult:
         locator_cache: feature-cache statistics of the scheme's locators, or None.
         template: the panorama the next level registers against, if the scheme built it
             (on the input estimate's canvas), else None.
+        crosscheck: held-out registrations of consecutive merged frames directly against
+            each other (not used for the keyframes; see :mod:`photonpano.uncertainty`),
+            if the level was asked for them, else None.
+        crosscheck_index: (C, 2) int64 merged-frame indices ``(a, b)`` of each
+            held-out registration (``b = a + 1``), or None.
     """
 
     keyframes: NDArray[np.float64]
@@ -230,6 +235,8 @@ class LocateResult:
     merge_s: float = 0.0
     locator_cache: dict[str, int] | None = None
     template: Panorama | None = None
+    crosscheck: PairRegistrations | None = None
+    crosscheck_index: NDArray[np.int64] | None = None
 
     @property
     def primary(self) -> NDArray[np.bool_]:

@@ -43,6 +43,10 @@ class LevelTask:
         next_template: the next level registers against a panorama: build it too if
             that can be had without another pass over the photons.
         progress: called with the number of groups done, or None.
+        crosscheck: also register consecutive merged frames directly against each
+            other, held out of the keyframes (:attr:`LocateResult.crosscheck`), where
+            the scheme's own registrations do not already relate them (the level
+            loop asks for it at the last level; see :mod:`photonpano.uncertainty`).
     """
 
     level: int
@@ -56,6 +60,7 @@ class LevelTask:
     template: Panorama | None = None
     next_template: bool = False
     progress: Callable[[int], None] | None = None
+    crosscheck: bool = False
 
     @property
     def current(self) -> NDArray[np.float64]:

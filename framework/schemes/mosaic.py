@@ -46,6 +46,7 @@ class _WindowResult:
     total_s: float
     merged: MergedFrames | None
     crop: tuple[int, int, NDArray[np.float32], NDArray[np.float32]] | None
+    crosscheck: PairRegistrations | None = None
 
 
 class MosaicScheme(LevelScheme):
@@ -89,7 +90,7 @@ class MosaicScheme(LevelScheme):
         Raises:
             StageError: if no merged frame could be registered.
         """
-        source, groups = task.source, task.groups
+        source, groups, current = task.source, task.groups, task.current
         template = self.template(task)
         to_canvas = template.homographies[groups.reference]
         shape = template.flux.shape
@@ -108,8 +109,13 @@ class MosaicScheme(LevelScheme):
                                            np.repeat(np.eye(3)[None], n, axis=0))
             crop = _accumulate(merged, to_canvas[index] @ found.homographies, found.ok, shape) \
                 if task.next_template else None
+            cross = None
+            if task.crosscheck and n > 1:  # held out: consecutive merged frames against each other
+                local = np.stack([np.arange(n - 1), np.arange(1, n)], axis=1)
+                cross = locator.register_pairs(merged, local, geometry.normalize(
+                    np.linalg.inv(current[index[:-1]]) @ current[index[1:]]))
             return _WindowResult(found, locator.cache_stats(), merge_s, time.perf_counter() - start,
-                                 merged if task.keep_merged else None, crop)
+                                 merged if task.keep_merged else None, crop, cross)
 
         windows = [np.arange(s, min(s + self.window, len(groups))) for s in range(0, len(groups), self.window)]
         started = time.perf_counter()
@@ -122,7 +128,6 @@ class MosaicScheme(LevelScheme):
             raise StageError("locator", "mosaic", f"level {task.level}: none of the {len(ok)} merged frames "
                              "registered against the panorama of the current estimate")
         regs = regs.with_ok(ok)
-        current = task.current
         keyframes = bridge(current, geometry.normalize(current @ regs.homographies), ok)
         cache: dict[str, int] = {}
         for part in parts:
@@ -135,8 +140,13 @@ class MosaicScheme(LevelScheme):
         if task.next_template:
             following = _template_from_crops([part.crop for part in parts], shape, template.homographies)
         merged = MergedFrames.concat(*(part.merged for part in parts)) if task.keep_merged else None
+        cross, cross_index = None, None
+        if task.crosscheck:
+            cross = PairRegistrations.concat(*(p.crosscheck for p in parts if p.crosscheck is not None))
+            cross_index = np.concatenate([np.zeros((0, 2), np.int64)] + [
+                np.stack([w[:-1], w[1:]], axis=1) for w in windows if len(w) > 1])
         return LocateResult(keyframes, regs, None, merged=merged, merge_s=merge_s, locator_cache=cache or None,
-                            template=following)
+                            template=following, crosscheck=cross, crosscheck_index=cross_index)
 
 
 def _accumulate(merged: MergedFrames, placed: NDArray[np.float64], ok: NDArray[np.bool_],

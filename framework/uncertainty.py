@@ -1,0 +1,179 @@
+"""Per-frame uncertainty of the trajectory, from registrations held out of the fit.
+
+A confidence report built from the fit's own residuals agrees with a wrong trajectory:
+at the mosaic levels every merged frame is registered against a panorama made from the
+same estimate, so a segment that is wrong consistently is also consistent with its
+panorama. The last level therefore also registers its *consecutive merged frames directly
+against each other* (:attr:`~photonpano.records.LocateResult.crosscheck`), registrations
+that no keyframe used. Where the trajectory is right, each such registration agrees with
+the final homographies up to registration noise; where it is wrong, it disagrees by the
+error's change between the two groups, or fails. This is the "held-out data" test of
+model validation (cross-validation of a fit by measurements it did not see; Hastie,
+Tibshirani and Friedman, *The Elements of Statistical Learning*, Sec. 7.10).
+
+From the held-out residuals :func:`frame_uncertainty` predicts a 1-sigma error for every
+binary frame: the root mean square of the residuals near the frame, times
+:data:`RESIDUAL_TO_SIGMA`. A residual sees only the *difference* of two neighbouring
+groups' errors; the part of the error that neighbours share (a slow drift that one
+global homography does not absorb) does not show in it, and the factor accounts for that
+part. It was calibrated once, on the evaluation suite (``benchmarks/suite.py``, many
+photographs, paths and light levels; ``docs/accuracy.md``), so that about nine frames in
+ten have an actual error within twice their predicted sigma. Frames whose trajectory
+rests on registrations that failed (bridged from neighbours) or on no registration at
+all (before the first or after the last group's reference frame by more than half a
+group) are marked *unverified*.
+
+Where the last level registers pairs itself (the ``pairwise`` scheme, whose pose graph
+holds redundant pairs), its consecutive pairs' residuals against the solved keyframes
+serve as the evidence instead (not held out: a weaker test; ``evidence`` says which).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from . import geometry
+from .records import LevelResult
+
+__all__ = ["FrameUncertainty", "frame_uncertainty", "RESIDUAL_TO_SIGMA", "NEIGHBOURS", "LIMIT_PX"]
+
+RESIDUAL_TO_SIGMA = 2.5
+"""Predicted per-frame sigma over the local RMS of held-out pair residuals (calibrated on
+the evaluation suite, see the module)."""
+
+NEIGHBOURS = 4
+"""Residuals on each side of a pair that enter its local RMS."""
+
+LIMIT_PX = 1.0
+"""A frame whose predicted sigma exceeds this many pixels makes the run ``degraded``."""
+
+
+@dataclass(frozen=True)
+class FrameUncertainty:
+    """Predicted trajectory error of every binary frame.
+
+    Attributes:
+        sigma_px: (T,) float64 predicted 1-sigma error of each frame's corner positions
+            in panorama pixels (mean distance of the four corners from where they belong,
+            as :func:`~photonpano.metrics.trajectory_error` measures it). ``inf`` where
+            no evidence exists at all.
+        unverified: (T,) bool frames whose trajectory rests on a failed (bridged)
+            registration or on extrapolation beyond the registered groups.
+        evidence: ``"held-out pairs"`` (the last level's cross-check) or ``"pose graph"``
+            (a pairwise last level's own pairs).
+        pairs: registrations used as evidence.
+        failed: of them, how many failed.
+    """
+
+    sigma_px: NDArray[np.float64]
+    unverified: NDArray[np.bool_]
+    evidence: str
+    pairs: int
+    failed: int
+
+    def summary(self, frame_rate_hz: float, limit_px: float = LIMIT_PX) -> dict[str, Any]:
+        """The ``run.json`` entry: ``median_px``, ``p95_px``, ``max_px``, the frame ranges above ``limit_px``.
+
+        Args:
+            frame_rate_hz: binary frames per second (for the ranges' times in seconds).
+            limit_px: sigma above which a frame range is listed, in pixels.
+
+        Returns:
+            ``{"evidence", "pairs", "failed_pairs", "median_px", "p95_px", "max_px",
+            "limit_px", "above_limit", "unverified"}``; the last two are lists of
+            ``{"frames": [first, last], "seconds": [t0, t1], "max_px"}`` (frames 0-based,
+            inclusive; ``max_px`` None where infinite).
+        """
+        finite = np.where(np.isfinite(self.sigma_px), self.sigma_px, np.nan)
+        return {
+            "evidence": self.evidence, "pairs": self.pairs, "failed_pairs": self.failed,
+            "median_px": _number(np.nanmedian(finite)), "p95_px": _number(np.nanpercentile(finite, 95)),
+            "max_px": _number(np.max(self.sigma_px)), "limit_px": limit_px,
+            "above_limit": _ranges(~(self.sigma_px <= limit_px), self.sigma_px, frame_rate_hz),
+            "unverified": _ranges(self.unverified, self.sigma_px, frame_rate_hz),
+        }
+
+
+def frame_uncertainty(result: LevelResult, width: int, height: int) -> FrameUncertainty | None:
+    """Predict every frame's trajectory error from the last level's held-out evidence.
+
+    Args:
+        result: the last level's :class:`~photonpano.records.LevelResult` (its
+            ``homographies`` are the run's final frame-to-panorama homographies).
+        width: frame width in pixels.
+        height: frame height in pixels.
+
+    Returns:
+        The :class:`FrameUncertainty`, or None if the level holds no evidence (a mosaic
+        level run without the cross-check, or a single group).
+    """
+    located, homographies = result.located, result.homographies
+    if located.crosscheck is not None and located.crosscheck_index is not None:
+        index, regs, evidence = located.crosscheck_index, located.crosscheck, "held-out pairs"
+    elif located.pair_index is not None:
+        consecutive = located.primary
+        index, regs, evidence = located.pair_index[consecutive], located.registrations.take(consecutive), "pose graph"
+    else:
+        return None
+    if not len(index):
+        return None
+    reference = result.groups.reference
+    expected = geometry.invert(homographies[reference[index[:, 0]]]) @ homographies[reference[index[:, 1]]]
+    corners = geometry.corners(width, height)
+    residual = np.linalg.norm(geometry.apply(regs.homographies, corners) - geometry.apply(expected, corners),
+                              axis=-1).mean(axis=-1)
+    ok = regs.ok & np.isfinite(residual)
+    sigma_pairs = RESIDUAL_TO_SIGMA * _local_rms(np.where(ok, residual, np.nan), NEIGHBOURS)
+    # a pair's evidence describes the frames between its two reference frames
+    middle = (reference[index[:, 0]] + reference[index[:, 1]]) / 2.0
+    n = len(homographies)
+    frames = np.arange(n, dtype=np.float64)
+    known = np.isfinite(sigma_pairs)
+    if known.any():
+        sigma = np.interp(frames, middle[known], sigma_pairs[known])
+    else:
+        sigma = np.full(n, np.inf)
+    unverified = np.zeros(n, bool)
+    for a, b in index[~ok]:
+        unverified[reference[a]:reference[b] + 1] = True
+    # extrapolated: frames beyond the registered groups' span by more than half a group
+    groups = result.groups
+    half = int(np.median(groups.stop - groups.start)) // 2
+    unverified[:max(0, int(reference.min()) - half)] = True
+    unverified[int(reference.max()) + half + 1:] = True
+    # a failed registration leaves its stretch with no measure of error: at least the limit
+    sigma[unverified] = np.maximum(sigma[unverified], 2 * LIMIT_PX)
+    return FrameUncertainty(sigma, unverified, evidence, int(len(ok)), int((~ok).sum()))
+
+
+def _local_rms(values: NDArray[np.float64], neighbours: int) -> NDArray[np.float64]:
+    """RMS of the finite ``values`` within ``neighbours`` places on each side (NaN where none)."""
+    finite = np.isfinite(values)
+    squares = np.concatenate([[0.0], np.cumsum(np.where(finite, values, 0.0) ** 2)])
+    counts = np.concatenate([[0], np.cumsum(finite)])
+    i = np.arange(len(values))
+    lo, hi = np.maximum(i - neighbours, 0), np.minimum(i + neighbours + 1, len(values))
+    count = counts[hi] - counts[lo]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(count > 0, np.sqrt((squares[hi] - squares[lo]) / np.maximum(count, 1)), np.nan)
+
+
+def _ranges(mask: NDArray[np.bool_], sigma: NDArray[np.float64], frame_rate_hz: float) -> list[dict[str, Any]]:
+    """The runs of True in ``mask`` as ``{"frames", "seconds", "max_px"}`` entries."""
+    edges = np.flatnonzero(np.diff(np.concatenate([[0], mask.astype(np.int8), [0]])))
+    out = []
+    for start, stop in zip(edges[::2], edges[1::2]):
+        out.append({"frames": [int(start), int(stop - 1)],
+                    "seconds": [round(start / frame_rate_hz, 6), round((stop - 1) / frame_rate_hz, 6)],
+                    "max_px": _number(sigma[start:stop].max())})
+    return out
+
+
+def _number(value: float) -> float | None:
+    """A JSON-ready float: None for NaN or infinity."""
+    value = float(value)
+    return value if np.isfinite(value) else None
