@@ -159,6 +159,10 @@ def _report(summary: dict[str, Any], out: Path) -> None:
         if "psnr_db" in gt:
             typer.echo(f"panorama PSNR {gt['psnr_db']:.2f} dB; with the true homographies "
                        f"{gt['psnr_true_homographies_db']:.2f} dB (gap {gt['psnr_gap_db']:.2f} dB)")
+    unc = summary.get("uncertainty")
+    if unc and unc["median_px"] is not None:
+        typer.echo(f"predicted per-frame error ({unc['evidence']}): median {unc['median_px']:.3f} px, "
+                   f"95th percentile {unc['p95_px']:.3f} px (uncertainty.npy)")
     for warning in summary.get("warnings", []):
         typer.secho(f"warning: {warning}", fg=typer.colors.YELLOW, err=True)
     if "status" in summary:

@@ -263,7 +263,7 @@ class Stages:
         return estimate_motion(self.source, self.resampler, self.merger, self.interpolator, self.schemes,
                                group_size=self.plan.group_size, executor=executor,
                                keep_merged=self.spec.outputs.merged_frames, on_level=on_level, progress=progress,
-                               binning=self.binning, **start)
+                               binning=self.binning, crosscheck=self.spec.uncertainty, **start)
 
     def compose(self, homographies: NDArray[np.float64], executor: Executor,
                 progress: Callable[[int], None] | None = None) -> Panorama:
@@ -325,7 +325,6 @@ def reconstruct(spec: BaseModel, source: PhotonSource, *, on_level: Callable[[Le
     from .executor import make_executor
     from .outputs import Checkpoint
     from .quality import agreement_binning, assess, panorama_agreement
-
     from .uncertainty import frame_uncertainty
 
     stats: list[dict[str, Any]] = list(resume.statistics) if resume is not None else []

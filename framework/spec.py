@@ -169,6 +169,9 @@ def spec_model(host: PluginHost) -> type[BaseModel]:
             "(the paper's: pairs of merged frames and a pose graph; level 1 is always pairwise) or mosaic (each "
             "merged frame against the panorama of the current estimate: no drift, one registration per "
             "group).")], ["pairwise", "mosaic"]),
+        uncertainty=(bool, Field(True, description="Predict every frame's trajectory error (uncertainty.npy, "
+                     "run.json `uncertainty`, and `status`) from registrations held out of the fit: the last level "
+                     "also registers consecutive merged frames against each other (photonpano.uncertainty).")),
         executor=(Literal["serial", "threads", "dask"], Field("threads", description="Where independent work "
                   "(groups, chunks) runs: the calling thread, a pool of threads, or a Dask cluster (a local one "
                   "of `workers` processes, or the scheduler at `dask_address`; see docs/scaling.md).")),

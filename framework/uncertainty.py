@@ -168,7 +168,7 @@ def _ranges(mask: NDArray[np.bool_], sigma: NDArray[np.float64], frame_rate_hz: 
     out = []
     for start, stop in zip(edges[::2], edges[1::2]):
         out.append({"frames": [int(start), int(stop - 1)],
-                    "seconds": [round(start / frame_rate_hz, 6), round((stop - 1) / frame_rate_hz, 6)],
+                    "seconds": [round(float(start) / frame_rate_hz, 6), round(float(stop - 1) / frame_rate_hz, 6)],
                     "max_px": _number(sigma[start:stop].max())})
     return out
 

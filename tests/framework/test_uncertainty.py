@@ -1,0 +1,72 @@
+"""Per-frame uncertainty from held-out registrations (issue 26): residuals, ranges, status."""
+
+import numpy as np
+import pytest
+from photonpano import geometry
+from photonpano.quality import _uncertainty_warnings
+from photonpano.records import Groups, LevelResult, LocateResult, PairRegistrations
+from photonpano.uncertainty import LIMIT_PX, NEIGHBOURS, RESIDUAL_TO_SIGMA, _local_rms, frame_uncertainty
+
+W, H = 64, 32
+
+
+def _level(n_frames=1000, m=100, shift=None, failed=()):
+    """A mosaic-like last level whose held-out pairs measured the true motion, off by ``shift[g]`` px."""
+    ref = np.arange(m // 2, n_frames - m // 2 + 1, m // 2)
+    groups = Groups(start=ref - m // 2, stop=ref + m // 2, reference=ref)
+    homographies = np.stack([geometry.translation(0.01 * t, 0.0) for t in range(n_frames)])
+    g = len(ref)
+    index = np.stack([np.arange(g - 1), np.arange(1, g)], axis=1)
+    truth = np.linalg.inv(homographies[ref[:-1]]) @ homographies[ref[1:]]
+    shift = np.zeros(g - 1) if shift is None else np.asarray(shift, float)
+    measured = np.stack([geometry.translation(s, 0.0) for s in shift]) @ truth
+    ok = np.ones(g - 1, bool)
+    ok[list(failed)] = False
+    cross = PairRegistrations(measured, np.zeros(g - 1, np.int64), np.zeros(g - 1, np.int64), ok)
+    regs = PairRegistrations(np.repeat(np.eye(3)[None], g, 0), np.zeros(g, np.int64), np.zeros(g, np.int64),
+                             np.ones(g, bool))
+    located = LocateResult(homographies[ref], regs, None, crosscheck=cross, crosscheck_index=index)
+    return LevelResult(3, "mosaic", groups, located, homographies)
+
+
+def test_local_rms_ignores_missing_values():
+    values = np.array([3.0, np.nan, 4.0, np.nan, np.nan, np.nan])
+    rms = _local_rms(values, 1)
+    assert rms[0] == pytest.approx(3.0) and rms[1] == pytest.approx(5 / np.sqrt(2))
+    assert rms[3] == pytest.approx(4.0) and np.isnan(rms[5])
+
+
+def test_residuals_scale_into_sigma_for_every_frame():
+    """Held-out pairs off by 0.1 px predict RESIDUAL_TO_SIGMA x 0.1 px for every frame; none is unverified."""
+    result = _level(shift=np.full(18, 0.1))
+    unc = frame_uncertainty(result, W, H)
+    assert unc.sigma_px.shape == (1000,) and unc.sigma_px.dtype == np.float64
+    assert np.allclose(unc.sigma_px, RESIDUAL_TO_SIGMA * 0.1)
+    assert not unc.unverified.any() and unc.evidence == "held-out pairs" and unc.failed == 0
+
+
+def test_a_jump_is_located_and_named_by_frames_and_seconds():
+    """One held-out pair 5 px off: the frames around it exceed the limit, the warning names them."""
+    shift = np.full(18, 0.05)
+    shift[10] = 5.0
+    unc = frame_uncertainty(_level(shift=shift), W, H)
+    summary = unc.summary(frame_rate_hz=1000.0)
+    (above,) = summary["above_limit"]
+    first, last = above["frames"]
+    jump = 550 + 25  # the pair's middle frame (references 550 and 600)
+    assert first < jump < last and above["seconds"] == [first / 1000, last / 1000]
+    assert last - first < 2 * (NEIGHBOURS + 1) * 50 + 100  # local, not the whole capture
+    assert summary["median_px"] < LIMIT_PX
+    (line,) = _uncertainty_warnings(summary)
+    assert f"frames {first}-{last}" in line and "px" in line
+
+
+def test_failed_held_out_pairs_and_ends_are_unverified():
+    unc = frame_uncertainty(_level(shift=np.full(18, 0.05), failed=[4]), W, H)
+    refs = np.arange(50, 951, 50)
+    assert unc.unverified[refs[4]:refs[5] + 1].all()
+    assert (unc.sigma_px[unc.unverified] >= 2 * LIMIT_PX).all()
+    assert not unc.unverified[refs[0]:refs[4]].any()
+    assert unc.failed == 1
+    lines = _uncertainty_warnings(unc.summary(1000.0))
+    assert any("bridged" in line and f"frames {refs[4]}-{refs[5]}" in line for line in lines)
