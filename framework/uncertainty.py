@@ -41,7 +41,7 @@ from .records import LevelResult
 
 __all__ = ["FrameUncertainty", "frame_uncertainty", "RESIDUAL_TO_SIGMA", "NEIGHBOURS", "LIMIT_PX"]
 
-RESIDUAL_TO_SIGMA = 2.5
+RESIDUAL_TO_SIGMA = 1.75
 """Predicted per-frame sigma over the local RMS of held-out pair residuals (calibrated on
 the evaluation suite, see the module)."""
 

@@ -1,6 +1,7 @@
 """The evaluation suite's quick subset (issue 26): what ``benchmarks/suite.py --quick`` checks, in CI."""
 
 import importlib.util
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -12,6 +13,7 @@ SUITE = Path(__file__).resolve().parents[1] / "benchmarks" / "suite.py"
 def _suite():
     spec = importlib.util.spec_from_file_location("suite", SUITE)
     module = importlib.util.module_from_spec(spec)
+    sys.modules["suite"] = module  # dataclasses look their module up
     spec.loader.exec_module(module)
     return module
 
