@@ -3,6 +3,8 @@
 As in the paper (Sec. 5, "Simulation Details"): the photograph's sRGB tone curve is
 undone to get linear intensity, the camera's field of view follows a known path across
 it, and every binary frame is drawn from Eq. (2), ``P(1) = 1 - exp(-flux * I)``.
+Real-scene nuisances can be added (all off by default): a flickering mains lamp over part
+of the scene, a bright disc moving across it, hot pixels and dark counts.
 """
 
 from __future__ import annotations
@@ -21,6 +23,8 @@ from photonpano.stages import PhotonSource, SourceConfig
 from pydantic import Field
 
 BUNDLED_PHOTO = "office_equirect.jpg"
+LAMP_RAMP_PX = 20.0
+"""Width in scene pixels of the ramp between the flickering lamp's lit and steady parts."""
 
 
 def bundled_photo() -> Path:
@@ -84,6 +88,40 @@ class SimulateConfig(SourceConfig):
     mean_intensity: Annotated[float, Field(gt=0, le=1)] | None = None
     """Scale the photo's linear intensity so that its mean is this (e.g. 0.016 for a
     dark scene; values are clipped at 1); None: the photo as it is."""
+    flicker_hz: Annotated[float, Field(ge=0, allow_inf_nan=False)] = 0.0
+    """Flicker frequency in Hz of a mains-powered lamp lighting ``flicker_region`` (the
+    light's own frequency, twice the mains': 100 for 50 Hz mains, 120 for 60 Hz); 0: no
+    flicker. The lamp is a rectified sine: the lit part's intensity is multiplied by
+    ``1 - flicker_depth * (1 - abs(sin(pi * flicker_hz * t)))`` (t in seconds), averaged over
+    each binary frame's exposure; ``scene_flux`` has the lamp's mean level over the capture."""
+    flicker_depth: Annotated[float, Field(ge=0, le=1)] = 0.9
+    """Modulation depth of the flicker: the lit part dims to ``1 - flicker_depth`` of its
+    level at the lamp's troughs (1: the lamp goes dark twice per mains cycle)."""
+    flicker_region: Literal["all", "left", "right", "top", "bottom"] = "all"
+    """Part of the scene lit by the flickering lamp, in scene coordinates (it moves with
+    the scene, as a lamp lighting part of a room): the whole scene or the half on one side
+    of its centre line, with a 20-scene-pixel linear ramp between lit and steady parts."""
+    mover_radius_px: Annotated[float, Field(ge=0, allow_inf_nan=False)] = 0.0
+    """Radius in scene pixels of a bright disc moving across the scene independently of
+    the camera (anti-aliased over about 1 scene pixel); 0: no moving object. It is not in
+    ``scene_flux``; its centres are in ``mover_centres``."""
+    mover_speed_px_per_frame: Annotated[float, Field(ge=0, allow_inf_nan=False)] = 0.08
+    """Speed of the moving disc in scene pixels per binary frame (0: a static disc). It
+    passes the scene's centre at the capture's middle frame, ``(frames - 1) / 2``."""
+    mover_intensity: Annotated[float, Field(gt=0, le=1)] = 1.0
+    """Linear intensity of the moving disc (1: as bright as the photo's white); steady, not
+    lit by the flickering lamp."""
+    mover_direction_deg: Annotated[float, Field(allow_inf_nan=False)] = 0.0
+    """Direction of the disc's travel in the scene in degrees: 0 = +x (right), 90 = +y (down)."""
+    hot_pixel_fraction: Annotated[float, Field(ge=0, le=0.1)] = 0.0
+    """Fraction of the sensor's pixels that are hot (chosen with ``seed``, fixed on the
+    sensor): each fires with probability ``hot_pixel_rate`` in every binary frame,
+    whatever the scene. Not in ``scene_flux``; the pixels are in ``hot_pixel_mask``."""
+    hot_pixel_rate: Annotated[float, Field(gt=0, le=1)] = 0.5
+    """Probability that a hot pixel fires in a binary frame."""
+    dark_count_rate: Annotated[float, Field(ge=0, allow_inf_nan=False)] = 0.0
+    """Dark counts in counts per pixel per binary frame, on every pixel:
+    ``P(1) = 1 - exp(-(flux * I + dark_count_rate))``. Not in ``scene_flux``."""
 
     def build(self) -> SimulatedCapture:
         """Simulate the capture (takes about 0.5 ms per binary frame)."""
@@ -182,13 +220,74 @@ def load_scene(photo: Path, scene_width: int) -> NDArray[np.float32]:
     return cv2.resize(lum, (scene_width, height), interpolation=cv2.INTER_AREA)
 
 
+def lamp_mask(shape: tuple[int, int], region: str, ramp_px: float = LAMP_RAMP_PX) -> NDArray[np.float32]:
+    """Return the share of each scene pixel lit by the flickering lamp.
+
+    Args:
+        shape: ``(height, width)`` of the scene in pixels.
+        region: ``all``, or the half of the scene (``left``, ``right``, ``top``,
+            ``bottom``) on one side of its centre line.
+        ramp_px: width in scene pixels of the linear ramp from unlit (0) to lit (1),
+            centred on the centre line.
+
+    Returns:
+        (Hs, Ws) float32 in [0, 1].
+    """
+    if region == "all":
+        return np.ones(shape, np.float32)
+    axis, sign, centre = _lamp_edge(shape, region)
+    ramp = np.clip(0.5 + sign * (np.arange(shape[1 - axis]) - centre) / ramp_px, 0, 1).astype(np.float32)
+    return np.broadcast_to(ramp[None, :] if axis == 0 else ramp[:, None], shape).copy()
+
+
+def _lamp_edge(shape: tuple[int, int], region: str) -> tuple[int, int, float]:
+    """Return ``(axis, sign, centre)`` of the lamp's edge in the scene.
+
+    The lamp's share rises along scene coordinate ``axis`` (0: x, 1: y) in direction
+    ``sign``, through 0.5 at ``centre``, the scene's centre line.
+    """
+    hs, ws = shape
+    return {"left": (0, -1, (ws - 1) / 2), "right": (0, 1, (ws - 1) / 2),
+            "top": (1, -1, (hs - 1) / 2), "bottom": (1, 1, (hs - 1) / 2)}[region]
+
+
+def lamp_factors(config: SimulateConfig) -> NDArray[np.float64]:
+    """Return the flickering lamp's relative level in each binary frame.
+
+    ``1 - depth * (1 - |sin(pi f t)|)`` averaged exactly over frame t's exposure
+    ``[t, t + 1) / frame_rate_hz`` (so a flicker near the frame rate does not alias).
+
+    Returns:
+        (T,) float64 in [1 - depth, 1]; all ones when ``flicker_hz`` is 0.
+    """
+    if config.flicker_hz <= 0:
+        return np.ones(config.frames)
+    # F(u) = integral_0^u |sin v| dv = 2 k + 1 - cos(u - k pi), k = floor(u / pi): continuous
+    # in u even where rounding puts k one off at a multiple of pi
+    u = np.pi * config.flicker_hz * np.arange(config.frames + 1, dtype=np.float64) / config.frame_rate_hz
+    k = np.floor(u / np.pi)
+    integral = 2 * k + 1 - np.cos(u - k * np.pi)
+    mean_abs_sin = np.diff(integral) / (u[1] - u[0])
+    return 1 - config.flicker_depth * (1 - mean_abs_sin)
+
+
 class SimulatedCapture(PhotonSource):
     """A simulated photon cube held bit-packed in memory (or in ``cube_path``).
 
+    Nuisances (all off by default): a flickering lamp over part of the scene, a bright
+    disc moving across it, hot pixels and dark counts (see :class:`SimulateConfig`).
+
     Attributes:
         cube: (T, H, W/8) uint8 bit-packed binary frames, MSB first.
-        ground_truth: (T, 3, 3) float64 true frame-to-scene homographies.
-        scene_flux: (Hs, Ws) float32 true scene flux in photons/s.
+        ground_truth: (T, 3, 3) float64 true frame-to-scene homographies (the camera
+            path; the moving disc does not change it).
+        scene_flux: (Hs, Ws) float32 true flux in photons/s of the static scene: without
+            the moving disc, hot pixels and dark counts, the flickering lamp's part at the
+            lamp's mean level over the capture (so a panorama compares with it).
+        lamp: (T,) float64 the flickering lamp's relative level per frame (ones when off).
+        mover_centres: (T, 2) float64 scene ``(x, y)`` of the moving disc's centre per
+            frame; None without one.
+        hot_pixel_mask: (H, W) bool, the hot pixels; None without them.
     """
 
     def __init__(self, config: SimulateConfig) -> None:
@@ -212,9 +311,38 @@ class SimulatedCapture(PhotonSource):
         pitch = config.pixel_pitch
         to_scene = camera_path(config, scene.shape) @ scale_matrix(pitch)  # frame pixels -> scene pixels
         self.ground_truth = geometry.normalize(scale_matrix(1.0 / pitch) @ to_scene)
-        self.scene_flux = (config.flux * scene / self.exposure_s).astype(np.float32)
+        self.lamp = lamp_factors(config)
+        if config.flicker_hz > 0:
+            mask = lamp_mask(scene.shape, config.flicker_region)
+            mean_scene = scene * (1 + mask * np.float32(self.lamp.mean() - 1))
+            self.scene_flux = (config.flux * mean_scene / self.exposure_s).astype(np.float32)
+        else:
+            self.scene_flux = (config.flux * scene / self.exposure_s).astype(np.float32)
         self.scene_pitch = float(pitch)
-        self.name = f"simulate({photo.name}, {config.path}, flux {config.flux})"
+        self.mover_centres = None
+        if config.mover_radius_px > 0:
+            angle = np.deg2rad(config.mover_direction_deg)
+            velocity = config.mover_speed_px_per_frame * np.array([np.cos(angle), np.sin(angle)])
+            steps = np.arange(config.frames, dtype=np.float64) - (config.frames - 1) / 2
+            centre = np.array([(scene.shape[1] - 1) / 2, (scene.shape[0] - 1) / 2])
+            self.mover_centres = centre + steps[:, None] * velocity
+        self.hot_pixel_mask = None
+        n_hot = round(config.hot_pixel_fraction * config.height * config.width)
+        if n_hot > 0:
+            # its own stream: the photon draws (seed, t) stay those of the capture without hot pixels
+            rng = np.random.default_rng([config.seed, 0x40770])
+            self.hot_pixel_mask = np.zeros((config.height, config.width), bool)
+            self.hot_pixel_mask.flat[rng.choice(config.height * config.width, n_hot, replace=False)] = True
+        extras = []
+        if config.flicker_hz > 0:
+            extras.append(f"flicker {config.flicker_hz:g} Hz {config.flicker_region}")
+        if config.mover_radius_px > 0:
+            extras.append(f"mover r{config.mover_radius_px:g}")
+        if n_hot > 0:
+            extras.append(f"hot pixels {config.hot_pixel_fraction:.3g}")
+        if config.dark_count_rate > 0:
+            extras.append(f"dark counts {config.dark_count_rate:g}")
+        self.name = f"simulate({', '.join([photo.name, config.path, f'flux {config.flux}', *extras])})"
 
         shape = (config.frames, config.height, config.width // 8)
         if config.cube_path is not None and config.cube_path.exists():
@@ -235,16 +363,130 @@ class SimulatedCapture(PhotonSource):
         config = self.config
         size = (config.width, config.height)
         flags = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
-        draw_binary_frames(self.cube, lambda t: cv2.warpPerspective(scene, to_scene[t], size, flags=flags),
-                           config.flux, config.seed)
+        nuisances = (config.flicker_hz > 0 or self.mover_centres is not None or self.hot_pixel_mask is not None
+                     or config.dark_count_rate > 0)
+        if nuisances:
+            intensity = self._nuisance_intensity(scene, to_scene)
+        else:
+            def intensity(t: int) -> NDArray[np.float32]:
+                return cv2.warpPerspective(scene, to_scene[t], size, flags=flags)
+        draw_binary_frames(self.cube, intensity, config.flux, config.seed)
         if isinstance(self.cube, np.memmap):
             self.cube.flush()
+
+    def _nuisance_intensity(self, scene: NDArray[np.float32], to_scene: NDArray[np.float64]):
+        """Return ``intensity(t)``: frame t's intensity with the configured nuisances.
+
+        The values are ``I'`` with ``flux * I' = flux * I + dark_count_rate`` (above 1
+        where dark counts add, ``draw_binary_frames`` takes ``1 - exp(-flux * I')`` as it
+        is) and, at hot pixels, ``-ln(1 - hot_pixel_rate) / flux``.
+        """
+        import cv2
+
+        config = self.config
+        size = (config.width, config.height)
+        flags = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
+        lamp = self.lamp.astype(np.float32)
+        split = config.flicker_hz > 0 and config.flicker_region != "all"
+        if split:
+            # the lamp's share at each frame pixel, from the frame pixel's scene coordinate
+            # (the ramp of lamp_mask evaluated there; 10x cheaper than warping the mask too):
+            # share = clip(a x + b y + c) for an affine to_scene, else through the division
+            axis, sign, centre = _lamp_edge(scene.shape, config.flicker_region)
+            row = to_scene[:, axis] * (sign / LAMP_RAMP_PX)
+            row[:, 2] += 0.5 - sign * centre / LAMP_RAMP_PX
+            affine = bool(np.all(to_scene[:, 2, :2] == 0) and np.all(to_scene[:, 2, 2] == 1))
+            xs = np.arange(config.width, dtype=np.float32)
+            ys = np.arange(config.height, dtype=np.float32)
+            corners = np.array([[0, 0, 1], [config.width - 1, 0, 1], [0, config.height - 1, 1],
+                                [config.width - 1, config.height - 1, 1]], dtype=np.float64)
+
+            def lamp_share(t: int) -> NDArray[np.float32] | float:
+                if affine:
+                    at_corners = row[t] @ corners.T  # the share is linear: its extremes are at corners
+                    if at_corners.max() <= 0:
+                        return 0.0
+                    if at_corners.min() >= 1:
+                        return 1.0
+                    a, b, c = row[t].astype(np.float32)
+                    if b == 0:  # no rotation: one row (or column) broadcast over the frame
+                        share = (a * xs + c)[None, :]
+                    elif a == 0:
+                        share = (b * ys + c)[:, None]
+                    else:
+                        share = a * xs[None, :] + (b * ys + c)[:, None]
+                else:
+                    h = to_scene[t]
+                    num = h[axis, 0] * xs[None, :] + (h[axis, 1] * ys + h[axis, 2])[:, None]
+                    den = h[2, 0] * xs[None, :] + (h[2, 1] * ys + h[2, 2])[:, None]
+                    share = (0.5 + sign * (num / den - centre) / LAMP_RAMP_PX).astype(np.float32)
+                return np.clip(share, 0, 1, out=share)
+        offset = np.float32(config.dark_count_rate / config.flux)
+        hot = None
+        if self.hot_pixel_mask is not None:
+            hot = np.flatnonzero(self.hot_pixel_mask)
+            with np.errstate(divide="ignore"):  # rate 1: infinite intensity, P(1) = 1
+                hot_level = np.float32(-np.log1p(-config.hot_pixel_rate) / config.flux)
+        disc = None
+        if self.mover_centres is not None:
+            # the disc's centre in frame pixels, and the frame's scene pixels per frame pixel
+            inverse = np.linalg.inv(to_scene)
+            centres = np.einsum("tij,tj->ti", inverse, np.column_stack([self.mover_centres, np.ones(len(inverse))]))
+            centres = centres[:, :2] / centres[:, 2:]
+            scales = np.sqrt(np.abs(np.linalg.det(to_scene[:, :2, :2] / to_scene[:, 2:, 2:])))
+            disc = (centres, scales, config.mover_radius_px, np.float32(config.mover_intensity))
+
+        def intensity(t: int) -> NDArray[np.float32]:
+            image = cv2.warpPerspective(scene, to_scene[t], size, flags=flags)
+            if split:
+                share = lamp_share(t)
+                if isinstance(share, np.ndarray):  # (H, W), (1, W) or (H, 1)
+                    share *= lamp[t] - 1
+                    share += 1
+                    image *= share
+                elif share:
+                    image *= lamp[t]
+            elif config.flicker_hz > 0:
+                image *= lamp[t]
+            if disc is not None:
+                _paint_disc(image, disc[0][t], disc[1][t], disc[2], disc[3])
+            if offset:
+                image += offset
+            if hot is not None:
+                image.reshape(-1)[hot] = hot_level
+            return image
+
+        return intensity
 
     def sum_ranges(self, edges: NDArray[np.int64]) -> NDArray[np.uint16]:
         """Count detections over frame ranges (see :meth:`PhotonSource.sum_ranges`)."""
         from photonpano.photons import sum_packed_ranges
 
         return sum_packed_ranges(self.cube, edges)
+
+
+def _paint_disc(image: NDArray[np.float32], centre: NDArray[np.float64], scale: float, radius: float,
+                level: np.float32) -> None:
+    """Paint an anti-aliased disc into ``image`` in place, only inside its bounding box.
+
+    Args:
+        image: (H, W) float32 frame intensity.
+        centre: ``(x, y)`` of the disc's centre in frame pixels.
+        scale: scene pixels per frame pixel.
+        radius: the disc's radius in scene pixels; its edge ramps over 1 scene pixel.
+        level: the disc's intensity.
+    """
+    h, w = image.shape
+    reach = (radius + 0.5) / scale
+    x0, x1 = max(0, int(np.floor(centre[0] - reach))), min(w, int(np.ceil(centre[0] + reach)) + 1)
+    y0, y1 = max(0, int(np.floor(centre[1] - reach))), min(h, int(np.ceil(centre[1] + reach)) + 1)
+    if x0 >= x1 or y0 >= y1:
+        return
+    dx = (np.arange(x0, x1, dtype=np.float32) - np.float32(centre[0]))[None, :]
+    dy = (np.arange(y0, y1, dtype=np.float32) - np.float32(centre[1]))[:, None]
+    alpha = np.clip(np.float32(radius + 0.5) - np.sqrt(dx * dx + dy * dy) * np.float32(scale), 0, 1)
+    box = image[y0:y1, x0:x1]
+    box += alpha * (level - box)
 
 
 @hookimpl

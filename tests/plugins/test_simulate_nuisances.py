@@ -1,0 +1,161 @@
+"""The ``simulate`` source's real-scene nuisances: lamp flicker, a moving disc, hot pixels, dark counts.
+
+Each test measures the nuisance in the photons of a small capture (2 000 frames of 64x128
+from a 600-pixel-wide scene).
+"""
+
+import hashlib
+
+import numpy as np
+import pytest
+from photonpano.plugins.sources.simulate import SimulateConfig
+from pydantic import ValidationError
+
+# 10 kHz: 2 000 frames are 0.2 s, 20 periods of a 100 Hz lamp
+BASE = dict(frames=2000, height=64, width=128, scene_width=600, vibration_px=0.0, speed_px_per_frame=0.02,
+            frame_rate_hz=10_000.0)
+
+# sha256 of the cube of SimulateConfig(frames=300, height=32, width=64, scene_width=400, vibration_px=2.0),
+# taken before the nuisances existed
+DEFAULT_CUBE_SHA256 = "d05ceb1563f3d59fb9c37349bb1d785c168b9393135bcfd2a9f750793b7fd3b5"
+
+
+def _bits(capture):
+    return np.unpackbits(capture.cube, axis=-1)
+
+
+@pytest.fixture(scope="module")
+def plain():
+    """The base capture without nuisances."""
+    return SimulateConfig(**BASE).build()
+
+
+def test_defaults_leave_the_capture_bit_identical():
+    small = dict(frames=300, height=32, width=64, scene_width=400, vibration_px=2.0)
+    cube = SimulateConfig(**small).build().cube
+    assert hashlib.sha256(cube.tobytes()).hexdigest() == DEFAULT_CUBE_SHA256
+    # the nuisances' other settings do nothing while they are switched off
+    off = SimulateConfig(**small, flicker_depth=0.3, flicker_region="left", mover_speed_px_per_frame=1.0,
+                         mover_intensity=0.5, mover_direction_deg=45, hot_pixel_rate=0.9).build()
+    np.testing.assert_array_equal(off.cube, cube)
+    assert off.mover_centres is None and off.hot_pixel_mask is None
+    assert off.name == "simulate(office_equirect.jpg, pan, flux 0.5)"
+
+
+def _spectrum(series, rate_hz):
+    """Frequencies and power of ``series`` less a cubic trend (a pan drifts the content slowly)."""
+    x = np.linspace(-1, 1, len(series))
+    power = np.abs(np.fft.rfft(series - np.polyval(np.polyfit(x, series, 3), x))) ** 2
+    return np.fft.rfftfreq(len(series), 1 / rate_hz), power
+
+
+def test_flicker_modulates_the_lit_half_at_its_frequency_and_depth():
+    # static camera, weak light (P(1) nearly linear in the intensity); the right half of the
+    # scene is lit by a 100 Hz lamp: frame columns right of the centre line plus the 10 px
+    # half-ramp see it, those left of it do not
+    depth, hz = 0.9, 100.0
+    cap = SimulateConfig(**{**BASE, "speed_px_per_frame": 0.0}, flux=0.1, flicker_hz=hz, flicker_depth=depth,
+                         flicker_region="right").build()
+    assert cap.name.endswith("flicker 100 Hz right)")
+    bits = _bits(cap)
+    lit = bits[:, :, 76:].mean(axis=(1, 2))
+    unlit = bits[:, :, :52].mean(axis=(1, 2))
+    freqs, lit_power = _spectrum(lit, cap.frame_rate_hz)
+    _, unlit_power = _spectrum(unlit, cap.frame_rate_hz)
+    peak = freqs[np.argmax(lit_power[1:]) + 1]
+    assert abs(peak - hz) <= freqs[1]
+    at = int(np.argmin(np.abs(freqs - hz)))
+    assert lit_power[at] > 1000 * np.median(lit_power[1:])  # about 12 000x
+    assert unlit_power[at] < 10 * np.median(unlit_power[1:])  # noise only
+
+    # depth: the lit series against the lamp's waveform |sin(pi f t)| (per-frame exposure
+    # mean) is y = k (1 - d + d s), so d = slope / (intercept + slope)
+    s = (cap.lamp - (1 - depth)) / depth
+    slope, intercept = np.polyfit(s, lit, 1)
+    assert abs(slope / (intercept + slope) - depth) < 0.05
+    assert np.all((cap.lamp >= 1 - depth) & (cap.lamp <= 1))
+    np.testing.assert_allclose(cap.lamp.max(), 1, atol=1e-3)
+    np.testing.assert_allclose(cap.lamp.min(), 1 - depth, atol=0.02)  # a frame's mean at the trough
+
+    # scene_flux: the lit half at the lamp's mean level over the capture, 1 - d (1 - 2 / pi)
+    steady = SimulateConfig(**{**BASE, "frames": 1}, flux=0.1).build().scene_flux
+    ratio = cap.scene_flux / np.maximum(steady, 1e-6)
+    centre = (steady.shape[1] - 1) / 2
+    np.testing.assert_allclose(np.median(ratio[:, int(centre) + 11:]), 1 - depth * (1 - 2 / np.pi), atol=1e-3)
+    np.testing.assert_allclose(np.median(ratio[:, :int(centre) - 10]), 1, atol=1e-6)
+
+
+def test_the_lamp_region_moves_with_the_scene():
+    # a pan of 0.05 px/frame moves the scene's centre line 100 px left across the frame:
+    # the frame's middle columns are unlit at first and lit at the end
+    cap = SimulateConfig(**{**BASE, "speed_px_per_frame": 0.05}, flicker_hz=100.0, flicker_region="right").build()
+    middle = _bits(cap)[:, :, 56:72].mean(axis=(1, 2))
+    freqs, first = _spectrum(middle[:600], cap.frame_rate_hz)
+    _, last = _spectrum(middle[-600:], cap.frame_rate_hz)
+    at = int(np.argmin(np.abs(freqs - 100.0)))
+    assert last[at] > 1000 * np.median(last[1:])  # about 4 500x
+    assert first[at] < 10 * np.median(first[1:])
+
+
+def test_moving_disc_is_bright_inside_its_track_and_nothing_outside(plain):
+    radius, flux = 8.0, 0.5
+    cap = SimulateConfig(**BASE, mover_radius_px=radius, mover_speed_px_per_frame=0.1, mover_direction_deg=10).build()
+    assert cap.name.endswith("mover r8)")
+    centres = cap.mover_centres
+    assert centres.shape == (2000, 2)
+    np.testing.assert_allclose(centres[1000] + centres[999], 2 * np.array([599 / 2, (240 - 1) / 2]))
+    step = 0.1 * np.array([np.cos(np.deg2rad(10)), np.sin(np.deg2rad(10))])
+    np.testing.assert_allclose(np.diff(centres, axis=0), np.broadcast_to(step, (1999, 2)), atol=1e-9)
+    # the disc's centre in frame pixels per frame, and every frame pixel's distance from it
+    homog = np.column_stack([centres, np.ones(len(centres))])
+    inside_frame = np.einsum("tij,tj->ti", np.linalg.inv(cap.ground_truth), homog)[:, :2].astype(np.float32)
+    ys, xs = np.mgrid[:64, :128].astype(np.float32)
+    dist = np.hypot(xs[None] - inside_frame[:, 0, None, None], ys[None] - inside_frame[:, 1, None, None])
+    with_disc, without = _bits(cap), _bits(plain)
+    core = dist < radius - 1
+    assert core.sum() > 50_000  # the disc crosses the frame
+    # inside: the disc's own rate, 1 - exp(-flux * mover_intensity), well above the scene behind it
+    expected = 1 - np.exp(-flux)
+    assert abs(with_disc[core].mean() - expected) < 0.01
+    assert with_disc[core].mean() - without[core].mean() > 0.1
+    # beyond the anti-aliased edge the photons are exactly those of the capture without the disc
+    outside = dist > radius + 0.5 + 1e-3
+    np.testing.assert_array_equal(with_disc[outside], without[outside])
+    # scene_flux is the static scene's
+    np.testing.assert_array_equal(cap.scene_flux, plain.scene_flux)
+
+
+def test_hot_pixels_fire_at_their_rate_and_leave_the_others_alone(plain):
+    cap = SimulateConfig(**BASE, hot_pixel_fraction=0.01, hot_pixel_rate=0.5).build()
+    mask = cap.hot_pixel_mask
+    assert mask.shape == (64, 128) and mask.sum() == round(0.01 * 64 * 128)
+    bits = _bits(cap)
+    rates = bits[:, mask].mean(axis=0)
+    assert abs(rates.mean() - 0.5) < 0.01
+    assert np.all(np.abs(rates - 0.5) < 0.06)  # 5 sigma of 2 000 frames
+    np.testing.assert_array_equal(bits[:, ~mask], _bits(plain)[:, ~mask])
+    np.testing.assert_array_equal(cap.scene_flux, plain.scene_flux)
+    # fixed on the sensor and drawn from the seed
+    again = SimulateConfig(**{**BASE, "frames": 1}, hot_pixel_fraction=0.01).build()
+    np.testing.assert_array_equal(again.hot_pixel_mask, mask)
+    always = SimulateConfig(**{**BASE, "frames": 50}, hot_pixel_fraction=0.001, hot_pixel_rate=1.0).build()
+    assert _bits(always)[:, always.hot_pixel_mask].all()
+
+
+def test_dark_counts_add_to_the_photon_rate():
+    # a nearly black scene: every pixel fires at 1 - exp(-dark_count_rate)
+    cap = SimulateConfig(**{**BASE, "frames": 500}, flux=1e-5, dark_count_rate=0.2).build()
+    assert abs(_bits(cap).mean() - (1 - np.exp(-0.2))) < 0.003
+    assert cap.name.endswith("dark counts 0.2)")
+
+
+def test_nuisance_settings_are_validated():
+    for bad in (dict(flicker_hz=-1), dict(flicker_depth=1.5), dict(flicker_region="middle"),
+                dict(mover_radius_px=-1), dict(mover_speed_px_per_frame=-0.1), dict(mover_intensity=0),
+                dict(mover_direction_deg=float("nan")), dict(hot_pixel_fraction=0.2), dict(hot_pixel_rate=0),
+                dict(dark_count_rate=-0.1)):
+        with pytest.raises(ValidationError, match=next(iter(bad))):
+            SimulateConfig(**bad)
+    # a disc that does not move is fine
+    cap = SimulateConfig(**{**BASE, "frames": 10}, mover_radius_px=5, mover_speed_px_per_frame=0).build()
+    assert np.ptp(cap.mover_centres, axis=0).max() == 0
