@@ -146,6 +146,25 @@ def apply(homographies: NDArray[np.float64], points: NDArray[np.float64]) -> NDA
     return out[..., :2] / out[..., 2:3]
 
 
+def mean_corner_distance(a: NDArray[np.float64], b: NDArray[np.float64], width: int,
+                         height: int) -> NDArray[np.float64]:
+    """Mean distance of a frame's four corners mapped by ``a`` and by ``b``.
+
+    The per-frame error measure of :func:`~photonpano.metrics.trajectory_error`.
+
+    Args:
+        a: (N, 3, 3) float64 homographies (or (1, 3, 3), broadcast).
+        b: (N, 3, 3) float64 homographies (or (1, 3, 3), broadcast).
+        width: frame width in pixels.
+        height: frame height in pixels.
+
+    Returns:
+        (N,) float64 distances in the pixels of the homographies' target.
+    """
+    c = corners(width, height)
+    return np.linalg.norm(apply(a, c) - apply(b, c), axis=-1).mean(axis=-1)
+
+
 def scale_matrix(scale: float) -> NDArray[np.float64]:
     """Return the homography that maps pixel coordinates to a grid ``scale`` times finer.
 

@@ -329,10 +329,11 @@ def reconstruct(spec: BaseModel, source: PhotonSource, *, on_level: Callable[[Le
 
     stats: list[dict[str, Any]] = list(resume.statistics) if resume is not None else []
     stages = Stages(spec, source)
-    last: list[LevelResult] = []
+    last: LevelResult | None = None
 
     def level_done(result: LevelResult) -> None:
-        last[:] = [result]
+        nonlocal last
+        last = result
         if on_level is not None:
             on_level(result)
         stats.append(stages.level_statistics(result))
@@ -354,7 +355,7 @@ def reconstruct(spec: BaseModel, source: PhotonSource, *, on_level: Callable[[Le
         plan = stages.plan
         agreement = panorama_agreement(source, stages.merger, homographies, pano, plan.group_size,
                                        agreement_binning(plan))
-        uncertainty = frame_uncertainty(last[0], source.width, source.height) if last else None
+        uncertainty = frame_uncertainty(last, source.width, source.height) if last is not None else None
         summary = uncertainty.summary(source.frame_rate_hz) if uncertainty is not None else None
         status, warnings = assess(plan, stats, agreement, summary)
         report.update(status=status, warnings=warnings, group_size=plan.record(),

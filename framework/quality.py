@@ -34,12 +34,6 @@ against the panorama at any level), replaced keyframes
 with the panorama (correlation), detections per (binned) pixel in a merged frame."""
 
 
-def _corner_distance(a: NDArray[np.float64], b: NDArray[np.float64], width: int,
-                     height: int) -> NDArray[np.float64]:
-    c = geometry.corners(width, height)
-    return np.linalg.norm(geometry.apply(a, c) - geometry.apply(b, c), axis=-1).mean(axis=-1)
-
-
 def level_figures(result, plan: GroupPlan, width: int, height: int) -> dict[str, Any]:
     """Ground-truth-free figures of one finished level.
 
@@ -67,12 +61,12 @@ def level_figures(result, plan: GroupPlan, width: int, height: int) -> dict[str,
     }
     ok = pairs.ok
     if index is None:
-        moved = _corner_distance(pairs.homographies[ok], np.eye(3)[None], width, height)
+        moved = geometry.mean_corner_distance(pairs.homographies[ok], np.eye(3)[None], width, height)
         out["median_correction_px"] = float(np.median(moved)) if len(moved) else None
     elif ok.any():
         k = located.keyframes
         solved = np.linalg.inv(k[index[ok, 0]]) @ k[index[ok, 1]]
-        out["pose_graph_residual_px"] = float(np.median(_corner_distance(pairs.homographies[ok], solved,
+        out["pose_graph_residual_px"] = float(np.median(geometry.mean_corner_distance(pairs.homographies[ok], solved,
                                                                          width, height)))
     return out
 

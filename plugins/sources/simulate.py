@@ -357,25 +357,15 @@ class SimulatedCapture(PhotonSource):
 
     def _render(self, scene: NDArray[np.float32], to_scene: NDArray[np.float64]) -> None:
         """Draw every binary frame: ``to_scene`` (T, 3, 3) maps frame pixels to scene pixels."""
-        import cv2
         from photonpano.photons import draw_binary_frames
 
         config = self.config
-        size = (config.width, config.height)
-        flags = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
-        nuisances = (config.flicker_hz > 0 or self.mover_centres is not None or self.hot_pixel_mask is not None
-                     or config.dark_count_rate > 0)
-        if nuisances:
-            intensity = self._nuisance_intensity(scene, to_scene)
-        else:
-            def intensity(t: int) -> NDArray[np.float32]:
-                return cv2.warpPerspective(scene, to_scene[t], size, flags=flags)
-        draw_binary_frames(self.cube, intensity, config.flux, config.seed)
+        draw_binary_frames(self.cube, self._intensity(scene, to_scene), config.flux, config.seed)
         if isinstance(self.cube, np.memmap):
             self.cube.flush()
 
-    def _nuisance_intensity(self, scene: NDArray[np.float32], to_scene: NDArray[np.float64]):
-        """Return ``intensity(t)``: frame t's intensity with the configured nuisances.
+    def _intensity(self, scene: NDArray[np.float32], to_scene: NDArray[np.float64]):
+        """Return ``intensity(t)``: frame t's intensity, the scene warped, with the configured nuisances.
 
         The values are ``I'`` with ``flux * I' = flux * I + dark_count_rate`` (above 1
         where dark counts add, ``draw_binary_frames`` takes ``1 - exp(-flux * I')`` as it
