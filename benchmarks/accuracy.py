@@ -116,7 +116,8 @@ def markdown(rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
-def write_table(path: Path, table: str, command: str, name: str = "accuracy-table") -> None:
+def write_table(path: Path, table: str, command: str, name: str = "accuracy-table",
+                legend: str = ", bold: meets the bar") -> None:
     """Replace the text between the markers ``<!-- name:start -->`` and ``<!-- name:end -->`` of ``path``.
 
     Raises:
@@ -128,8 +129,7 @@ def write_table(path: Path, table: str, command: str, name: str = "accuracy-tabl
         raise SystemExit(f"{path}: no {start} ... {end} markers to write the table between")
     head, rest = text.split(start, 1)
     _, tail = rest.split(end, 1)
-    stamp = (f"Written by `{command}` on {time.strftime('%Y-%m-%d')} ({platform.node() or 'this machine'}, "
-             "bold: meets the bar).")
+    stamp = f"Written by `{command}` on {time.strftime('%Y-%m-%d')} ({platform.node() or 'this machine'}{legend})."
     path.write_text(f"{head}{start}\n{stamp}\n\n{table}\n{end}{tail}")
 
 

@@ -249,7 +249,7 @@ def main(argv: list[str] | None = None) -> int:
         from accuracy import write_table
 
         command = "python benchmarks/suite.py" + (" --quick" if args.quick else "")
-        write_table(args.write, table, command, name="suite-table")
+        write_table(args.write, table, command, name="suite-table", legend="")
     return 1 if verdict(summary) else 0
 
 
