@@ -18,6 +18,7 @@ built at run time from the plugins installed, so third-party plugins validate ex
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 from typing import Annotated, Any, Literal, Union
 
@@ -37,7 +38,20 @@ from .errors import PluginError, SpecError
 from .faults import short_repr
 from .host import PluginHost
 from .spec_compat import move_refine_locator, move_scale
-from .spec_errors import PLUGIN_SLOTS, blame_set, describe_loc, listing, plugin_of, section_at, unknown_plugin, where
+from .spec_errors import (
+    PLUGIN_SLOTS,
+    blame_set,
+    describe_loc,
+    fields_at,
+    listing,
+    plugin_of,
+    section_at,
+    strip_tags,
+    unknown_field_hint,
+    unknown_plugin,
+    where,
+    without_sections,
+)
 from .spec_paths import resolve_relative_paths
 from .stages import STAGES
 from .yaml_guard import load_yaml
@@ -323,9 +337,11 @@ def validate_spec(data: dict[str, Any], host: PluginHost, *, origin: str = "spec
                   overridden: list[str] = ()) -> BaseModel:
     """Validate a spec mapping against the installed plugins.
 
-    Checks, in order: unknown or unavailable plugins (with "did you mean" and install
-    hints), then every field. Selected plugins' optional dependencies are checked here,
-    before any data is read.
+    Checks unknown or unavailable plugins (with "did you mean" and install hints) and
+    every field (unknown field names with "did you mean"), and reports all problems at
+    once: a section naming an unknown plugin is left out of the field checks, so it does
+    not hide the other sections' errors. Selected plugins' optional dependencies are
+    checked here, before any data is read.
 
     Args:
         data: the spec as a mapping.
@@ -341,6 +357,7 @@ def validate_spec(data: dict[str, Any], host: PluginHost, *, origin: str = "spec
         SpecError: listing every problem.
     """
     problems: list[str] = []
+    unknown: list[tuple[str, ...]] = []
     for path, stage in PLUGIN_SLOTS.items():
         key = plugin_of(section_at(data, path))
         if not isinstance(key, str):
@@ -350,25 +367,37 @@ def validate_spec(data: dict[str, Any], host: PluginHost, *, origin: str = "spec
         place = blame_set(overridden, path, data) or where(node, path, origin)
         if key not in registry:
             problems.append(f"{place}{slot}: {unknown_plugin(stage, key, host)}")
+            unknown.append(path)
         else:
             missing = registry[key].missing_requirements()
             if missing:
                 problems.append(f"{place}{slot} ({key}): needs {', '.join(missing)}: "
                                 f"{registry[key].install_hint}")
-    if problems:
-        raise SpecError(listing(origin, problems))
     model = spec_model(host)
     try:
-        return model.model_validate(data)
+        # sections naming an unknown plugin are left out, so that the rest is still checked
+        spec = model.model_validate(without_sections(data, unknown) if unknown else data)
     except ValidationError as exc:
-        lines = []
         for err in exc.errors():
             loc = tuple(err["loc"])
+            if any(strip_tags(loc)[:len(path)] == path for path in unknown):
+                continue
             place = blame_set(overridden, loc, data) or where(node, loc, origin, data)
-            lines.append(f"{place}{describe_loc(loc, data)}: {str(err['msg'])[:200]}"
-                         + (f" (got {short_repr(err['input'])})" if err["type"] not in ("missing",) and
-                            not isinstance(err["input"], dict) else ""))
-        raise SpecError(listing(origin, lines)) from None
+            msg = str(err["msg"])[:200]
+            if err["type"] == "extra_forbidden" and loc:
+                msg += unknown_field_hint(str(loc[-1]), fields_at(model, loc[:-1], host))
+            problems.append(f"{place}{describe_loc(loc, data)}: {msg}"
+                            + (f" (got {short_repr(err['input'])})" if err["type"] not in ("missing",) and
+                               not isinstance(err["input"], dict) else ""))
+    if problems:
+        raise SpecError(listing(origin, sorted(problems, key=_line_of)))
+    return spec
+
+
+def _line_of(problem: str) -> float:
+    """The YAML line a problem names (``line N: ...``), infinity for the rest (stable sort: ``--set`` last)."""
+    match = re.match(r"line (\d+): ", problem)
+    return int(match.group(1)) if match else float("inf")
 
 
 def check_available(spec: BaseModel) -> None:

@@ -94,3 +94,55 @@ def test_scale_belongs_to_the_compositor(tmp_path, host):
     assert "scale" not in dumped and dumped["compositor"]["scale"] == 2.0
     with pytest.raises(SpecError, match="scale is given twice .* write it once, as compositor.scale"):
         validate_spec({"source": source, "scale": 2, "compositor": {"plugin": "drizzle", "scale": 3}}, host)
+
+
+@pytest.mark.parametrize(("text", "overrides", "expected"), [
+    ("source: {plugin: npy-cube, path: a.npy}\nlokator:\n  ratio: 0.7\n", [],
+     "line 2: lokator: Extra inputs are not permitted; did you mean 'locator'?"),
+    ("source: {plugin: npy-cube, path: a.npy}\n", ["lokator.ratio=0.7"],
+     "--set 'lokator.ratio=0.7': lokator: Extra inputs are not permitted; did you mean 'locator'?"),
+    ("source: {plugin: npy-cube, path: a.npy}\nlocator: {plugin: opencv-sift, rattio: 0.7}\n", [],
+     "line 2: locator (opencv-sift).rattio: Extra inputs are not permitted; did you mean 'ratio'?"),
+    ("source: {plugin: npy-cube, path: a.npy}\noutputs: {panorama_pgn: false}\n", [],
+     "outputs.panorama_pgn: Extra inputs are not permitted; did you mean 'panorama_png'?"),
+    ("source: {plugin: npy-cube, path: a.npy}\nmosaic: {locator: {plugin: opencv-ecc, iteratons: 3}}\n", [],
+     "mosaic.locator (opencv-ecc).iteratons: Extra inputs are not permitted; did you mean 'iterations'?"),
+])
+def test_unknown_field_names_get_did_you_mean(tmp_path, host, text, overrides, expected):
+    with pytest.raises(SpecError) as info:
+        load_spec(_write(tmp_path, text), host, overrides)
+    assert expected in str(info.value)
+
+
+def test_unknown_field_without_close_match_lists_the_fields(tmp_path, host):
+    with pytest.raises(SpecError) as info:
+        load_spec(_write(tmp_path, "source: {plugin: npy-cube, path: a.npy}\nmerger: {plugin: flux-mle, zz: 1}\n"),
+                  host)
+    assert "merger (flux-mle).zz: Extra inputs are not permitted (expected one of: subbatch_px" in str(info.value)
+
+
+def test_unknown_plugin_does_not_hide_other_errors(tmp_path, host):
+    text = ("source: {plugin: npy-cube, path: a.npy}\n"
+            "locator: {plugin: opencv-sfit, ratio: 9}\n"
+            "levels: 0\n"
+            "lokator: {}\n"
+            "merger: {plugin: flux-mle, subbatch_pxx: 1}\n")
+    with pytest.raises(SpecError) as info:
+        load_spec(_write(tmp_path, text), host)
+    lines = str(info.value).splitlines()
+    assert "(4 problems)" in lines[0]
+    assert lines[1].strip().startswith("line 2: locator: unknown plugin 'opencv-sfit'; did you mean 'opencv-sift'?")
+    assert lines[2].strip().startswith("line 3: levels: Input should be greater than or equal to 1")
+    assert lines[3].strip() == "line 4: lokator: Extra inputs are not permitted; did you mean 'locator'?"
+    assert "line 5: merger (flux-mle).subbatch_pxx: Extra inputs are not permitted; did you mean 'subbatch_px'?" \
+        in lines[4]
+    # the unknown plugin's own fields are not checked against another plugin's fields
+    assert not any("ratio" in line for line in lines)
+
+
+def test_unknown_source_plugin_is_not_also_reported_missing(tmp_path, host):
+    with pytest.raises(SpecError) as info:
+        load_spec(_write(tmp_path, "source: {plugin: npy-cub, path: a.npy}\nlevels: 9\n"), host)
+    text = str(info.value)
+    assert "unknown plugin 'npy-cub'; did you mean 'npy-cube'?" in text
+    assert "levels: Input should be less than or equal to 8" in text and "Field required" not in text
