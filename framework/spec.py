@@ -57,7 +57,8 @@ from .stages import STAGES
 from .yaml_guard import load_yaml
 
 __all__ = ["DEFAULT_PLUGINS", "OutputsConfig", "spec_model", "load_spec", "validate_spec", "resolve_relative_paths",
-           "apply_overrides", "dump_spec", "read_spec_file", "check_available", "level_schemes", "plugin_configs"]
+           "apply_overrides", "dump_spec", "read_spec_file", "capture_instead_of_spec", "check_available",
+           "level_schemes", "plugin_configs"]
 
 DEFAULT_PLUGINS: dict[str, str] = {
     "resampler": "midpoint",
@@ -263,9 +264,13 @@ def load_spec(path: Path, host: PluginHost, overrides: list[str] = ()) -> BaseMo
         overrides: ``"stage.field=value"`` strings (values parsed as YAML).
 
     Raises:
-        SpecError: missing or unreadable file, bad YAML, unknown plugin or invalid
-            field; the message lists every problem with its line.
+        SpecError: missing or unreadable file, a capture instead of a spec (naming
+            ``photonpano pano``), bad YAML, unknown plugin or invalid field; the message
+            lists every problem with its line.
     """
+    capture = capture_instead_of_spec(path, host)
+    if capture is not None:
+        raise SpecError(capture)
     data, node = read_spec_file(path)
     if data is None:
         data = {}
@@ -274,6 +279,31 @@ def load_spec(path: Path, host: PluginHost, overrides: list[str] = ()) -> BaseMo
     data = resolve_relative_paths(data, host, path.parent)
     data = apply_overrides(data, overrides)
     return validate_spec(data, host, origin=str(path), node=node, overridden=overrides)
+
+
+SPEC_SUFFIXES = (".yaml", ".yml", ".json")
+"""Suffixes always read as spec files, even where a source plugin would claim the path."""
+
+
+def capture_instead_of_spec(path: Path, host: PluginHost) -> str | None:
+    """The one-line message for a capture given where a spec is expected, or None.
+
+    ``path`` is a capture when it exists, its suffix is not one of :data:`SPEC_SUFFIXES`
+    and a source plugin claims it through ``photonpano_source_for_input`` (as for
+    ``photonpano pano``): ``.npy`` cubes, ``.zarr`` folders, SwissSPAD ``.bin`` files or
+    folders, Photron ``.mraw``, videos and image folders. A plugin failing in that hook
+    counts as not claiming the path.
+    """
+    if not path.exists() or path.suffix.lower() in SPEC_SUFFIXES:
+        return None
+    try:
+        source = host.hook.photonpano_source_for_input(path=path)
+    except Exception:  # a plugin's bug here must not hide the spec's own error
+        return None
+    if not isinstance(source, dict):
+        return None
+    return (f"{path}: a capture (source {source.get('plugin')}), not a YAML pipeline spec; reconstruct it "
+            f"with `photonpano pano {path}`")
 
 
 def read_spec_file(path: Path) -> tuple[Any, Any]:

@@ -75,6 +75,16 @@ def test_bad_input_is_one_line_without_traceback(tmp_path, args, message):
     assert len(result.stderr.strip().splitlines()) == 1
 
 
+def test_run_given_a_capture_suggests_pano(tmp_path):
+    cube = tmp_path / "capture.npy"
+    np.save(cube, np.zeros((4, 8, 8), np.uint8))
+    result = _cli("run", cube, "-o", tmp_path / "o")
+    assert result.returncode == 1 and "Traceback" not in result.stderr + result.stdout
+    assert result.stderr.strip() == (f"error: {cube}: a capture (source npy-cube), not a YAML pipeline spec; "
+                                     f"reconstruct it with `photonpano pano {cube}`")
+    assert not (tmp_path / "o").exists()
+
+
 def test_wrong_dtype_cube_fails_cleanly_and_is_untouched(tmp_path):
     cube = tmp_path / "cube.npy"
     np.save(cube, np.zeros((10, 8, 8), np.float32))

@@ -146,3 +146,40 @@ def test_unknown_source_plugin_is_not_also_reported_missing(tmp_path, host):
     text = str(info.value)
     assert "unknown plugin 'npy-cub'; did you mean 'npy-cube'?" in text
     assert "levels: Input should be less than or equal to 8" in text and "Field required" not in text
+
+
+def _capture(tmp_path, kind):
+    """A file or folder a source plugin claims (content irrelevant: it is never read)."""
+    import numpy as np
+
+    if kind == "npy":
+        np.save(tmp_path / "capture.npy", np.zeros((4, 8, 8), np.uint8))
+        return tmp_path / "capture.npy", "npy-cube"
+    if kind == "zarr":
+        (tmp_path / "capture.zarr").mkdir()
+        return tmp_path / "capture.zarr", "zarr-cube"
+    if kind == "images":
+        (tmp_path / "frames").mkdir()
+        (tmp_path / "frames" / "000.png").write_bytes(b"\x89PNG\r\n\x1a\n")
+        return tmp_path / "frames", "video"
+    names = {"bin": ("capture.bin", "swissspad-bin"), "mraw": ("beam.mraw", "photron-mraw"),
+             "mp4": ("clip.mp4", "video")}
+    name, plugin = names[kind]
+    (tmp_path / name).write_bytes(bytes(range(128, 256)) * 4)  # not UTF-8
+    return tmp_path / name, plugin
+
+
+@pytest.mark.parametrize("kind", ["npy", "zarr", "bin", "mraw", "mp4", "images"])
+def test_a_capture_given_as_spec_names_pano(tmp_path, host, kind):
+    path, plugin = _capture(tmp_path, kind)
+    with pytest.raises(SpecError) as info:
+        load_spec(path, host)
+    text = str(info.value)
+    assert text == (f"{path}: a capture (source {plugin}), not a YAML pipeline spec; reconstruct it with "
+                    f"`photonpano pano {path}`")
+    assert "UTF-8" not in text and "\n" not in text
+
+
+def test_a_yaml_spec_is_never_taken_for_a_capture(tmp_path, host):
+    spec = load_spec(_write(tmp_path, "source: {plugin: npy-cube, path: a.npy}\n"), host)
+    assert spec.source.plugin == "npy-cube"
