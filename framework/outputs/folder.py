@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import hashlib
 import json
 import os
 import shutil
@@ -11,16 +12,17 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 from numpy.typing import NDArray
 
 from ..errors import OutputError
 from .checkpoint import CHECKPOINTS, Checkpoint
-from .files import PARTIAL, atomic_path, oserror, save_npy, write_text
+from .files import PARTIAL, atomic_path, inside, oserror, refuse_symlink, regular_file_inside, sha256_file, write_text
 
 __all__ = ["MANIFEST", "LOCK", "RUN_JSON", "RunFolder"]
 
 MANIFEST = "manifest.json"
-"""The list of files a run wrote (JSON: ``{"files": [...], "complete": bool}``)."""
+"""The list of files a run wrote (JSON: ``{"files": [...], "sha256": {name: hex}, "complete": bool}``)."""
 LOCK = ".photonpano.lock"
 """Held (created exclusively) while a run writes into the folder."""
 RUN_JSON = "run.json"
@@ -33,6 +35,13 @@ class RunFolder:
     Use as a context manager around the whole run; call :meth:`begin` once the spec is
     valid and the source is open, write with :meth:`save_npy`, :meth:`write_text` or
     :meth:`path` + :func:`atomic_path`, and finish with :meth:`commit`.
+
+    Nothing outside the folder is ever written or removed: the folder itself and every
+    component of an output name must not be a symbolic link, and ``--force`` (or a failed
+    run's cleanup) deletes a file the manifest names only if it is a regular file inside
+    the folder, reached without a link, whose sha256 is the one the manifest recorded
+    when the run wrote it (a manifest without hashes, from before they were recorded,
+    gets the path checks only). Files that fail a check are kept.
 
     Args:
         path: the output folder (created if missing).
@@ -52,7 +61,9 @@ class RunFolder:
         self.force, self.resume = force, resume
         self.inputs = [Path(p) for p in inputs]
         self.files: list[str] = []
+        self.hashes: dict[str, str] = {}
         self._previous: list[str] = []
+        self._previous_hashes: dict[str, str] | None = None
         self._created = False
         self._locked = False
         self._begun = False
@@ -62,6 +73,7 @@ class RunFolder:
     # -- opening ---------------------------------------------------------------------
     def __enter__(self) -> RunFolder:
         root = self.root
+        refuse_symlink(root, "output folder")
         if root.exists() and not root.is_dir():
             raise OutputError(f"output {root} exists and is not a folder")
         resolved = root.resolve()
@@ -116,13 +128,14 @@ class RunFolder:
 
     def _inspect(self) -> None:
         present = {p.name for p in self.root.iterdir()} - {LOCK}
-        manifest = _read_manifest(self.root / MANIFEST)
+        manifest, hashes = _read_manifest(self.root / MANIFEST)
         if self.resume:
             if manifest is None:
                 raise OutputError(f"--resume: {self.root} holds no interrupted run (no {MANIFEST})")
             if (self.root / RUN_JSON).exists():
                 raise OutputError(f"--resume: the run in {self.root} is already complete ({RUN_JSON} exists)")
             self.files = list(manifest)
+            self.hashes = dict(hashes or {})
             self._existing = present
             return
         if present and not self.force:
@@ -130,6 +143,7 @@ class RunFolder:
                               "(replaces the previous run's outputs) or --resume (continues an "
                               "interrupted run)")
         self._previous = list(manifest or [])
+        self._previous_hashes = hashes
         self._existing = present - set(self._previous) - {MANIFEST}
 
     # -- writing ---------------------------------------------------------------------
@@ -142,8 +156,10 @@ class RunFolder:
             return
         self._begun = True
         if self._previous:
-            self._remove(self._previous + [MANIFEST])
-            self._existing -= set(self._previous)
+            kept = self._remove(self._previous, self._previous_hashes)
+            self._remove([MANIFEST], None)
+            self._existing -= set(self._previous) - {n.split("/")[0] for n in kept}
+            self._existing = {n for n in self._existing if os.path.lexists(self.root / n)}
         self._remove_partials()
         self._write_manifest(complete=False)
 
@@ -151,76 +167,110 @@ class RunFolder:
         """Record ``name`` (relative, may contain ``/``) in the manifest and return its final path.
 
         Write the file through :func:`atomic_path`; parent folders are created.
+
+        Raises:
+            OutputError: ``name`` leaves the folder (``..``, absolute) or one of its
+                components is a symbolic link or not a folder (one line naming it).
         """
+        target = inside(self.root, name)
         self.begin()
         if name not in self.files:
             self.files.append(name)
             self._write_manifest(complete=False)
-        target = self.root / name
         if target.parent != self.root:
             try:
                 target.parent.mkdir(parents=True, exist_ok=True)
             except OSError as exc:
                 raise oserror(target.parent, exc) from None
+            inside(self.root, name)  # a link planted while the folders were made
         return target
 
     def save_npy(self, name: str, array: NDArray) -> Path:
-        """Write ``array`` as ``name`` atomically; returns its path."""
-        path = self.path(name)
-        save_npy(path, array)
-        return path
+        """Write ``array`` as ``name`` atomically, its sha256 recorded; returns its path."""
+        def write(tmp: Path) -> None:
+            with open(tmp, "wb") as handle:
+                np.save(handle, array, allow_pickle=False)
+
+        return self.write_with(name, write)
 
     def write_text(self, name: str, text: str) -> Path:
-        """Write ``text`` as ``name`` atomically; returns its path."""
-        path = self.path(name)
-        write_text(path, text)
-        return path
+        """Write ``text`` (UTF-8) as ``name`` atomically, its sha256 recorded; returns its path."""
+        return self.write_with(name, lambda tmp: tmp.write_text(text, encoding="utf-8"))
 
     def write_with(self, name: str, writer: Callable[[Path], Any]) -> Path:
-        """Call ``writer(tmp_path)`` and rename the result to ``name`` (e.g. a PNG or a plot)."""
+        """Call ``writer(tmp_path)`` and rename the result to ``name`` (e.g. a PNG or a plot).
+
+        The file's sha256 goes into the manifest before the file appears under ``name``.
+        """
         path = self.path(name)
-        with atomic_path(path) as tmp:
+        with atomic_path(path, before_rename=lambda tmp: self._record_hash(name, tmp)) as tmp:
             writer(tmp)
         return path
+
+    def _record_hash(self, name: str, path: Path) -> None:
+        self.hashes[name] = sha256_file(path)
+        self._write_manifest(complete=False)
+
+    def _hash_unrecorded(self) -> None:
+        """Record the sha256 of listed files written without :meth:`write_with` (observers, checkpoints)."""
+        for name in self.files:
+            if name not in self.hashes and name.split("/")[0] not in self._existing:
+                target = regular_file_inside(self.root, name)
+                if target is not None:
+                    with contextlib.suppress(OSError):
+                        self.hashes[name] = sha256_file(target)
 
     def adopt_new_files(self) -> None:
         """Add files that appeared since the run began (written by observer plugins) to the manifest."""
         new = self._new_files()
         if new:
             self.files.extend(new)
+            self._hash_unrecorded()
             self._write_manifest(complete=False)
 
     def _new_files(self) -> list[str]:
+        """Regular files below the folder, reached without links, that no one has listed yet."""
         known = set(self.files) | self._existing | {MANIFEST, LOCK}
-        names = [p.relative_to(self.root).as_posix() for p in sorted(self.root.rglob("*")) if p.is_file()]
-        return [n for n in names if n not in known and n.split("/")[0] not in self._existing
-                and not Path(n).name.startswith(PARTIAL)]
+        names = [n for n in _walk_files(self.root) if n not in known and n.split("/")[0] not in self._existing]
+        return [n for n in names if not Path(n).name.startswith(PARTIAL)]
 
     # -- checkpoints -----------------------------------------------------------------
     def save_checkpoint(self, checkpoint: Checkpoint) -> None:
         """Write ``checkpoints/level_<k>.npz`` (and drop the older ones)."""
-        checkpoint.save(self.path(f"{CHECKPOINTS}/level_{checkpoint.level}.npz"))
+        name = f"{CHECKPOINTS}/level_{checkpoint.level}.npz"
+        path = self.path(name)
+        checkpoint.save(path)
+        self._record_hash(name, path)
         for older in range(1, checkpoint.level):
-            with contextlib.suppress(OSError):
-                (self.root / CHECKPOINTS / f"level_{older}.npz").unlink()
+            target = regular_file_inside(self.root, f"{CHECKPOINTS}/level_{older}.npz")
+            if target is not None:
+                with contextlib.suppress(OSError):
+                    target.unlink()
 
     def last_checkpoint(self) -> Checkpoint | None:
-        """Return the latest complete checkpoint in the folder, or None."""
+        """Return the latest complete checkpoint in the folder (never one reached through a link), or None."""
         found = sorted(((int(p.stem.split("_")[1]), p) for p in (self.root / CHECKPOINTS).glob("level_*.npz")
-                        if p.stem.split("_")[1].isdigit()), reverse=True)
+                        if p.stem.split("_")[1].isdigit()
+                        and regular_file_inside(self.root, f"{CHECKPOINTS}/{p.name}") is not None), reverse=True)
         return Checkpoint.load(found[0][1]) if found else None
 
     # -- finishing -------------------------------------------------------------------
     def commit(self, summary_text: str) -> None:
         """Record every output, write ``run.json`` last, then drop the checkpoints."""
         self.adopt_new_files()
+        self._hash_unrecorded()
         if RUN_JSON not in self.files:
             self.files.append(RUN_JSON)
+        target = inside(self.root, RUN_JSON)
+        self.hashes[RUN_JSON] = hashlib.sha256(summary_text.encode("utf-8")).hexdigest()
         self._write_manifest(complete=True)
-        write_text(self.root / RUN_JSON, summary_text)
+        write_text(target, summary_text)
         self._committed = True
-        shutil.rmtree(self.root / CHECKPOINTS, ignore_errors=True)
+        checkpoints = self.root / CHECKPOINTS
+        if checkpoints.is_dir() and not checkpoints.is_symlink():
+            shutil.rmtree(checkpoints, ignore_errors=True)
         self.files = [n for n in self.files if not n.startswith(f"{CHECKPOINTS}/")]
+        self.hashes = {n: h for n, h in self.hashes.items() if n in self.files}
         self._write_manifest(complete=True)
 
     def __exit__(self, kind: type[BaseException] | None, exc: BaseException | None, tb: Any) -> None:
@@ -234,41 +284,77 @@ class RunFolder:
         """After a failure: remove this run's files (an interrupted run keeps its checkpoints)."""
         if self._begun:
             self.files.extend(self._new_files())
+            self._hash_unrecorded()
         self._remove_partials()
-        if keep_checkpoints and any((self.root / CHECKPOINTS).glob("level_*.npz")):
+        if keep_checkpoints and self.last_checkpoint_exists():
             keep = [n for n in self.files if n.startswith(f"{CHECKPOINTS}/") or n == "spec.yaml"]
-            self._remove([n for n in self.files if n not in keep])
+            self._remove([n for n in self.files if n not in keep], self.hashes)
             self.files = keep
             with contextlib.suppress(OutputError):
                 self._write_manifest(complete=False)
             return
         if self._begun:
-            self._remove(self.files + [MANIFEST])
+            self._remove(self.files, self.hashes)
+            self._remove([MANIFEST], None)
         if self._created:
             with contextlib.suppress(OSError):
                 if not [p for p in self.root.iterdir() if p.name != LOCK]:
                     self._unlock()
                     self.root.rmdir()
 
-    def _remove(self, names: Sequence[str]) -> None:
+    def last_checkpoint_exists(self) -> bool:
+        """Whether the folder holds a checkpoint (a regular file, reached without a link)."""
+        folder = self.root / CHECKPOINTS
+        return folder.is_dir() and not folder.is_symlink() and any(
+            regular_file_inside(self.root, f"{CHECKPOINTS}/{p.name}") for p in folder.glob("level_*.npz"))
+
+    def _remove(self, names: Sequence[str], hashes: dict[str, str] | None) -> list[str]:
+        """Delete the files ``names`` that a run wrote; return the names kept.
+
+        A name is deleted only if it is a regular file inside the folder reached without
+        a symbolic link and, with ``hashes`` (a manifest that records them), its sha256
+        is the recorded one; a file this run listed but did not hash is deleted only if
+        it was not in the folder before the run. Emptied sub-folders are removed.
+        """
+        kept: list[str] = []
         for name in names:
-            target = self.root / name
-            with contextlib.suppress(FileNotFoundError, NotADirectoryError):
-                if target.is_dir() and not target.is_symlink():
-                    continue
+            target = regular_file_inside(self.root, name)
+            if target is None:
+                if os.path.lexists(self.root / name):
+                    kept.append(name)
+                continue
+            if hashes is not None and not self._is_ours(name, target, hashes):
+                kept.append(name)
+                continue
+            with contextlib.suppress(OSError):
                 target.unlink()
         for folder in sorted({(self.root / n).parent for n in names}, key=lambda p: -len(p.parts)):
-            while folder != self.root and folder.is_dir() and not any(folder.iterdir()):
-                folder.rmdir()
-                folder = folder.parent
+            with contextlib.suppress(OSError):
+                while (folder != self.root and self.root in folder.parents and not folder.is_symlink()
+                       and folder.is_dir() and not any(folder.iterdir())):
+                    folder.rmdir()
+                    folder = folder.parent
+        return kept
+
+    def _is_ours(self, name: str, target: Path, hashes: dict[str, str]) -> bool:
+        expected = hashes.get(name)
+        if expected is None:  # listed by this run before it was written (a failure mid-write)
+            return hashes is self.hashes and name.split("/")[0] not in self._existing
+        try:
+            return sha256_file(target) == expected
+        except OSError:
+            return False
 
     def _remove_partials(self) -> None:
-        for leftover in self.root.rglob(f"{PARTIAL}*"):
-            with contextlib.suppress(OSError):
-                leftover.unlink()
+        for name in _walk_files(self.root, links=True):
+            if Path(name).name.startswith(PARTIAL):
+                with contextlib.suppress(OSError):
+                    (self.root / name).unlink()  # a link is removed, never followed
 
     def _write_manifest(self, complete: bool) -> None:
-        write_text(self.root / MANIFEST, json.dumps({"files": self.files, "complete": complete}, indent=1))
+        hashes = {n: self.hashes[n] for n in self.files if n in self.hashes}
+        write_text(self.root / MANIFEST, json.dumps({"files": self.files, "sha256": hashes, "complete": complete},
+                                                    indent=1))
 
 
 def _read(path: Path) -> str:
@@ -278,17 +364,48 @@ def _read(path: Path) -> str:
         return ""
 
 
-def _read_manifest(path: Path) -> list[str] | None:
-    """Return the file names of a manifest (None without one; a damaged one lists nothing)."""
-    if not path.is_file():
-        return None
+def _read_manifest(path: Path) -> tuple[list[str] | None, dict[str, str] | None]:
+    """Return the file names and sha256 hashes of a manifest.
+
+    Returns ``(None, None)`` without a manifest (or a manifest that is a link); a
+    damaged one lists nothing. Hashes are None for a manifest that records none (written
+    before hashes were recorded): its files then get the path checks only.
+    """
+    if path.is_symlink() or not path.is_file():
+        return None, None
     try:
         data = json.loads(_read(path))
-        files = data.get("files", []) if isinstance(data, dict) else []
     except ValueError:
-        return []
-    return [f for f in files
-            if isinstance(f, str) and ".." not in Path(f).parts and not Path(f).is_absolute()]
+        return [], {}
+    if not isinstance(data, dict):
+        return [], {}
+    files = data.get("files", [])
+    files = [f for f in files if isinstance(f, str) and f and ".." not in Path(f).parts
+             and not Path(f).is_absolute()] if isinstance(files, list) else []
+    hashes = data.get("sha256")
+    if hashes is None:
+        return files, None
+    if not isinstance(hashes, dict):
+        return files, {}
+    return files, {k: v for k, v in hashes.items() if isinstance(k, str) and isinstance(v, str)}
+
+
+def _walk_files(root: Path, links: bool = False) -> list[str]:
+    """Names (relative, ``/``-separated, sorted) of the regular files below ``root``, never following a link.
+
+    With ``links``, symbolic links (to anything) are listed too.
+    """
+    names = []
+    for folder, dirs, files in os.walk(root, followlinks=False):
+        base = Path(folder)
+        entries = files + [d for d in dirs if (base / d).is_symlink()] if links else files
+        for entry in entries:
+            path = base / entry
+            if path.is_symlink() and not links:
+                continue
+            if links or path.is_file():
+                names.append(path.relative_to(root).as_posix())
+    return sorted(names)
 
 
 def _lock_is_stale(lock: Path) -> bool:

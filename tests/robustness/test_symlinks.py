@@ -1,0 +1,122 @@
+"""Symbolic links and forged manifests: no writer touches anything outside its output folder."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import shutil
+
+import numpy as np
+import pytest
+from robust import TINY, assert_one_line_error, assert_sound_folder, digests, invoke
+
+
+@pytest.fixture(scope="module")
+def finished(tmp_path_factory):
+    """A complete tiny demo run (copied by the tests that change it)."""
+    out = tmp_path_factory.mktemp("finished") / "out"
+    result = invoke("demo", "-o", out, *TINY, "--set", "levels=1")
+    assert result.exit_code == 0, result.stderr
+    return out
+
+
+@pytest.fixture
+def outside(tmp_path):
+    """A folder beside the output folder holding a file no run may touch."""
+    folder = tmp_path / "outside"
+    folder.mkdir()
+    (folder / "victim.txt").write_text("keep me")
+    (folder / "panorama.png").write_text("not a png, and keep me")
+    return folder
+
+
+def _sha(path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def test_the_manifest_records_the_hash_of_every_file(finished):
+    manifest = json.loads((finished / "manifest.json").read_text())
+    assert set(manifest["sha256"]) == set(manifest["files"])
+    for name, digest in manifest["sha256"].items():
+        assert _sha(finished / name) == digest, name
+
+
+@pytest.mark.parametrize("with_hash", [True, False])
+def test_force_never_follows_a_link_named_in_a_forged_manifest(finished, tmp_path, outside, with_hash):
+    """``link/victim.txt`` with ``link -> outside``: --force keeps the victim (with or without a hash)."""
+    out = tmp_path / "out"
+    shutil.copytree(finished, out)
+    (out / "link").symlink_to(outside, target_is_directory=True)
+    manifest = json.loads((out / "manifest.json").read_text())
+    manifest["files"] += ["link/victim.txt", "link"]
+    if with_hash:  # a forger can hash the victim: the link is refused all the same
+        manifest["sha256"]["link/victim.txt"] = _sha(outside / "victim.txt")
+    else:
+        del manifest["sha256"]
+    (out / "manifest.json").write_text(json.dumps(manifest))
+    before = digests(outside)
+    result = invoke("demo", "-o", out, "--force", *TINY, "--set", "levels=1")
+    assert result.exit_code == 0, result.stderr
+    assert digests(outside) == before
+    assert (out / "link").is_symlink()  # the link itself is kept too: the run did not write it
+    assert assert_sound_folder(out)
+    assert "link/victim.txt" not in json.loads((out / "manifest.json").read_text())["files"]
+
+
+def test_force_keeps_a_listed_file_whose_content_the_run_did_not_write(finished, tmp_path):
+    out = tmp_path / "out"
+    shutil.copytree(finished, out)
+    (out / "notes.txt").write_text("mine")
+    manifest = json.loads((out / "manifest.json").read_text())
+    manifest["files"].append("notes.txt")
+    manifest["sha256"]["notes.txt"] = "0" * 64  # forged: not the file's hash
+    (out / "manifest.json").write_text(json.dumps(manifest))
+    result = invoke("demo", "-o", out, "--force", *TINY, "--set", "levels=1", "--set", "outputs.panorama_png=false")
+    assert result.exit_code == 0, result.stderr
+    assert (out / "notes.txt").read_text() == "mine"
+    assert not (out / "panorama.png").exists()  # the previous run's own file is removed
+    assert assert_sound_folder(out)
+
+
+def test_an_output_replaced_by_a_link_is_never_written_through(finished, tmp_path, outside):
+    out = tmp_path / "out"
+    shutil.copytree(finished, out)
+    (out / "panorama.png").unlink()
+    (out / "panorama.png").symlink_to(outside / "panorama.png")
+    before = digests(outside)
+    result = invoke("demo", "-o", out, "--force", *TINY, "--set", "levels=1")
+    assert result.exit_code == 0, result.stderr
+    assert digests(outside) == before
+    assert not (out / "panorama.png").is_symlink() and assert_sound_folder(out)
+
+
+def test_a_linked_sub_folder_is_refused(tmp_path, outside):
+    """``checkpoints -> outside``: the run refuses in one line instead of writing its checkpoints there."""
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "checkpoints").symlink_to(outside, target_is_directory=True)
+    before = digests(outside)
+    assert_one_line_error(invoke("demo", "-o", out, "--force", *TINY), out / "checkpoints", "symbolic link")
+    assert digests(outside) == before and sorted(os.listdir(outside)) == ["panorama.png", "victim.txt"]
+
+
+def test_a_linked_output_folder_is_refused(tmp_path, outside):
+    link = tmp_path / "out"
+    link.symlink_to(outside, target_is_directory=True)
+    before = digests(outside)
+    for extra in ([], ["--force"]):
+        assert_one_line_error(invoke("demo", "-o", link, *extra, *TINY), link, "symbolic link")
+    assert digests(outside) == before and sorted(os.listdir(outside)) == ["panorama.png", "victim.txt"]
+
+
+def test_a_partial_name_planted_as_a_link_is_not_followed(tmp_path, outside, monkeypatch):
+    """A link under the temporary name of an output is removed, never written through."""
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / f".partial-{os.getpid()}-homographies.npy").symlink_to(outside / "victim.txt")
+    before = digests(outside)
+    result = invoke("demo", "-o", out, "--force", *TINY, "--set", "levels=1")
+    assert result.exit_code == 0, result.stderr
+    assert digests(outside) == before
+    assert np.load(out / "homographies.npy").ndim == 3
