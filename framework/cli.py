@@ -163,6 +163,8 @@ def _report(summary: dict[str, Any], out: Path) -> None:
     if unc and unc["median_px"] is not None:
         typer.echo(f"predicted per-frame error ({unc['evidence']}): median {unc['median_px']:.3f} px, "
                    f"95th percentile {unc['p95_px']:.3f} px (uncertainty.npy)")
+    for note in summary.get("notes", []):
+        typer.secho(f"note: {note}", err=True)
     for warning in summary.get("warnings", []):
         typer.secho(f"warning: {warning}", fg=typer.colors.YELLOW, err=True)
     if "status" in summary:

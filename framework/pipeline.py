@@ -25,7 +25,7 @@ import numpy as np
 from numpy.typing import NDArray
 from pydantic import BaseModel
 
-from .errors import PhotonpanoError
+from .errors import PhotonpanoError, StageError
 from .executor import Executor
 from .hdr import write_flux_tiff
 from .host import PluginHost
@@ -214,8 +214,12 @@ class Stages:
         spec: a validated ``PipelineSpec``.
         source: the opened capture.
 
+    Levels the capture has no room for are dropped with a note (:attr:`notes`), see
+    :meth:`_fit_levels`.
+
     Raises:
-        StageError: if the group-size pre-pass cannot read the capture.
+        StageError: if the group-size pre-pass cannot read the capture, or the capture is
+            too short for even one level.
     """
 
     def __init__(self, spec: BaseModel, source: PhotonSource) -> None:
@@ -241,6 +245,32 @@ class Stages:
                                         spec.mosaic.template.build,
                                         subbatch_px=spec.mosaic.subbatch_px)}
         self.schemes = [built[name] for name in level_schemes(spec)]
+        self.notes: list[str] = []
+        self._fit_levels()
+
+    def _fit_levels(self) -> None:
+        """Keep the levels the capture has room for, noting any dropped; none at all is an error.
+
+        A resampler that cannot build level k >= 2 for this capture and group size (a
+        short clip: the ``midpoint`` groups would be centred less than a frame apart)
+        leaves levels 1 .. k-1 to run, with a one-line note in :attr:`notes`.
+
+        Raises:
+            StageError: if the resampler cannot build level 1 (e.g. a capture of fewer
+                than 4 frames: too short to register anything).
+        """
+        n, m = self.source.n_frames, self.plan.group_size
+        for level in range(1, len(self.schemes) + 1):
+            try:
+                self.resampler.groups(n, m, level)
+            except ValueError as exc:
+                if level == 1:
+                    raise StageError("resampler", type(self.resampler).__name__, str(exc)) from None
+                planned = len(self.schemes)
+                self.schemes = self.schemes[:level - 1]
+                self.notes.append(f"a capture of {n} frames in groups of {m} has room for {level - 1} of the "
+                                  f"{planned} levels; running {level - 1} ({exc})")
+                return
 
     def estimate_motion(self, executor: Executor, *, on_level: Callable[[LevelResult], None] | None = None,
                         progress: Any = None, resume: Any = None) -> NDArray[np.float64]:
@@ -308,7 +338,8 @@ def reconstruct(spec: BaseModel, source: PhotonSource, *, on_level: Callable[[Le
         checkpoint: called with a :class:`~photonpano.outputs.Checkpoint` after each level.
         resume: a :class:`~photonpano.outputs.Checkpoint` to continue from (None: level 1).
         report: filled, if given, with the confidence report of ``run.json``:
-            ``status``, ``warnings``, ``group_size`` (the plan: chosen m and why, see
+            ``status``, ``warnings``, ``notes`` (one line per adjustment the capture
+            needed, e.g. fewer levels for a short clip), ``group_size`` (the plan: chosen m and why, see
             :class:`~photonpano.adaptive.GroupPlan`), ``panorama_agreement``
             (:func:`~photonpano.quality.panorama_agreement`), ``uncertainty`` (the
             summary of the per-frame uncertainty, None if there was no evidence) and
@@ -358,7 +389,7 @@ def reconstruct(spec: BaseModel, source: PhotonSource, *, on_level: Callable[[Le
         uncertainty = frame_uncertainty(last, source.width, source.height) if last is not None else None
         summary = uncertainty.summary(source.frame_rate_hz) if uncertainty is not None else None
         status, warnings = assess(plan, stats, agreement, summary)
-        report.update(status=status, warnings=warnings, group_size=plan.record(),
+        report.update(status=status, warnings=warnings, notes=list(stages.notes), group_size=plan.record(),
                       panorama_agreement=agreement, uncertainty=summary, frame_uncertainty=uncertainty)
         timings["confidence"] = time.perf_counter() - t0
     return homographies, stats, pano, timings

@@ -140,7 +140,9 @@ class Resampler(abc.ABC):
             level: 1 for the first level.
 
         Raises:
-            ValueError: if the capture holds fewer than ``2 * group_size`` frames.
+            ValueError: if the capture holds fewer than ``2 * group_size`` frames, or has
+                no room for ``level`` (a short clip). The pipeline then runs the levels
+                before it and notes so; at level 1 the message is the run's error.
         """
 
 

@@ -20,12 +20,17 @@ def level_one_references(n_frames: int, group_size: int) -> np.ndarray:
     """Return the (G1,) int64 centre frames of the level-1 groups.
 
     Raises:
-        ValueError: if the capture holds fewer than ``2 * group_size`` frames.
+        ValueError: if the capture holds fewer than ``2 * group_size`` frames (fewer
+            than 4, the shortest capture anything can be registered in, say so).
     """
     count = n_frames // group_size
+    if n_frames < 4:
+        raise ValueError(f"a capture of {n_frames} frame{'s' if n_frames != 1 else ''} is too short to register: "
+                         "at least 4 are needed (2 groups of at least 2 frames)")
     if count < 2:
         raise ValueError(f"a capture of {n_frames} frames gives {count} group(s) of "
-                         f"{group_size} frames; at least 2 are needed (lower group_size)")
+                         f"{group_size} frames; at least 2 are needed (lower group_size to at most "
+                         f"{n_frames // 2})")
     return np.arange(count, dtype=np.int64) * group_size + group_size // 2
 
 
@@ -66,9 +71,20 @@ class MidpointResampler(Resampler):
         self.config = config
 
     def groups(self, n_frames: int, group_size: int, level: int) -> Groups:
-        """Return the groups of ``level`` (see :meth:`Resampler.groups`)."""
+        """Return the groups of ``level`` (see :meth:`Resampler.groups`).
+
+        Raises:
+            ValueError: if the capture is too short for level 1 (see
+                :func:`level_one_references`), or for ``level``: its groups would be
+                centred less than one frame apart (``group_size / 2**(level-1) < 1``),
+                so it could add no reference frame between the previous level's.
+        """
         base = level_one_references(n_frames, group_size)
         steps = 2 ** (level - 1)
+        if group_size < steps:
+            most = group_size.bit_length()  # levels whose groups are at least one frame apart
+            raise ValueError(f"groups of {group_size} frames allow at most {most} level{'s' if most != 1 else ''}: "
+                             f"level {level}'s would be centred {group_size / steps:g} frames apart")
         fine = np.linspace(base[0], base[-1], (len(base) - 1) * steps + 1)
         refs = np.rint(fine).astype(np.int64)
         length = int(round(group_size * self.config.growth ** (level - 1)))
@@ -77,11 +93,17 @@ class MidpointResampler(Resampler):
             return groups
         # A merged frame shows the scene displaced by the *mean* error of its frames, so
         # the end groups are half as long: their mean error stays closer to the error
-        # of the end frame they are referenced to.
+        # of the end frame they are referenced to. A reference frame already at an end
+        # (groups of 1 or 2 frames) is not anchored twice.
         half = max(group_size // 2, 1)
-        return Groups(start=np.concatenate([[0], groups.start, [n_frames - half]]),
-                      stop=np.concatenate([[half], groups.stop, [n_frames]]),
-                      reference=np.concatenate([[0], groups.reference, [n_frames - 1]]))
+        head = slice(0, int(groups.reference[0] > 0))
+        tail = slice(0, int(groups.reference[-1] < n_frames - 1))
+
+        def with_ends(values: np.ndarray, first: int, last: int) -> np.ndarray:
+            return np.concatenate([np.array([first], np.int64)[head], values, np.array([last], np.int64)[tail]])
+
+        return Groups(start=with_ends(groups.start, 0, n_frames - half), stop=with_ends(groups.stop, half, n_frames),
+                      reference=with_ends(groups.reference, 0, n_frames - 1))
 
 
 class ConstantConfig(ResamplerConfig):

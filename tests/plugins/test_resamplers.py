@@ -35,3 +35,29 @@ def test_constant_keeps_the_level_one_groups():
 def test_too_short_capture_is_a_clear_error():
     with pytest.raises(ValueError, match="at least 2"):
         MidpointConfig().build().groups(700, 500, 1)
+
+
+@pytest.mark.parametrize("n_frames, group_size", [(4, 2), (100, 2), (101, 2), (9, 3)])
+def test_midpoint_end_anchors_never_repeat_a_reference(n_frames, group_size):
+    # groups of 1-2 frames put a reference on an end frame already: anchoring it again
+    # made the references not strictly increasing (the 4-frame beam clip failed so)
+    g = MidpointConfig().build().groups(n_frames, group_size, 2)
+    assert g.reference.dtype == np.int64 and np.all(np.diff(g.reference) > 0)
+    assert (g.reference[0], g.reference[-1]) == (0, n_frames - 1)
+    assert np.all(g.start <= g.reference) and np.all(g.reference < g.stop) and g.stop[-1] == n_frames
+
+
+def test_midpoint_refuses_levels_closer_than_a_frame():
+    resampler = MidpointConfig().build()
+    assert len(resampler.groups(10_000, 16, 5)) > 0  # 16 / 2**4 = 1 frame apart: the last level with room
+    with pytest.raises(ValueError, match=r"groups of 16 frames allow at most 5 levels: level 6's would be centred "
+                                         r"0\.5 frames apart"):
+        resampler.groups(10_000, 16, 6)
+    with pytest.raises(ValueError, match="groups of 2 frames allow at most 2 levels"):
+        resampler.groups(4, 2, 3)
+
+
+@pytest.mark.parametrize("n_frames", [1, 2, 3])
+def test_a_capture_under_four_frames_is_too_short_for_anything(n_frames):
+    with pytest.raises(ValueError, match=f"a capture of {n_frames} frames? is too short to register: at least 4"):
+        MidpointConfig().build().groups(n_frames, 2, 1)
