@@ -102,15 +102,21 @@ def convert(inputs: Annotated[list[Path], typer.Argument(help="A folder of Swiss
         def progress(done: int, total: int) -> None:
             bar.update(task, completed=done, total=total)
 
-        if cube_to_cube:
-            from photonpano.plugins.sources.zarr_cube import convert_npy_to_zarr, convert_zarr_to_npy
+        try:
+            if cube_to_cube:
+                from photonpano.plugins.sources.zarr_cube import convert_npy_to_zarr, convert_zarr_to_npy
 
-            to_zarr = kinds[1] == ".zarr"
-            frames = (convert_npy_to_zarr if to_zarr else convert_zarr_to_npy)(inputs[0], output, progress=progress)
-        else:
-            from photonpano.plugins.sources.swissspad import convert_bin_to_npy
+                to_zarr = kinds[1] == ".zarr"
+                frames = (convert_npy_to_zarr if to_zarr else convert_zarr_to_npy)(inputs[0], output,
+                                                                                    progress=progress)
+            else:
+                from photonpano.plugins.sources.swissspad import convert_bin_to_npy
 
-            frames, notes = convert_bin_to_npy(inputs, output, layout, check_layout=check_layout, progress=progress)
+                frames, notes = convert_bin_to_npy(inputs, output, layout, check_layout=check_layout,
+                                                   progress=progress)
+        except OSError as exc:  # reading an input failed (writes fail as OutputError naming the output)
+            raise PhotonpanoError(f"convert: cannot read {exc.filename or 'an input'}: "
+                                  f"{exc.strerror or exc}") from None
     for note in notes:
         typer.secho(f"warning: {note}", fg=typer.colors.YELLOW, err=True)
     typer.echo(f"wrote {output}: {frames} " + ("frames" if cube_to_cube else f"{layout}-array frames"))
@@ -173,6 +179,9 @@ def compare(input: Annotated[str, typer.Argument(help="A spec (.yaml), a capture
     keys = [k.strip() for k in locators.split(",") if k.strip()]
     if not keys:
         raise PhotonpanoError("--locators: give at least one locator key")
+    from .outputs.files import refuse_symlink
+
+    refuse_symlink(output, "output folder")  # never written through, --force or not
     prepare_output(output, force)
     with _observed(host):
         rows = compare_locators(data, keys, host, output, origin=input, log=typer.echo,

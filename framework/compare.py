@@ -127,9 +127,7 @@ def _compare_one(item: str, base: dict[str, Any], host: PluginHost, out_dir: Pat
     row["failed_pairs"] = sum(level["failed_pairs"] for level in row["levels"])
     row["locate_s"] = sum(level["timings_s"].get("locate", 0.0) for level in row["levels"])
     if out_dir is not None:
-        folder = out_dir / _safe(label)
-        folder.mkdir(parents=True, exist_ok=True)
-        np.save(folder / "homographies.npy", homographies)
+        _save_inside(out_dir, f"{_safe(label)}/homographies.npy", homographies)
     if log:
         log(f"{label}: done in {row['total_s']:.1f} s" + _rmse_text(row.get("trajectory_rmse_px")))
     return source
@@ -204,12 +202,37 @@ def plot_comparison(rows: list[dict[str, Any]], path: Path) -> None:
 
 def write_comparison(rows: list[dict[str, Any]], out_dir: Path,
                      spec_data: dict[str, Any] | BaseModel) -> None:
-    """Write ``compare.json``, ``compare.md`` and ``compare.png`` into ``out_dir``."""
+    """Write ``compare.json``, ``compare.md`` and ``compare.png`` into ``out_dir``, each atomically.
+
+    Raises:
+        OutputError: ``out_dir`` is a symbolic link, or an OS error (full disk,
+            read-only folder); one line naming the file. A link in place of a file is
+            replaced, never written through.
+    """
+    from .outputs import atomic_path, write_text
+    from .outputs.files import inside, refuse_symlink
+
+    refuse_symlink(out_dir, "output folder")
     data = spec_data.model_dump(mode="json") if isinstance(spec_data, BaseModel) else spec_data
     text = json.dumps({"spec": data, "runs": rows}, indent=2, default=_json_value)
-    (out_dir / "compare.json").write_text(text)
-    (out_dir / "compare.md").write_text(markdown_table(rows))
-    plot_comparison(rows, out_dir / "compare.png")
+    write_text(inside(out_dir, "compare.json"), text)
+    write_text(inside(out_dir, "compare.md"), markdown_table(rows))
+    with atomic_path(inside(out_dir, "compare.png")) as tmp:
+        plot_comparison(rows, tmp)
+
+
+def _save_inside(out_dir: Path, name: str, array: np.ndarray) -> None:
+    """Save ``array`` as ``out_dir/name`` atomically, never through a link (OutputError otherwise)."""
+    from .outputs import save_npy
+    from .outputs.files import inside, oserror, refuse_symlink
+
+    refuse_symlink(out_dir, "output folder")
+    target = inside(out_dir, name)
+    try:
+        target.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise oserror(target.parent, exc) from None
+    save_npy(inside(out_dir, name), array)
 
 
 def _json_value(value: Any) -> Any:

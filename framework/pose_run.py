@@ -79,6 +79,26 @@ def write_ply(path: Path, points: NDArray[np.float64], colors: NDArray[np.uint8]
         fh.write(record.tobytes())
 
 
+def _copy_model(model_dir: Path, out_dir: Path) -> None:
+    """Copy the reconstruction's files into ``out_dir/model``, each atomically and never through a link."""
+    import shutil
+
+    from .outputs.files import atomic_path, inside, oserror
+
+    for source in sorted(Path(model_dir).rglob("*")):
+        if not source.is_file() or source.is_symlink():
+            continue
+        name = f"model/{source.relative_to(model_dir).as_posix()}"
+        target = inside(out_dir, name)
+        try:
+            target.parent.mkdir(parents=True, exist_ok=True)
+            inside(out_dir, name)
+            with atomic_path(target) as tmp:
+                shutil.copyfile(source, tmp)
+        except OSError as exc:
+            raise oserror(target, exc) from None
+
+
 def _plot(path: Path, result: PoseResult, truth: NDArray[np.float64] | None) -> None:
     """Top view (x, z), x/y/z over time and, with ground truth, the error over time of the trajectory."""
     import matplotlib
@@ -154,11 +174,15 @@ def run_pose(
     import shutil
     import tempfile
 
+    from .outputs import atomic_path, save_npy, write_text
+    from .outputs.files import inside, refuse_symlink
     from .pipeline import prepare_output
     from .progress import reporting, start_task
     from .provenance import run_header
     from .spec import dump_spec
 
+    if out_dir is not None:
+        refuse_symlink(out_dir, "output folder")  # never written through, --force or not
     if getattr(spec, "pose_estimator", None) is None:
         raise SpecError("spec: no pose_estimator section (e.g. pose_estimator: pycolmap-sfm)")
     type(spec.source).check_available()
@@ -167,8 +191,11 @@ def run_pose(
         intrinsics = Intrinsics.load(spec.pose_estimator.intrinsics)
     if out_dir is not None:
         prepare_output(out_dir, force)
-        (out_dir / "spec.yaml").write_text(dump_spec(spec))
-    work = Path(tempfile.mkdtemp(prefix="photonpano-pose-")) if out_dir is None else out_dir / "work"
+        write_text(inside(out_dir, "spec.yaml"), dump_spec(spec))
+    if out_dir is None:
+        work = Path(tempfile.mkdtemp(prefix="photonpano-pose-"))
+    else:
+        work = inside(out_dir, "work", folder=True)
     timings: dict[str, float] = {}
     try:
         with reporting(host):
@@ -204,16 +231,18 @@ def run_pose(
             for row, scores in zip(summary["levels"], report):
                 row.update(scores)
             summary["ground_truth"] = {"rpe_gap_frames": gap, **report[-1]}
-        if out_dir is not None:
-            np.save(out_dir / "poses.npy", result.poses)
-            np.save(out_dir / "exposure_poses.npy", result.exposure_poses)
-            np.save(out_dir / "exposure_frames.npy", result.exposure_frames)
-            write_ply(out_dir / "points.ply", result.points, result.colors)
+        if out_dir is not None:  # atomic files, never through a link (run.json last)
+            save_npy(inside(out_dir, "poses.npy"), result.poses)
+            save_npy(inside(out_dir, "exposure_poses.npy"), result.exposure_poses)
+            save_npy(inside(out_dir, "exposure_frames.npy"), result.exposure_frames)
+            with atomic_path(inside(out_dir, "points.ply")) as tmp:
+                write_ply(tmp, result.points, result.colors)
             if result.model_dir is not None:
-                shutil.copytree(result.model_dir, out_dir / "model", dirs_exist_ok=True)
-            (out_dir / "intrinsics.json").write_text(json.dumps(result.intrinsics.as_dict(), indent=2))
-            _plot(out_dir / "trajectory.png", result, truth)
-            (out_dir / "run.json").write_text(json.dumps(summary, indent=2))
+                _copy_model(result.model_dir, out_dir)
+            write_text(inside(out_dir, "intrinsics.json"), json.dumps(result.intrinsics.as_dict(), indent=2))
+            with atomic_path(inside(out_dir, "trajectory.png")) as tmp:
+                _plot(tmp, result, truth)
+            write_text(inside(out_dir, "run.json"), json.dumps(summary, indent=2))
         return summary, result
     finally:
         if out_dir is None:

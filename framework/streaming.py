@@ -12,6 +12,7 @@ Frames are addressed by a global index across all files, in file order.
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Iterable
@@ -20,7 +21,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 __all__ = ["FrameSegment", "FrameFiles", "DEFAULT_CHUNK_BYTES", "sum_ranges_by_blocks", "ReopenOnPickle",
-           "write_npy_blocks"]
+           "write_npy_blocks", "claim_partial"]
 
 DEFAULT_CHUNK_BYTES = 32 * 2**20
 """Default read buffer size of :class:`FrameFiles` in bytes (32 MiB)."""
@@ -51,7 +52,10 @@ def write_npy_blocks(output: Path, shape: tuple[int, ...], dtype: Any, blocks: I
     """Write an ``.npy`` file from consecutive blocks along its first axis, streaming.
 
     The file is written under ``<output>.part`` and renamed when complete, so an
-    interrupted write leaves no truncated ``output`` behind.
+    interrupted write leaves no truncated ``output`` behind. The ``.part`` file is
+    created exclusively (never through a symbolic link, never over an existing path:
+    one left by an interrupted conversion must be removed by hand), and only a ``.part``
+    this call created is deleted.
 
     Args:
         output: the ``.npy`` file to write (replaced if it exists: callers check first).
@@ -62,16 +66,32 @@ def write_npy_blocks(output: Path, shape: tuple[int, ...], dtype: Any, blocks: I
 
     Raises:
         ValueError: if the blocks do not add up to ``shape``.
-        OSError: if the file cannot be written.
+        OutputError: ``output`` is a symbolic link, ``<output>.part`` exists (of any
+            kind, a link included), or an OS error (full disk, read-only folder) while
+            writing; one line naming the path (and, for a full disk, the space needed).
     """
+    from .outputs.files import oserror, refuse_symlink
+
     dtype = np.dtype(dtype)
-    partial = output.with_name(output.name + ".part")
+    refuse_symlink(output, "output")
+    partial = claim_partial(output)
+    nbytes = int(np.prod(shape, dtype=object)) * dtype.itemsize
     done = 0
+    read_errors: list[OSError] = []
+
+    def reads() -> Iterable[NDArray]:
+        try:
+            yield from blocks
+        except OSError as exc:  # an input failed: the caller names it
+            read_errors.append(exc)
+            raise
+
     try:
-        with open(partial, "wb") as f:
+        fd = os.open(partial, os.O_WRONLY | os.O_TRUNC | getattr(os, "O_NOFOLLOW", 0))
+        with os.fdopen(fd, "wb") as f:
             np.lib.format.write_array_header_2_0(f, {"descr": np.lib.format.dtype_to_descr(dtype),
                                                      "fortran_order": False, "shape": tuple(shape)})
-            for block in blocks:
+            for block in reads():
                 if block.shape[1:] != tuple(shape[1:]) or done + len(block) > shape[0]:
                     raise ValueError(f"{output}: block of shape {block.shape} does not fit an array of shape {shape}")
                 f.write(np.ascontiguousarray(block, dtype=dtype).tobytes())
@@ -81,8 +101,39 @@ def write_npy_blocks(output: Path, shape: tuple[int, ...], dtype: Any, blocks: I
         if done != shape[0]:
             raise ValueError(f"{output}: blocks hold {done} of the {shape[0]} rows of shape {shape}")
         partial.replace(output)
+    except OSError as exc:
+        if read_errors and exc is read_errors[0]:
+            raise
+        raise oserror(output, exc, needed=nbytes) from None
     finally:
         partial.unlink(missing_ok=True)
+
+
+def claim_partial(output: Path) -> Path:
+    """Create ``<output>.part`` exclusively (an empty file, never through a link) and return it.
+
+    Converters write into it and rename it to ``output`` when complete.
+
+    Raises:
+        OutputError: ``<output>.part`` already exists (a file, a folder or a symbolic
+            link: not this conversion's), or it cannot be created; one line naming it.
+    """
+    import errno
+
+    from .errors import OutputError
+    from .outputs.files import oserror
+
+    partial = output.with_name(output.name + ".part")
+    try:
+        fd = os.open(partial, os.O_CREAT | os.O_EXCL | os.O_WRONLY | getattr(os, "O_NOFOLLOW", 0), 0o644)
+    except OSError as exc:
+        if exc.errno in (errno.EEXIST, errno.ELOOP):
+            kind = ("a symbolic link" if partial.is_symlink() else "a folder" if partial.is_dir() else "a file")
+            raise OutputError(f"convert: {partial} already exists ({kind}, not written by this conversion); "
+                              "remove it or choose another output") from None
+        raise oserror(partial, exc) from None
+    os.close(fd)
+    return partial
 
 
 @dataclass(frozen=True)

@@ -85,14 +85,15 @@ def refuse_symlink(path: Path, what: str) -> None:
                           "give a real path")
 
 
-def inside(root: Path, name: str) -> Path:
+def inside(root: Path, name: str, folder: bool = False) -> Path:
     """Return ``root / name`` after checking that it cannot lead out of ``root``.
 
     ``name`` is relative (``/`` separated, no ``..``); no existing folder component
     below ``root`` may be a symbolic link, and the parent must resolve inside ``root``.
     Writers call this before writing ``name``, so a link planted in an output folder
     (``link -> /elsewhere``) is never followed. The file itself may be a link: the
-    atomic rename of :func:`atomic_path` replaces the link, never its target.
+    atomic rename of :func:`atomic_path` replaces the link, never its target; with
+    ``folder`` (a folder to write into) it may not be a link either.
 
     Raises:
         OutputError: an absolute name, ``..``, a symbolic link or a non-folder component;
@@ -111,7 +112,7 @@ def inside(root: Path, name: str) -> Path:
             break
         except OSError as exc:
             raise oserror(current, exc) from None
-        if i == len(parts) - 1:
+        if i == len(parts) - 1 and not folder:
             break
         if stat.S_ISLNK(mode):
             refuse_symlink(current, "output")

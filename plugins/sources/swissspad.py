@@ -229,12 +229,15 @@ def convert_bin_to_npy(inputs: list[Path], output: Path, layout: str = "half", *
 
     Raises:
         SourceError: bad inputs (see :class:`SwissSpadBin`) or an existing output.
+        OutputError: ``output`` or ``<output>.part`` is a symbolic link, the ``.part``
+            file exists (never written through, never removed), or the disk is full
+            (see :func:`photonpano.streaming.write_npy_blocks`).
     """
     path: Path | list[Path] = inputs[0] if len(inputs) == 1 and inputs[0].is_dir() else list(inputs)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", SourceWarning)
         source = SwissSpadBinConfig(path=path, layout=layout, chunk_mb=chunk_mb, check_layout=check_layout).build()
-    if output.exists():
+    if output.exists() or output.is_symlink():
         raise SourceError(f"convert: {output} exists; refusing to overwrite it")
     lay = source.layout
     step = source.frames.chunk_frames

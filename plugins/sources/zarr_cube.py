@@ -151,9 +151,15 @@ def convert_npy_to_zarr(source: Path, output: Path, *, chunk_bytes: int = CHUNK_
     Raises:
         SourceError: a missing, unreadable or non-cube ``source`` (see ``npy-cube``), an
             existing ``output``, or zarr not installed.
+        OutputError: ``output`` is a symbolic link, ``<output>.part`` exists (not this
+            conversion's: it is never written through nor removed), or an OS error while
+            writing (full disk); one line naming the path.
     """
     from photonpano.npy_header import load_npy
+    from photonpano.outputs.files import oserror, refuse_symlink
+    from photonpano.streaming import claim_partial
 
+    refuse_symlink(output, "output")
     if output.exists():
         raise SourceError(f"convert: {output} exists; refusing to overwrite it")
     if not source.is_file():
@@ -162,22 +168,31 @@ def convert_npy_to_zarr(source: Path, output: Path, *, chunk_bytes: int = CHUNK_
     if cube.ndim != 3 or np.isfortran(cube):
         raise SourceError(f"convert: {source} has shape {cube.shape}; expected a C-ordered photon cube (T, H, W/8) "
                           "or (T, H, W)")
-    import zarr
-    from zarr.codecs import ZstdCodec
+    partial = claim_partial(output)  # refuses a .part that is not ours (a link, a folder, a file)
+    partial.unlink()
+    try:
+        import zarr
+        from zarr.codecs import ZstdCodec
+    except ImportError:
+        raise SourceError(f"convert: writing {output} needs zarr: pip install 'photonpano[dask]'") from None
 
     frame_bytes = int(np.prod(cube.shape[1:])) * cube.dtype.itemsize
     step = max(1, int(chunk_bytes) // max(frame_bytes, 1))
-    partial = output.with_name(output.name + ".part")
-    _remove_tree(partial)
+    try:
+        partial.mkdir()
+    except OSError as exc:
+        raise oserror(partial, exc) from None
     try:
         array = zarr.create_array(str(partial), shape=cube.shape, dtype=cube.dtype, chunks=(step, *cube.shape[1:]),
-                                  compressors=[ZstdCodec(level=1)])
+                                  compressors=[ZstdCodec(level=1)], overwrite=True)
         for start in range(0, len(cube), step):
             stop = min(start + step, len(cube))
             array[start:stop] = np.asarray(cube[start:stop])
             if progress is not None:
                 progress(stop, len(cube))
         partial.rename(output)
+    except OSError as exc:
+        raise oserror(output, exc, needed=int(cube.nbytes)) from None
     finally:
         _remove_tree(partial)
     return len(cube)
@@ -200,8 +215,10 @@ def convert_zarr_to_npy(source: Path, output: Path, *, chunk_bytes: int = 32 * 2
         SourceError: a missing or non-array ``source``, an array that is not 3-d, an
             existing ``output``, or zarr not installed.
     """
+    from photonpano.outputs.files import refuse_symlink
     from photonpano.streaming import write_npy_blocks
 
+    refuse_symlink(output, "output")
     if output.exists():
         raise SourceError(f"convert: {output} exists; refusing to overwrite it")
     array = open_zarr(source, "convert")
@@ -214,11 +231,11 @@ def convert_zarr_to_npy(source: Path, output: Path, *, chunk_bytes: int = 32 * 2
 
 
 def _remove_tree(path: Path) -> None:
-    """Delete a partly written zarr folder, if any."""
+    """Delete a partly written zarr folder this conversion created, if any (never a link's target)."""
     import shutil
 
-    if path.is_dir():
-        shutil.rmtree(path)
+    if path.is_dir() and not path.is_symlink():
+        shutil.rmtree(path, ignore_errors=True)
 
 
 @hookimpl

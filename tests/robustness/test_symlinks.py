@@ -120,3 +120,111 @@ def test_a_partial_name_planted_as_a_link_is_not_followed(tmp_path, outside, mon
     assert result.exit_code == 0, result.stderr
     assert digests(outside) == before
     assert np.load(out / "homographies.npy").ndim == 3
+
+
+# -- convert: <out>.part is the conversion's own, or the conversion refuses -----------------------------------------
+
+BIN_BYTES = 512 * 256 * 64
+"""One SwissSPAD2 half-array readout file: 512 frames of 256x512 bits."""
+
+
+@pytest.fixture
+def readout(tmp_path):
+    """A folder ``raw/`` with one random SwissSPAD2 readout file."""
+    folder = tmp_path / "raw"
+    folder.mkdir()
+    (folder / "RAW00000.bin").write_bytes(np.random.default_rng(1).integers(0, 256, BIN_BYTES, np.uint8).tobytes())
+    return folder
+
+
+def _convert(*args):
+    return invoke("convert", *args, "--no-check-layout")
+
+
+def test_convert_refuses_a_part_file_linked_to_its_input(tmp_path, readout):
+    """``<out>.part -> RAW00000.bin``: the input was overwritten; now the conversion refuses."""
+    out = tmp_path / "cube.npy"
+    part = tmp_path / "cube.npy.part"
+    part.symlink_to(readout / "RAW00000.bin")
+    before = digests(readout)
+    assert_one_line_error(_convert(readout, "-o", out), part, "symbolic link", "not written by this conversion")
+    assert digests(readout) == before and not out.exists() and part.is_symlink()
+
+
+@pytest.mark.parametrize("kind", ["file", "folder", "dangling link"])
+def test_convert_refuses_a_part_path_it_did_not_create(tmp_path, readout, kind):
+    out = tmp_path / "cube.npy"
+    part = tmp_path / "cube.npy.part"
+    if kind == "file":
+        part.write_text("someone's file")
+    elif kind == "folder":
+        part.mkdir()
+        (part / "keep.txt").write_text("keep")
+    else:
+        part.symlink_to(tmp_path / "nowhere")
+    before = digests(tmp_path)
+    assert_one_line_error(_convert(readout, "-o", out), part, "not written by this conversion")
+    assert digests(tmp_path) == before and not out.exists() and not (tmp_path / "nowhere").exists()
+
+
+def test_convert_refuses_a_linked_output(tmp_path, readout):
+    out = tmp_path / "cube.npy"
+    out.symlink_to(tmp_path / "elsewhere.npy")  # dangling: exists() is False
+    assert_one_line_error(_convert(readout, "-o", out), out)
+    assert not (tmp_path / "elsewhere.npy").exists() and out.is_symlink()
+
+
+def test_convert_npy_to_zarr_refuses_a_part_linked_to_a_folder(tmp_path, small_cube):
+    """``<out>.zarr.part -> unrelated folder``: a traceback before; now one line, the folder untouched."""
+    unrelated = tmp_path / "unrelated"
+    unrelated.mkdir()
+    (unrelated / "data.txt").write_text("keep")
+    part = tmp_path / "cube.zarr.part"
+    part.symlink_to(unrelated, target_is_directory=True)
+    before = digests(unrelated, small_cube)
+    assert_one_line_error(invoke("convert", small_cube, "-o", tmp_path / "cube.zarr"), part, "symbolic link")
+    assert digests(unrelated, small_cube) == before and not (tmp_path / "cube.zarr").exists()
+
+
+def test_convert_leaves_nothing_behind_and_writes_the_cube(tmp_path, readout):
+    out = tmp_path / "cube.npy"
+    result = _convert(readout, "-o", out)
+    assert result.exit_code == 0, result.stderr
+    assert np.load(out).shape == (512, 256, 64)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["cube.npy", "raw"]
+
+
+def test_compare_refuses_a_linked_output_folder(tmp_path, outside):
+    link = tmp_path / "cmp"
+    link.symlink_to(outside, target_is_directory=True)
+    before = digests(outside)
+    for extra in ([], ["--force"]):
+        assert_one_line_error(invoke("compare", "simulate", "-o", link, "-l", "opencv-orb", *extra, *TINY),
+                              link, "symbolic link")
+    assert digests(outside) == before
+
+
+def test_compare_never_writes_through_a_linked_locator_folder(tmp_path, outside):
+    out = tmp_path / "cmp"
+    out.mkdir()
+    (out / "opencv-orb").symlink_to(outside, target_is_directory=True)
+    before = digests(outside)
+    result = invoke("compare", "simulate", "-o", out, "-l", "opencv-orb", "--force", *TINY, "--set", "levels=1")
+    assert_one_line_error(result, out / "opencv-orb", "symbolic link")
+    assert digests(outside) == before and not (outside / "homographies.npy").exists()
+
+
+def test_pose_refuses_a_linked_output_folder(tmp_path, outside):
+    from photonpano.errors import OutputError
+    from photonpano.host import PluginHost
+    from photonpano.pose_run import run_pose
+    from photonpano.spec import validate_spec
+
+    link = tmp_path / "pose"
+    link.symlink_to(outside, target_is_directory=True)
+    spec = validate_spec({"source": {"plugin": "simulate", "frames": 100, "height": 32, "width": 64},
+                          "pose_estimator": {"plugin": "pycolmap-sfm"}}, PluginHost())
+    before = digests(outside)
+    with pytest.raises(OutputError, match=f"output folder {link} is a symbolic link"):
+        run_pose(spec, link, None, force=True)
+    assert digests(outside) == before
