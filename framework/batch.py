@@ -265,15 +265,17 @@ def main(inputs: Sequence[str], out_root: Path, overrides: Sequence[str], force:
 
     Raises:
         PhotonpanoError: the batch cannot start (no inputs, bad execution settings,
-            OUTROOT not a folder, no scheduler at ``dask_address``).
+            OUTROOT not a folder or a symbolic link, no scheduler at ``dask_address``).
     """
     from rich.console import Console
     from rich.text import Text
 
+    from .outputs.files import refuse_symlink
     from .progress import RichProgress
 
     if not inputs:
         raise PhotonpanoError("batch: give at least one input")
+    refuse_symlink(out_root, "batch: output folder")  # each capture's folder is refused by its run
     if out_root.exists() and not out_root.is_dir():
         raise PhotonpanoError(f"batch: -o {out_root} is a file; expected a folder")
     errors = Console(stderr=True)

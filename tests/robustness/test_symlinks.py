@@ -228,3 +228,16 @@ def test_pose_refuses_a_linked_output_folder(tmp_path, outside):
     with pytest.raises(OutputError, match=f"output folder {link} is a symbolic link"):
         run_pose(spec, link, None, force=True)
     assert digests(outside) == before
+
+
+def test_batch_refuses_a_linked_output_folder_and_a_linked_capture_folder(tmp_path, outside):
+    link = tmp_path / "batch"
+    link.symlink_to(outside, target_is_directory=True)
+    before = digests(outside)
+    assert_one_line_error(invoke("batch", "simulate", "-o", link, *TINY), link, "symbolic link")
+    out = tmp_path / "real"
+    out.mkdir()
+    (out / "simulate").symlink_to(outside, target_is_directory=True)  # the capture's own folder
+    result = invoke("batch", "simulate", "-o", out, "--force", *TINY, "--set", "levels=1")
+    assert result.exit_code == 1 and "symbolic link" in result.stdout + result.stderr
+    assert digests(outside) == before and sorted(os.listdir(outside)) == ["panorama.png", "victim.txt"]
