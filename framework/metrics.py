@@ -12,7 +12,7 @@ from numpy.typing import NDArray
 from . import geometry
 
 __all__ = ["TrajectoryError", "trajectory_error", "source_trajectory_error", "psnr", "scene_on_canvas",
-           "ground_truth_report", "plot_trajectory"]
+           "ground_truth_report", "plot_trajectory", "trajectory_figure", "TRAJECTORY_MIN_SPAN_PX"]
 
 
 @dataclass(frozen=True)
@@ -207,9 +207,16 @@ def canvas_from_scene_homography(homographies: np.ndarray, to_canvas: np.ndarray
     return canvas_from_pano @ np.linalg.inv(error.alignment)
 
 
+TRAJECTORY_MIN_SPAN_PX = 1.0
+"""Smallest span of a position axis of ``trajectory.png``, in canvas pixels: a static
+clip's sub-pixel jitter is drawn as jitter, not stretched over the whole panel."""
+
+
 def plot_trajectory(path: Path, homographies: np.ndarray, to_canvas: np.ndarray, source, error,
                     uncertainty: np.ndarray | None = None) -> None:
     """Plot the frame centres over time in canvas pixels, the predicted and (if known) actual per-frame error.
+
+    Writes :func:`trajectory_figure` as a PNG (100 dpi).
 
     Args:
         path: the PNG to write.
@@ -219,6 +226,28 @@ def plot_trajectory(path: Path, homographies: np.ndarray, to_canvas: np.ndarray,
         error: the :class:`~photonpano.metrics.TrajectoryError` of the estimate, or None.
         uncertainty: (T,) float64 predicted 1-sigma error per frame in pixels
             (:mod:`photonpano.uncertainty`), drawn as a band from 0 to 2 sigma, or None.
+    """
+    import matplotlib.pyplot as plt
+
+    fig = trajectory_figure(homographies, to_canvas, source, error, uncertainty)
+    try:
+        fig.savefig(path, dpi=100)
+    finally:
+        plt.close(fig)
+
+
+def trajectory_figure(homographies: np.ndarray, to_canvas: np.ndarray, source, error,
+                      uncertainty: np.ndarray | None = None) -> Any:
+    """The matplotlib figure of :func:`plot_trajectory` (the caller closes it).
+
+    The x and y panels show the centre of each frame in canvas pixels against time in
+    seconds, in plain numbers (no offset label) and over at least
+    :data:`TRAJECTORY_MIN_SPAN_PX` around the data's middle, so that a static clip's
+    jitter looks like jitter. Arguments as :func:`plot_trajectory`.
+
+    Returns:
+        A ``matplotlib.figure.Figure`` with 2 panels (x, y), or 3 with the error panel
+        (when ``error`` or ``uncertainty`` is given).
     """
     import matplotlib
 
@@ -241,6 +270,9 @@ def plot_trajectory(path: Path, homographies: np.ndarray, to_canvas: np.ndarray,
             axes[axis].plot(t, truth[:, axis], color="0.6", lw=3, label="true")
         axes[axis].plot(t, est[:, axis], color="C0", lw=1, label="estimated")
         axes[axis].set_ylabel(f"centre {name} (canvas px)")
+        axes[axis].ticklabel_format(axis="y", useOffset=False, style="plain")
+        shown = np.concatenate([est[:, axis]] + ([truth[:, axis]] if truth is not None else []))
+        _at_least_span(axes[axis], shown[np.isfinite(shown)], TRAJECTORY_MIN_SPAN_PX)
     axes[0].legend(loc="best")
     if uncertainty is not None:
         band = np.where(np.isfinite(uncertainty), 2 * uncertainty, np.nan)
@@ -255,5 +287,14 @@ def plot_trajectory(path: Path, homographies: np.ndarray, to_canvas: np.ndarray,
         axes[2].legend(loc="upper right", fontsize=8)
     axes[-1].set_xlabel("time (s)")
     fig.tight_layout()
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
+    return fig
+
+
+def _at_least_span(ax: Any, values: np.ndarray, span: float) -> None:
+    """Widen ``ax``'s y range to ``span`` around the middle of ``values`` where they span less."""
+    if values.size == 0:
+        return
+    low, high = float(values.min()), float(values.max())
+    if high - low < span:
+        middle = (low + high) / 2
+        ax.set_ylim(middle - span / 2, middle + span / 2)

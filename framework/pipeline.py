@@ -6,7 +6,7 @@ Outputs (the contract other tools read, see ``docs/outputs.md``):
   coordinates (x right, y down, pixel centres at integers), one per binary frame.
 - ``panorama.npy``: (H, W) float32 linear flux in photons/s, NaN where unobserved.
 - ``panorama.tif``: the same flux as a float32 TIFF, its second page the validity mask.
-- ``panorama.png``: the panorama tone-mapped to 16-bit sRGB.
+- ``panorama.png``: the panorama tone-mapped to 16-bit sRGB, transparent where unobserved.
 - ``run.json``: versions, spec, timings per stage and level, per-level statistics and,
   for simulated captures, the accuracy against ground truth.
 - ``spec.yaml``: the resolved spec (defaults filled in).
@@ -135,7 +135,7 @@ def _resume_state(folder, spec_text: str):
 
 def _run_into(spec: BaseModel, folder, host: PluginHost) -> RunResult:
     """Run ``spec``, writing into ``folder`` (a :class:`~photonpano.outputs.RunFolder`) unless it is None."""
-    from .photons import tone_map
+    from .png import write_panorama_png
 
     out_dir = folder.root if folder is not None else None
     progress = start_task
@@ -170,7 +170,7 @@ def _run_into(spec: BaseModel, folder, host: PluginHost) -> RunResult:
         folder.save_npy("panorama.npy", pano.flux)
         folder.write_with("panorama.tif", lambda path: write_flux_tiff(path, pano.flux))
         if spec.outputs.panorama_png:
-            folder.write_with("panorama.png", lambda path: _write_png(path, tone_map(pano.flux, bits=16)))
+            folder.write_with("panorama.png", lambda path: write_panorama_png(path, pano.flux))
     host.hook.photonpano_panorama_finished(panorama=pano, spec=spec, source=source, out_dir=out_dir)
     if folder is not None:
         folder.adopt_new_files()  # what observers wrote
@@ -393,10 +393,3 @@ def reconstruct(spec: BaseModel, source: PhotonSource, *, on_level: Callable[[Le
                       panorama_agreement=agreement, uncertainty=summary, frame_uncertainty=uncertainty)
         timings["confidence"] = time.perf_counter() - t0
     return homographies, stats, pano, timings
-
-
-def _write_png(path: Path, image: np.ndarray) -> None:
-    import cv2
-
-    if not cv2.imwrite(str(path), image):
-        raise PhotonpanoError(f"cannot write {path}")

@@ -33,8 +33,9 @@ def test_demo_writes_the_output_contract(tmp_path):
     assert h.shape == (2400, 3, 3) and h.dtype == np.float64
     np.testing.assert_allclose(h[:, 2, 2], 1.0)
     assert pano.dtype == np.float32 and np.isnan(pano).any() and np.isfinite(pano).mean() > 0.8
-    png = cv2.imread(str(out / "panorama.png"), cv2.IMREAD_UNCHANGED)
-    assert png.dtype == np.uint16 and png.shape == pano.shape
+    png = cv2.imread(str(out / "panorama.png"), cv2.IMREAD_UNCHANGED)  # grey + alpha, read as BGRA
+    assert png.dtype == np.uint16 and png.shape == (*pano.shape, 4)
+    np.testing.assert_array_equal(png[..., 3], np.where(np.isfinite(pano), 65535, 0))  # unobserved: transparent
     from photonpano.hdr import read_flux_tiff
     tif, valid = read_flux_tiff(out / "panorama.tif")  # the float32 HDR file, with its mask
     assert tif.dtype == np.float32 and np.array_equal(tif, pano, equal_nan=True)
