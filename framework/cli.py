@@ -74,10 +74,12 @@ def _global_options(
     console.setFormatter(logging.Formatter("%(message)s"))
     handlers: list[logging.Handler] = [console]
     if log_file is not None:
-        try:
-            file_handler = logging.FileHandler(log_file, encoding="utf-8")
-        except OSError as exc:
-            _fail(f"--log-file {log_file}: {exc.strerror or exc}")
+        from .cli_io import open_log_file
+
+        try:  # a full disk or /dev/full fails here, in one line, before any work
+            file_handler = open_log_file(log_file, f"photonpano {__version__}: {' '.join(sys.argv[1:])}")
+        except PhotonpanoError as exc:
+            _fail(str(exc))
         file_handler.setLevel(logging.DEBUG)
         file_handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
         handlers.append(file_handler)
@@ -290,11 +292,37 @@ def main() -> None:
     # caveats of a capture (e.g. a truncated last file) print as one line
     warnings.showwarning = lambda message, *args, **kwargs: typer.secho(f"warning: {message}", err=True,
                                                                         fg=typer.colors.YELLOW)
+    from .cli_io import GuardedStdout, silence_stdout, stdout_problem
+
+    sys.stdout = GuardedStdout(sys.stdout)
+    code: int | str | None = 0
     try:
         app()
     except KeyboardInterrupt:
         typer.echo("interrupted", err=True)
-        sys.exit(130)
+        code = 130
+    except SystemExit as done:
+        code = done.code
+    except OSError:  # standard output full or closed while printing: one line, no traceback
+        if sys.stdout.failure is None:
+            raise
+    problem = stdout_problem()  # a small output still sits in the buffer: flush it here, not at exit
+    if problem is not None:
+        typer.secho(f"error: {problem}", fg=typer.colors.RED, err=True)
+        silence_stdout()
+        code = 1
+    elif code in (0, None) and _log_failed():
+        code = 1
+    sys.exit(code)
+
+
+def _log_failed() -> bool:
+    """Whether the ``--log-file`` handler failed during the command (its line is already printed)."""
+    import logging
+
+    from .cli_io import LogFileHandler
+
+    return any(isinstance(h, LogFileHandler) and h.failure for h in logging.getLogger("photonpano").handlers)
 
 
 from . import cli_tools  # noqa: E402, F401  (registers pose, convert, batch and compare on ``app``)
