@@ -116,6 +116,27 @@ def markdown(rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
+def portable_command(command: str, root: Path = Path(__file__).resolve().parents[1]) -> str:
+    """``command`` with no path of this machine in it, for the docs' stamps.
+
+    An absolute path inside the repository ``root`` becomes relative to it; any other
+    (``--photo /data/photos/x.png``, ``--write=/tmp/doc.md``) keeps only its file name.
+    Other words are kept.
+    """
+    def portable(word: str) -> str:
+        option, eq, value = word.rpartition("=") if word.startswith("-") and "=" in word else ("", "", word)
+        path = Path(value)
+        if not path.is_absolute():
+            return word
+        try:
+            value = str(path.resolve().relative_to(root))
+        except ValueError:
+            value = path.name
+        return f"{option}{eq}{value}"
+
+    return " ".join(portable(word) for word in command.split(" "))
+
+
 def write_table(path: Path, table: str, command: str, name: str = "accuracy-table",
                 legend: str = ", bold: meets the bar") -> None:
     """Replace the text between the markers ``<!-- name:start -->`` and ``<!-- name:end -->`` of ``path``.
@@ -129,7 +150,8 @@ def write_table(path: Path, table: str, command: str, name: str = "accuracy-tabl
         raise SystemExit(f"{path}: no {start} ... {end} markers to write the table between")
     head, rest = text.split(start, 1)
     _, tail = rest.split(end, 1)
-    stamp = f"Written by `{command}` on {time.strftime('%Y-%m-%d')} ({platform.node() or 'this machine'}{legend})."
+    stamp = (f"Written by `{portable_command(command)}` on {time.strftime('%Y-%m-%d')} "
+             f"({platform.node() or 'this machine'}{legend}).")
     path.write_text(f"{head}{start}\n{stamp}\n\n{table}\n{end}{tail}")
 
 

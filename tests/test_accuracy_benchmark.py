@@ -33,3 +33,16 @@ def test_the_table_replaces_only_the_text_between_the_markers(tmp_path):
     with pytest.raises(SystemExit, match="markers"):
         bench.write_table(doc, "table", "cmd")
     assert set(bench.REGIMES) >= {"fast-pan", "dark-flux", "dark-scene", "rotation-zoom"}
+
+
+def test_the_stamp_names_no_path_of_the_machine(tmp_path):
+    """Absolute paths in the stamped command become file names (outside the repository) or repo-relative."""
+    bench = _module()
+    root = BENCHMARK.parents[1]
+    assert bench.portable_command(f"python benchmarks/accuracy.py --photo /data/shared/madison1.png --write "
+                                  f"{root / 'docs' / 'accuracy.md'} --frames=6000 --out=/tmp/x/run") == (
+        "python benchmarks/accuracy.py --photo madison1.png --write docs/accuracy.md --frames=6000 --out=run")
+    doc = tmp_path / "doc.md"
+    doc.write_text(f"{bench.START.format('t')}\n{bench.END.format('t')}\n")
+    bench.write_table(doc, "table", "python benchmarks/accuracy.py --photo /work/shared/data/photos/x.jpg", "t")
+    assert "--photo x.jpg`" in doc.read_text() and "/work/" not in doc.read_text()

@@ -81,3 +81,47 @@ def test_tutorial_pictures_are_small_and_used():
     present = {path.name: path.stat().st_size for path in (ROOT / "docs" / "img").glob("*.png")}
     assert shown == set(present), f"shown {sorted(shown)}, present {sorted(present)}"
     assert max(present.values()) < 300_000, present
+
+
+MACHINE_PATH = re.compile(r"(?<![\w.:/~-])(?:/(?:work|home|tmp|Users|root|mnt|private/var)/|[A-Za-z]:\\Users\\)")
+"""An absolute path of somebody's machine (``/work/...``, ``/home/...``, ``/tmp/...``,
+``C:\\Users\\...``); URLs and relative paths do not match."""
+
+
+def test_machine_path_pattern_finds_what_it_should():
+    assert MACHINE_PATH.search("--photo /work/shared/data/x.png") and MACHINE_PATH.search("`/tmp/b15/run`")
+    assert MACHINE_PATH.search("(/home/me/x)") and MACHINE_PATH.search(r"C:\Users\me\x.npy")
+    assert not MACHINE_PATH.search("https://example.org/home/x and docs/tmp/x and ~/work/x and results/tmp/")
+
+
+def test_docs_hold_no_absolute_paths_of_a_machine():
+    """No page, docs script or the README names a path on a developer's machine."""
+    files = [ROOT / "README.md", ROOT / "mkdocs.yml"] + sorted(
+        p for p in (ROOT / "docs").rglob("*") if p.suffix in (".md", ".py", ".yml", ".yaml", ".txt", ".html"))
+    found = [f"{path.relative_to(ROOT)}:{number}: {line.strip()[:120]}"
+             for path in files for number, line in enumerate(path.read_text().splitlines(), 1)
+             if MACHINE_PATH.search(line)]
+    assert not found, "absolute paths of a machine in the docs:\n" + "\n".join(found)
+
+
+def _nav_pages(entries) -> list[str]:
+    """The page paths of an mkdocs ``nav`` (nested lists of titles -> pages or sections)."""
+    pages: list[str] = []
+    for entry in entries:
+        values = entry.values() if isinstance(entry, dict) else [entry]
+        for value in values:
+            if isinstance(value, list):
+                pages += _nav_pages(value)
+            elif isinstance(value, str) and not value.startswith(("http://", "https://")):
+                pages.append(value)
+    return pages
+
+
+def test_every_page_is_in_the_navigation():
+    """Every Markdown page under docs/ is reachable from the site's navigation, and every nav entry exists."""
+    import yaml
+
+    nav = _nav_pages(yaml.safe_load((ROOT / "mkdocs.yml").read_text())["nav"])
+    pages = {str(p.relative_to(ROOT / "docs")) for p in (ROOT / "docs").rglob("*.md")}
+    assert not pages - set(nav), f"pages missing from mkdocs.yml's nav: {sorted(pages - set(nav))}"
+    assert not set(nav) - pages, f"nav entries without a page: {sorted(set(nav) - pages)}"
