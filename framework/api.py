@@ -31,8 +31,8 @@ def _spec_data(spec: str | Path | Mapping[str, Any]) -> tuple[dict[str, Any], An
     """Return ``(mapping, yaml node or None, origin for messages, folder of the spec file)``."""
     if isinstance(spec, Mapping):
         return dict(spec), None, "spec", None
-    if isinstance(spec, Path) or (isinstance(spec, str) and "\n" not in spec and spec.strip().endswith(
-            (".yaml", ".yml"))):
+    if isinstance(spec, Path) or (isinstance(spec, str) and "\n" not in spec and (spec.strip().endswith(
+            (".yaml", ".yml")) or Path(spec.strip()).exists())):  # an existing file: a capture is named so
         path = Path(spec)
         if not path.is_file():
             raise SpecError(f"spec file {path} does not exist")
@@ -65,8 +65,8 @@ def run(spec: str | Path | Mapping[str, Any], out_dir: str | Path | None = None,
     """Run a pipeline spec and return its results (the Python face of ``photonpano run``).
 
     Args:
-        spec: a YAML spec file (``str`` ending in ``.yaml``/``.yml`` or a ``Path``), YAML
-            text, or a mapping such as ``{"source": {"plugin": "simulate"}}``. Omitted
+        spec: a YAML spec file (a ``Path``, or a ``str`` ending in ``.yaml``/``.yml`` or
+            naming an existing file), YAML text, or a mapping such as ``{"source": {"plugin": "simulate"}}``. Omitted
             stages and settings take their defaults (those of ``photonpano pano``).
             Relative paths in a spec file resolve against the file's folder, others
             against the working directory.
@@ -87,7 +87,8 @@ def run(spec: str | Path | Mapping[str, Any], out_dir: str | Path | None = None,
         ``spec`` (the validated spec with every default filled in).
 
     Raises:
-        SpecError: the spec is missing, not YAML, or invalid (every problem listed).
+        SpecError: the spec is missing, not YAML (a capture file is named as such, with
+            ``photonpano pano``), or invalid (every problem listed).
         PhotonpanoError: any other expected failure (unreadable capture, a stage that
             cannot produce output, a non-empty ``out_dir`` without ``force``).
     """

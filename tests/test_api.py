@@ -60,6 +60,12 @@ def test_run_and_load_errors_are_one_line(tmp_path):
         photonpano.run("levels: 2\nlevels: 3\n", progress=False)
     with pytest.raises(PhotonpanoError, match="no run.json"):
         photonpano.load(tmp_path)
+    cube = tmp_path / "capture.npy"
+    np.save(cube, np.zeros((4, 8, 8), np.uint8))
+    for given in (cube, str(cube)):  # a capture where a spec is expected: pano is named
+        with pytest.raises(SpecError, match=r"capture\.npy: a capture \(source npy-cube\), not a YAML pipeline "
+                                            r"spec; reconstruct it with `photonpano pano "):
+            photonpano.run(given, progress=False)
 
 
 def test_relative_paths_resolve_against_the_spec_folder_and_are_saved_absolute(tmp_path, host, monkeypatch):
