@@ -4,7 +4,8 @@
 frames in a small file, ends in a deep traceback or a petabyte allocation attempt.
 :func:`check_npy` reads only the header (NumPy's own parser, no unpickling) and checks
 that the dimensions are non-negative and that the file holds exactly the bytes they
-describe.
+describe, as data rather than holes: a sparse file whose header declares 10^8 frames
+has the right length but no data, and reading it would take hours.
 """
 
 from __future__ import annotations
@@ -16,7 +17,11 @@ import numpy as np
 
 from .errors import SourceError
 
-__all__ = ["check_npy", "load_npy"]
+__all__ = ["check_npy", "load_npy", "data_bytes", "SPARSE_SLACK"]
+
+SPARSE_SLACK = 64 * 2**20
+"""Holes (bytes never written) an ``.npy`` file may have before it is refused as sparse (64 MiB);
+past that, more than half the declared data must be stored."""
 
 
 def check_npy(path: Path, what: str) -> tuple[tuple[int, ...], np.dtype, bool]:
@@ -30,9 +35,11 @@ def check_npy(path: Path, what: str) -> tuple[tuple[int, ...], np.dtype, bool]:
         ``(shape, dtype, fortran_order)`` as the header declares them.
 
     Raises:
-        SourceError: unreadable file or header, object dtype, a negative dimension, or a
+        SourceError: unreadable file or header, object dtype, a negative dimension, a
             file smaller than the header describes (truncated, or a header claiming more
-            data than the file holds); one line naming ``path``.
+            data than the file holds), or a sparse file whose holes are more than half the
+            declared data and over :data:`SPARSE_SLACK`; one line naming ``path``, the
+            declared and the real size.
     """
     fmt = np.lib.format
     try:
@@ -55,7 +62,52 @@ def check_npy(path: Path, what: str) -> tuple[tuple[int, ...], np.dtype, bool]:
     if actual < expected:
         raise SourceError(f"{what}: {path} is truncated: its header declares {tuple(shape)} {dtype} "
                           f"= {expected} bytes of data, the file holds {actual}")
+    if expected > SPARSE_SLACK:
+        stored = data_bytes(path, offset, offset + expected)
+        if stored is not None and expected - stored > SPARSE_SLACK and 2 * stored < expected:
+            raise SourceError(f"{what}: {path} is a sparse file: its header declares {tuple(shape)} {dtype} "
+                              f"= {expected} bytes of data, the file stores only {stored} (the rest are holes); "
+                              "refusing it before any work")
     return tuple(int(d) for d in shape), dtype, bool(fortran)
+
+
+def data_bytes(path: Path, start: int, stop: int, max_extents: int = 100_000) -> int | None:
+    """Bytes of ``path`` between ``start`` and ``stop`` stored as data, not holes.
+
+    Walks the file's data extents with ``SEEK_DATA``/``SEEK_HOLE`` (no data is read).
+
+    Returns:
+        The stored bytes, or None where the system or file system cannot tell (then
+        the file counts as dense) or the file has more than ``max_extents`` extents.
+    """
+    import os
+
+    seek_data, seek_hole = getattr(os, "SEEK_DATA", None), getattr(os, "SEEK_HOLE", None)
+    if seek_data is None or seek_hole is None:
+        return None
+    try:
+        fd = os.open(path, os.O_RDONLY)
+    except OSError:
+        return None
+    try:
+        stored, pos = 0, start
+        for _ in range(max_extents):
+            if pos >= stop:
+                return stored
+            try:
+                begin = os.lseek(fd, pos, seek_data)
+            except OSError:  # ENXIO: no data after pos
+                return stored
+            if begin >= stop:
+                return stored
+            end = min(os.lseek(fd, begin, seek_hole), stop)
+            stored += end - begin
+            pos = end
+        return None
+    except OSError:
+        return None
+    finally:
+        os.close(fd)
 
 
 def load_npy(path: Path, what: str, **kwargs: Any) -> np.ndarray:

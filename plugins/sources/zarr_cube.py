@@ -30,11 +30,20 @@ from photonpano.streaming import sum_ranges_by_blocks
 from .npy_cube import NpyCube, NpyCubeConfig
 
 __all__ = ["ZarrCubeConfig", "ZarrCube", "ZarrFrames", "convert_npy_to_zarr", "convert_zarr_to_npy",
-           "CHUNK_BYTES"]
+           "CHUNK_BYTES", "MAX_CHUNKS", "MAX_CHUNK_BYTES", "check_zarr_layout"]
 
 CHUNK_BYTES = 4 * 2**20
 """Uncompressed size of the time chunks :func:`convert_npy_to_zarr` writes (about 4 MiB:
 256 bit-packed 256x512 frames)."""
+
+MAX_CHUNKS = 100_000
+"""Most chunks (inner chunks where the array is sharded) a zarr cube may have."""
+MAX_SMALL_CHUNKS = 10_000
+"""Most chunks a zarr cube may have when they are smaller than :data:`SMALL_CHUNK_BYTES`."""
+SMALL_CHUNK_BYTES = 64 * 2**10
+"""Chunks smaller than this (64 KiB uncompressed) cost more in per-chunk overhead than in data."""
+MAX_CHUNK_BYTES = 512 * 2**20
+"""Largest decompressed chunk a zarr cube may have (512 MiB); each read decompresses whole chunks."""
 
 
 class ZarrCubeConfig(NpyCubeConfig):
@@ -114,8 +123,9 @@ def open_zarr(path: Path, what: str) -> Any:
         what: how messages name it, e.g. ``"source (zarr-cube)"``.
 
     Raises:
-        SourceError: zarr is not installed, ``path`` does not exist, or it holds no
-            zarr array (a group, another folder); one line naming ``path``.
+        SourceError: zarr is not installed, ``path`` does not exist, it holds no
+            zarr array (a group, another folder), or its chunking is out of bounds
+            (:func:`check_zarr_layout`); one line naming ``path``.
     """
     try:
         import zarr
@@ -124,9 +134,46 @@ def open_zarr(path: Path, what: str) -> Any:
     if not Path(path).exists():
         raise SourceError(f"{what}: {path} does not exist")
     try:
-        return zarr.open_array(str(path), mode="r")
+        array = zarr.open_array(str(path), mode="r")
     except Exception as exc:  # zarr raises several types for "not an array here"
         raise SourceError(f"{what}: {path} is not a zarr array ({type(exc).__name__}: {exc})") from exc
+    check_zarr_layout(path, what, array.shape, array.chunks, array.dtype)
+    return array
+
+
+def check_zarr_layout(path: Path, what: str, shape: tuple[int, ...], chunks: tuple[int, ...], dtype: Any) -> None:
+    """Refuse a zarr array whose chunking would make reading it hang or exhaust memory, before any read.
+
+    Args:
+        path: the array (for the message).
+        what: how the message names the reader, e.g. ``"source (zarr-cube)"``.
+        shape: the array shape, e.g. ``(T, H, W/8)``.
+        chunks: the chunk shape (the inner chunks of a sharded array): the unit that
+            is decompressed, and whose count sets the per-chunk overhead of a read.
+        dtype: the element dtype.
+
+    Raises:
+        SourceError: more than :data:`MAX_CHUNKS` chunks, more than
+            :data:`MAX_SMALL_CHUNKS` chunks under :data:`SMALL_CHUNK_BYTES`, or a chunk
+            over :data:`MAX_CHUNK_BYTES` decompressed; one line naming ``path``, the
+            count or size and the limit.
+    """
+    import math
+
+    chunks = tuple(max(int(c), 1) for c in chunks)
+    itemsize = np.dtype(dtype).itemsize
+    chunk_bytes = math.prod(chunks) * itemsize
+    count = math.prod(-(-int(n) // c) for n, c in zip(shape, chunks))
+    advice = "rechunk it along time (whole frames, a few MiB per chunk)"
+    if chunk_bytes > MAX_CHUNK_BYTES:
+        raise SourceError(f"{what}: {path} has chunks of {chunks} {np.dtype(dtype)} = {chunk_bytes} bytes "
+                          f"decompressed, over the limit of {MAX_CHUNK_BYTES} (512 MiB); {advice}")
+    if count > MAX_CHUNKS:
+        raise SourceError(f"{what}: {path} has {count} chunks of {chunks}, over the limit of {MAX_CHUNKS}; "
+                          f"{advice}")
+    if count > MAX_SMALL_CHUNKS and chunk_bytes < SMALL_CHUNK_BYTES:
+        raise SourceError(f"{what}: {path} has {count} chunks of only {chunk_bytes} bytes each (over "
+                          f"{MAX_SMALL_CHUNKS} chunks under {SMALL_CHUNK_BYTES} bytes); {advice}")
 
 
 def convert_npy_to_zarr(source: Path, output: Path, *, chunk_bytes: int = CHUNK_BYTES,

@@ -241,3 +241,16 @@ def test_batch_refuses_a_linked_output_folder_and_a_linked_capture_folder(tmp_pa
     result = invoke("batch", "simulate", "-o", out, "--force", *TINY, "--set", "levels=1")
     assert result.exit_code == 1 and "symbolic link" in result.stdout + result.stderr
     assert digests(outside) == before and sorted(os.listdir(outside)) == ["panorama.png", "victim.txt"]
+
+
+def test_convert_zarr_to_npy_refuses_a_part_linked_to_an_input(tmp_path, small_cube):
+    pytest.importorskip("zarr")
+    from photonpano.plugins.sources.zarr_cube import convert_npy_to_zarr
+
+    cube = tmp_path / "cube.zarr"
+    convert_npy_to_zarr(small_cube, cube)
+    part = tmp_path / "back.npy.part"
+    part.symlink_to(small_cube)
+    before = digests(small_cube, cube)
+    assert_one_line_error(invoke("convert", cube, "-o", tmp_path / "back.npy"), part, "symbolic link")
+    assert digests(small_cube, cube) == before and not (tmp_path / "back.npy").exists()
