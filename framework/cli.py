@@ -308,7 +308,8 @@ def main() -> None:
             raise
     problem = stdout_problem()  # a small output still sits in the buffer: flush it here, not at exit
     if problem is not None:
-        typer.secho(f"error: {problem}", fg=typer.colors.RED, err=True)
+        if problem:
+            typer.secho(f"error: {problem}", fg=typer.colors.RED, err=True)
         silence_stdout()
         code = 1
     elif code in (0, None) and _log_failed():
@@ -328,4 +329,8 @@ def _log_failed() -> bool:
 from . import cli_tools  # noqa: E402, F401  (registers pose, convert, batch and compare on ``app``)
 
 if __name__ == "__main__":  # pragma: no cover
-    main()
+    # ``python -m photonpano.cli``: run the imported module's app, on which cli_tools registered its commands
+    # (this file runs as ``__main__``, a second module whose app lacks them)
+    from photonpano.cli import main as _main
+
+    _main()

@@ -128,7 +128,13 @@ def stdout_name() -> str:
 
 
 def stdout_problem() -> str | None:
-    """Flush standard output; return a one-line error naming it if this or an earlier write failed."""
+    """Flush standard output; return a one-line error naming it if this or an earlier write failed.
+
+    A closed pipe (``photonpano plugins | head``) is not an error worth a line: it
+    returns ``""`` (the caller exits 1 quietly, as click does).
+    """
+    import errno
+
     failure = getattr(sys.stdout, "failure", None)
     try:
         sys.stdout.flush()
@@ -136,6 +142,8 @@ def stdout_problem() -> str | None:
         failure = failure or exc
     if failure is None:
         return None
+    if getattr(failure, "errno", None) == errno.EPIPE:
+        return ""
     return f"cannot write to {stdout_name()}: {getattr(failure, 'strerror', None) or failure}"
 
 
