@@ -270,8 +270,11 @@ def validate(spec: Annotated[Path, typer.Argument(help="Pipeline spec (YAML).")]
     """Validate a spec without reading any data."""
     from .spec import check_available, dump_spec, load_spec
 
-    parsed = load_spec(spec, _host(), set_ or [])
+    host = _host()
+    parsed = load_spec(spec, host, set_ or [])
     check_available(parsed)
+    for note in host.collisions:  # a third party offering a name or key already taken
+        typer.secho(f"warning: {note}", fg=typer.colors.YELLOW, err=True)
     typer.echo(f"{spec}: valid")
     typer.echo(dump_spec(parsed))
 

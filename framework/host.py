@@ -53,7 +53,9 @@ class PluginInfo:
         distribution: the installed distribution that provides it.
         version: that distribution's version.
         status: ``"ok"``, ``"unavailable: ..."`` (missing optional dependency, with the
-            install command) or ``"broken: ..."``.
+            install command), ``"collision: ..."`` (an entry-point name or plugin key
+            already taken, e.g. a third party's ``opencv-sift``: ignored, the built-in
+            keeps it) or ``"broken: ..."``.
     """
 
     key: str
@@ -84,6 +86,7 @@ class PluginHost:
         self.broken: dict[str, str] = {}
         self.collisions: list[str] = []
         self._dists: dict[str, tuple[str, str]] = {}
+        self._ignored: dict[str, tuple[str, str]] = {}  # entry points not loaded (collisions): their distribution
         self._registries: dict[str, dict[str, type[StageConfig]]] | None = None
         for name in filter(None, os.environ.get("PHOTONPANO_DISABLE_PLUGINS", "").split(",")):
             self.pm.set_blocked(name.strip())
@@ -112,6 +115,7 @@ class PluginHost:
                 note = (f"entry point {ep.name!r} of {dist} ({ep.value}) is ignored: the name is taken by "
                         f"{owner}")
                 self.broken[f"{ep.name} ({dist})"] = note
+                self._ignored[f"{ep.name} ({dist})"] = (dist, version)
                 self.collisions.append(note)
                 continue
             try:
@@ -208,12 +212,19 @@ class PluginHost:
                 status = f"unavailable: needs {', '.join(missing)}: {cls.install_hint}" if missing else "ok"
                 rows.append(PluginInfo(key, stage, cls.__module__, dist, version, status))
         for name, reason in sorted(self.broken.items()):
-            rows.append(PluginInfo(name, "?", "", *self._dists.get(name, ("?", "?")), f"broken: {reason}"))
+            kind = "collision" if _is_collision(reason) else "broken"
+            dist = self._dists.get(name) or self._ignored.get(name) or ("?", "?")
+            rows.append(PluginInfo(name, "?", "", *dist, f"{kind}: {reason}"))
         return rows
 
     def versions(self) -> dict[str, str]:
         """Return distribution name -> version of every loaded plugin distribution."""
         return {dist: version for dist, version in self._dists.values()}
+
+
+def _is_collision(reason: str) -> bool:
+    """Whether a reason in ``PluginHost.broken`` is a name or key collision (the messages made above)."""
+    return reason.startswith("entry point ") or ": already registered by " in reason
 
 
 def _is_builtin(plugin: object) -> bool:
