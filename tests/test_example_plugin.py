@@ -1,17 +1,22 @@
 """The third-party example package examples/photonpano-phasecorr, end to end.
 
-The session fixture installs it (editable, no dependencies, no network) if it is not
-installed yet; then the package must be discovered through its entry point, listed by
-``photonpano plugins``, selectable in a spec, pass photonpano's contract tests and run
-in the pipeline.
+The fixture makes the package discoverable without installing it: a temporary folder
+holds its distribution metadata (``photonpano_phasecorr-0.1.0.dist-info`` with the
+entry points of its ``pyproject.toml``), and that folder and the package's ``src`` go
+first on ``sys.path`` (``PYTHONPATH`` for subprocesses), so they take precedence over an
+installed copy and nothing is installed into the environment. Then the package must be
+discovered through its entry point, listed by ``photonpano plugins``, selectable in a
+spec, pass photonpano's contract tests and run in the pipeline.
 """
 
 from __future__ import annotations
 
 import importlib
 import importlib.metadata
+import os
 import subprocess
 import sys
+import tomllib
 from pathlib import Path
 
 import numpy as np
@@ -20,23 +25,46 @@ import pytest
 EXAMPLE = Path(__file__).parents[1] / "examples" / "photonpano-phasecorr"
 
 
-@pytest.fixture(scope="session")
-def phasecorr():
-    """Install the example package into this environment once; return its module."""
+def write_dist_info(site: Path, project: Path) -> Path:
+    """Write the ``.dist-info`` folder of the project at ``project`` (name, version, entry points) into ``site``."""
+    meta = tomllib.loads((project / "pyproject.toml").read_text())["project"]
+    info = site / f"{meta['name'].replace('-', '_')}-{meta['version']}.dist-info"
+    info.mkdir(parents=True)
+    (info / "METADATA").write_text(f"Metadata-Version: 2.1\nName: {meta['name']}\nVersion: {meta['version']}\n")
+    groups = "".join(f"[{group}]\n" + "".join(f"{k} = {v}\n" for k, v in eps.items()) + "\n"
+                     for group, eps in meta.get("entry-points", {}).items())
+    (info / "entry_points.txt").write_text(groups)
+    return info
+
+
+@pytest.fixture(scope="module")
+def phasecorr(tmp_path_factory):
+    """Make the example package discoverable (sys.path and PYTHONPATH, no install); return its module."""
+    site = tmp_path_factory.mktemp("site")
+    write_dist_info(site, EXAMPLE)
+    paths = [str(site), str(EXAMPLE / "src")]
+    saved_path, saved_env = list(sys.path), os.environ.get("PYTHONPATH")
+    sys.path[:0] = paths
+    os.environ["PYTHONPATH"] = os.pathsep.join(paths + ([saved_env] if saved_env else []))
+    importlib.invalidate_caches()
+    for name in [m for m in sys.modules if m.split(".")[0] == "photonpano_phasecorr"]:
+        del sys.modules[name]
     try:
-        importlib.metadata.distribution("photonpano-phasecorr")
-    except importlib.metadata.PackageNotFoundError:
-        cmd = [sys.executable, "-m", "pip", "install", "-q", "--no-deps", "-e", str(EXAMPLE)]
-        done = subprocess.run([*cmd[:5], "--no-build-isolation", *cmd[5:]], capture_output=True, text=True)
-        if done.returncode != 0:  # e.g. no local setuptools: let pip fetch the build backend
-            subprocess.run(cmd, check=True, capture_output=True, text=True)
+        yield importlib.import_module("photonpano_phasecorr.plugin")
+    finally:
+        sys.path[:] = saved_path
+        if saved_env is None:
+            os.environ.pop("PYTHONPATH", None)
+        else:
+            os.environ["PYTHONPATH"] = saved_env
         importlib.invalidate_caches()
-    # an editable install is importable in new interpreters; this one may predate its .pth
-    try:
-        return importlib.import_module("photonpano_phasecorr.plugin")
-    except ImportError:
-        sys.path.insert(0, str(EXAMPLE / "src"))
-        return importlib.import_module("photonpano_phasecorr.plugin")
+
+
+def test_nothing_is_installed(phasecorr, tmp_path_factory):
+    """The distribution found is the fixture's temporary metadata, and the module the source tree."""
+    dist = importlib.metadata.distribution("photonpano-phasecorr")
+    assert Path(str(dist.locate_file(""))).is_relative_to(tmp_path_factory.getbasetemp())
+    assert Path(phasecorr.__file__).is_relative_to(EXAMPLE / "src")
 
 
 def test_discovered_through_its_entry_point(phasecorr):
