@@ -12,7 +12,6 @@ from __future__ import annotations
 import os
 import tempfile
 import traceback
-from pathlib import Path
 from typing import Any
 
 from .errors import PluginError
@@ -76,10 +75,11 @@ def plugin_failure(exc: BaseException, host: Any, spec: Any = None) -> PluginErr
         A :class:`PluginError` (``"locator (my-locator): RuntimeError: ... (traceback in
         /tmp/...)"``), or one reporting an internal error when no plugin frame is found.
     """
-    log = Path(tempfile.gettempdir()) / f"photonpano-{os.getpid()}-traceback.log"
-    try:
-        log.write_text("".join(traceback.format_exception(type(exc), exc, exc.__traceback__)))
-        where = f"traceback in {log}; --debug shows it"
+    try:  # a new file of a unique name (mkstemp: never through a link planted in the shared temp folder)
+        fd, name = tempfile.mkstemp(prefix=f"photonpano-{os.getpid()}-", suffix="-traceback.log")
+        with os.fdopen(fd, "w", encoding="utf-8") as handle:
+            handle.write("".join(traceback.format_exception(type(exc), exc, exc.__traceback__)))
+        where = f"traceback in {name}; --debug shows it"
     except OSError:
         where = "run with --debug for the traceback"
     message = " ".join(str(exc).split())

@@ -254,3 +254,23 @@ def test_convert_zarr_to_npy_refuses_a_part_linked_to_an_input(tmp_path, small_c
     before = digests(small_cube, cube)
     assert_one_line_error(invoke("convert", cube, "-o", tmp_path / "back.npy"), part, "symbolic link")
     assert digests(small_cube, cube) == before and not (tmp_path / "back.npy").exists()
+
+
+def test_a_plugin_failure_log_is_never_written_through_a_planted_link(tmp_path, monkeypatch):
+    """The traceback log in the shared temp folder has a fresh unique name: a link planted there is left alone."""
+    import tempfile
+
+    from photonpano.faults import plugin_failure
+    from photonpano.host import PluginHost
+
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
+    victim = tmp_path / "victim.txt"
+    victim.write_text("keep")
+    (tmp_path / f"photonpano-{os.getpid()}-traceback.log").symlink_to(victim)  # the old, predictable name
+    try:
+        raise RuntimeError("boom")
+    except RuntimeError as exc:
+        message = str(plugin_failure(exc, PluginHost(autoload=False)))
+    log = message.split("traceback in ")[1].split(";")[0]
+    assert victim.read_text() == "keep"
+    assert "RuntimeError: boom" in open(log).read() and not os.path.islink(log)
