@@ -17,7 +17,12 @@ import numpy as np
 
 from .errors import SourceError
 
-__all__ = ["check_npy", "load_npy", "data_bytes", "SPARSE_SLACK"]
+__all__ = ["check_npy", "load_npy", "data_bytes", "SPARSE_SLACK", "BYTES_PER_FRAME", "check_frames_fit_memory",
+           "available_memory"]
+
+BYTES_PER_FRAME = 256
+"""A lower bound of the memory a run keeps per binary frame (its (3, 3) float64 homography,
+72 bytes, and the working copies of the interpolation, the guards and the compositor)."""
 
 SPARSE_SLACK = 64 * 2**20
 """Holes (bytes never written) an ``.npy`` file may have before it is refused as sparse (64 MiB);
@@ -121,3 +126,41 @@ def load_npy(path: Path, what: str, **kwargs: Any) -> np.ndarray:
         return np.load(path, allow_pickle=False, **kwargs)
     except (ValueError, OSError, EOFError) as exc:
         raise SourceError(f"{what}: {path} is not a readable .npy file ({exc})") from None
+
+
+def available_memory() -> int | None:
+    """Memory available to new allocations in bytes (``MemAvailable`` of ``/proc/meminfo``), or None if unknown."""
+    try:
+        with open("/proc/meminfo", encoding="ascii") as handle:
+            for line in handle:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    import os
+
+    try:
+        return int(os.sysconf("SC_AVPHYS_PAGES")) * int(os.sysconf("SC_PAGE_SIZE"))
+    except (ValueError, OSError, AttributeError):
+        return None
+
+
+def check_frames_fit_memory(n_frames: int, path: Path, what: str, available: int | None = None) -> None:
+    """Refuse a capture whose per-frame results alone cannot fit in memory, before any work.
+
+    Args:
+        n_frames: binary frames the run will estimate a homography for.
+        path: the capture (for the message).
+        what: how the message names the reader, e.g. ``"source (npy-cube)"``.
+        available: available memory in bytes (None: :func:`available_memory`; unknown: no check).
+
+    Raises:
+        SourceError: ``n_frames * BYTES_PER_FRAME`` exceeds the available memory; one
+            line naming ``path``, the frames and both sizes (use ``start``/``stop``).
+    """
+    available = available_memory() if available is None else available
+    needed = int(n_frames) * BYTES_PER_FRAME
+    if available is not None and needed > available:
+        raise SourceError(f"{what}: {path} declares {n_frames} frames; a run keeps at least {BYTES_PER_FRAME} "
+                          f"bytes per frame ({needed / 2**30:.1f} GiB), more than the {available / 2**30:.1f} GiB "
+                          "of memory available; select fewer frames (start, stop)")

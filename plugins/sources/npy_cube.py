@@ -89,8 +89,10 @@ class NpyCube(ReopenOnPickle, PhotonSource):
                 indexing of frames (a memory map, a zarr array).
 
         Raises:
-            SourceError: wrong dtype or number of dimensions, or a frame range outside
-                the cube; messages name the plugin and the file.
+            SourceError: wrong dtype or number of dimensions, a frame range outside the
+                cube, or more frames than memory can hold results for
+                (:func:`photonpano.npy_header.check_frames_fit_memory`); messages name
+                the plugin and the file.
         """
         self.config = config
         path, what = config.path, f"source ({self.label})"
@@ -107,6 +109,9 @@ class NpyCube(ReopenOnPickle, PhotonSource):
 
         self.offset = start
         self.n_frames = stop - start
+        from photonpano.npy_header import check_frames_fit_memory
+
+        check_frames_fit_memory(self.n_frames, path, what)
         raw_shape = (cube.shape[1], cube.shape[2] * (8 if self.packed else 1))
         self.corrector = SensorCorrector(config, raw_shape, None, f"{self.label}({path.name})")
         self.height, self.width = self.corrector.shape

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from photonpano.errors import SourceError
 from photonpano.npy_header import data_bytes
-from robust import assert_one_line_error, run_subprocess
+from robust import assert_one_line_error, invoke, run_subprocess
 
 DECLARED = (10**8, 64, 16)
 """10^8 bit-packed 64x128 frames: 102.4 GB declared."""
@@ -92,3 +92,16 @@ def test_a_zarr_cube_of_tiny_chunks_is_refused_in_one_line(tmp_path):
     result = run_subprocess("pano", path, "-o", tmp_path / "out", timeout=60)
     assert_one_line_error(result, path, "12000 chunks of only 16 bytes")
     assert time.perf_counter() - start < 30 and not (tmp_path / "out").exists()
+
+
+def test_more_frames_than_memory_can_hold_results_for_is_refused(tmp_path, small_cube, monkeypatch):
+    """Declared frames x the bytes a run keeps per frame vs the memory available (patched small here)."""
+    from photonpano import npy_header
+
+    monkeypatch.setattr(npy_header, "available_memory", lambda: 400 * npy_header.BYTES_PER_FRAME - 1)
+    out = tmp_path / "out"
+    line = assert_one_line_error(invoke("pano", small_cube, "-o", out), small_cube, "declares 400 frames",
+                                 "memory available", "start, stop")
+    assert "GiB" in line and not out.exists()
+    monkeypatch.setattr(npy_header, "available_memory", lambda: 400 * npy_header.BYTES_PER_FRAME)
+    npy_header.check_frames_fit_memory(400, small_cube, "test")  # exactly enough: accepted
