@@ -114,12 +114,14 @@ def run_capture(capture: Capture, dump: Path | None = None) -> dict:
     """Simulate and reconstruct one capture with the default settings; return its row.
 
     With ``dump``, the per-frame actual error and predicted sigma go to
-    ``dump/<photo>--<variant>.npz`` (``error``, ``sigma``; for recalibrating offline).
+    ``dump/<photo>--<variant>.npz`` (``error``, ``sigma``, ``unverified`` per frame and the
+    last level's evidence pairs ``middle``, ``residual``, ``ok``; for recalibrating offline).
     """
     from photonpano.host import PluginHost
     from photonpano.metrics import ground_truth_report, source_trajectory_error
     from photonpano.pipeline import reconstruct
     from photonpano.spec import validate_spec
+    from photonpano.uncertainty import held_out_residuals
 
     row: dict = {"capture": capture.name, "frames": capture.source_spec()["frames"]}
     try:
@@ -128,9 +130,10 @@ def run_capture(capture: Capture, dump: Path | None = None) -> dict:
     except Exception as exc:  # noqa: BLE001 - a capture the simulator refuses is a row too
         return {**row, "failed": f"simulate: {str(exc).splitlines()[0]}"}
     report: dict = {}
+    levels: list = []
     t0 = time.perf_counter()
     try:
-        homographies, _, pano, timings = reconstruct(spec, source, report=report)
+        homographies, _, pano, timings = reconstruct(spec, source, report=report, on_level=levels.append)
     except Exception as exc:  # noqa: BLE001 - a failed run is a row too (it must fail with a reason)
         return {**row, "failed": str(exc).splitlines()[0], "seconds": time.perf_counter() - t0}
     seconds = time.perf_counter() - t0
@@ -140,7 +143,11 @@ def run_capture(capture: Capture, dump: Path | None = None) -> dict:
     sigma = unc.sigma_px if unc is not None else np.full(len(error), np.nan)
     if dump is not None:
         dump.mkdir(parents=True, exist_ok=True)
-        np.savez(dump / f"{capture.name.replace('/', '--')}.npz", error=error, sigma=sigma)
+        evidence = held_out_residuals(levels[-1], source.width, source.height)
+        pairs = dict(zip(("middle", "residual", "ok"), evidence[1:4])) if evidence is not None else {}
+        unverified = unc.unverified if unc is not None else np.zeros(len(error), bool)
+        np.savez(dump / f"{capture.name.replace('/', '--')}.npz", error=error, sigma=sigma, unverified=unverified,
+                 **pairs)
     return {**row, "rmse": gt["trajectory_rmse_px"], "max": gt["trajectory_max_px"], "psnr_gap": gt["psnr_gap_db"],
             "status": report["status"], "warnings": report["warnings"],
             "sigma_median": float(np.median(sigma)), "within_2_sigma": float(np.mean(error <= 2 * sigma)),

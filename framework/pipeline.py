@@ -344,7 +344,9 @@ def reconstruct(spec: BaseModel, source: PhotonSource, *, on_level: Callable[[Le
             (:func:`~photonpano.quality.panorama_agreement`), ``uncertainty`` (the
             summary of the per-frame uncertainty, None if there was no evidence) and
             ``frame_uncertainty`` (the :class:`~photonpano.uncertainty.FrameUncertainty`
-            itself, or None; not JSON: a caller writing ``run.json`` takes it out).
+            itself, or None; not JSON: a caller writing ``run.json`` takes it out) and
+            ``flicker`` (:meth:`~photonpano.flicker.Flicker.record` of the flickering
+            light found in the photon counts, or None).
 
     Returns:
         ``(homographies, level_statistics, panorama, timings_s)``: (T, 3, 3) float64
@@ -354,6 +356,7 @@ def reconstruct(spec: BaseModel, source: PhotonSource, *, on_level: Callable[[Le
         ``homographies`` map frames to canvas pixels) and wall times in seconds.
     """
     from .executor import make_executor
+    from .flicker import detect_flicker
     from .outputs import Checkpoint
     from .quality import agreement_binning, assess, panorama_agreement
     from .uncertainty import frame_uncertainty
@@ -388,8 +391,11 @@ def reconstruct(spec: BaseModel, source: PhotonSource, *, on_level: Callable[[Le
                                        agreement_binning(plan))
         uncertainty = frame_uncertainty(last, source.width, source.height) if last is not None else None
         summary = uncertainty.summary(source.frame_rate_hz) if uncertainty is not None else None
-        status, warnings = assess(plan, stats, agreement, summary)
+        flicker = detect_flicker(source)
+        flicker_record = flicker.record() if flicker is not None else None
+        status, warnings = assess(plan, stats, agreement, summary, flicker_record)
         report.update(status=status, warnings=warnings, notes=list(stages.notes), group_size=plan.record(),
-                      panorama_agreement=agreement, uncertainty=summary, frame_uncertainty=uncertainty)
+                      panorama_agreement=agreement, uncertainty=summary, frame_uncertainty=uncertainty,
+                      flicker=flicker_record)
         timings["confidence"] = time.perf_counter() - t0
     return homographies, stats, pano, timings

@@ -40,13 +40,13 @@ from numpy.typing import NDArray
 from . import geometry
 from .records import LevelResult
 
-__all__ = ["FrameUncertainty", "frame_uncertainty", "RESIDUAL_TO_SIGMA", "NEIGHBOURS", "LIMIT_PX"]
+__all__ = ["FrameUncertainty", "frame_uncertainty", "held_out_residuals", "RESIDUAL_TO_SIGMA", "NEIGHBOURS", "LIMIT_PX"]
 
 RESIDUAL_TO_SIGMA = 1.75
 """Predicted per-frame sigma over the local RMS of held-out pair residuals (calibrated on
 the evaluation suite, see the module)."""
 
-NEIGHBOURS = 4
+NEIGHBOURS = 8
 """Residuals on each side of a pair that enter its local RMS."""
 
 LIMIT_PX = 1.0
@@ -112,6 +112,52 @@ def frame_uncertainty(result: LevelResult, width: int, height: int) -> FrameUnce
         The :class:`FrameUncertainty`, or None if the level holds no evidence (a mosaic
         level run without the cross-check, or a single group).
     """
+    evidence = held_out_residuals(result, width, height)
+    if evidence is None:
+        return None
+    index, middle, residual, ok, kind = evidence
+    sigma_pairs = RESIDUAL_TO_SIGMA * _local_rms(np.where(ok, residual, np.nan), NEIGHBOURS)
+    n = len(result.homographies)
+    frames = np.arange(n, dtype=np.float64)
+    known = np.isfinite(sigma_pairs)
+    if known.any():
+        sigma = np.interp(frames, middle[known], sigma_pairs[known])
+    else:
+        sigma = np.full(n, np.inf)
+    reference = result.groups.reference
+    unverified = np.zeros(n, bool)
+    for a, b in index[~ok]:
+        unverified[reference[a]:reference[b] + 1] = True
+    # extrapolated: frames beyond the registered groups' span by more than half a group
+    groups = result.groups
+    half = int(np.median(groups.stop - groups.start)) // 2
+    unverified[:max(0, int(reference.min()) - half)] = True
+    unverified[int(reference.max()) + half + 1:] = True
+    # a failed registration leaves its stretch with no measure of error: at least the limit
+    sigma[unverified] = np.maximum(sigma[unverified], 2 * LIMIT_PX)
+    return FrameUncertainty(sigma, unverified, kind, int(len(ok)), int((~ok).sum()))
+
+
+Evidence = tuple[NDArray[np.intp], NDArray[np.float64], NDArray[np.float64], NDArray[np.bool_], str]
+"""``(index, middle, residual, ok, evidence)`` of :func:`held_out_residuals`."""
+
+
+def held_out_residuals(result: LevelResult, width: int, height: int) -> Evidence | None:
+    """The last level's evidence pairs and how far each disagrees with the final homographies.
+
+    Args:
+        result: the last level's :class:`~photonpano.records.LevelResult`.
+        width: frame width in pixels.
+        height: frame height in pixels.
+
+    Returns:
+        ``(index, middle, residual, ok, evidence)``: (P, 2) int group indices of each pair;
+        (P,) float64 frame midway between the pair's reference frames; (P,) float64 mean
+        corner distance in pixels between the pair's registration and the homography the
+        final trajectory implies between them; (P,) bool registrations that succeeded with a
+        finite residual; ``"held-out pairs"`` or ``"pose graph"`` (see the module). None if
+        the level holds no evidence.
+    """
     located, homographies = result.located, result.homographies
     if located.crosscheck is not None and located.crosscheck_index is not None:
         index, regs, evidence = located.crosscheck_index, located.crosscheck, "held-out pairs"
@@ -126,27 +172,9 @@ def frame_uncertainty(result: LevelResult, width: int, height: int) -> FrameUnce
     expected = geometry.invert(homographies[reference[index[:, 0]]]) @ homographies[reference[index[:, 1]]]
     residual = geometry.mean_corner_distance(regs.homographies, expected, width, height)
     ok = regs.ok & np.isfinite(residual)
-    sigma_pairs = RESIDUAL_TO_SIGMA * _local_rms(np.where(ok, residual, np.nan), NEIGHBOURS)
     # a pair's evidence describes the frames between its two reference frames
     middle = (reference[index[:, 0]] + reference[index[:, 1]]) / 2.0
-    n = len(homographies)
-    frames = np.arange(n, dtype=np.float64)
-    known = np.isfinite(sigma_pairs)
-    if known.any():
-        sigma = np.interp(frames, middle[known], sigma_pairs[known])
-    else:
-        sigma = np.full(n, np.inf)
-    unverified = np.zeros(n, bool)
-    for a, b in index[~ok]:
-        unverified[reference[a]:reference[b] + 1] = True
-    # extrapolated: frames beyond the registered groups' span by more than half a group
-    groups = result.groups
-    half = int(np.median(groups.stop - groups.start)) // 2
-    unverified[:max(0, int(reference.min()) - half)] = True
-    unverified[int(reference.max()) + half + 1:] = True
-    # a failed registration leaves its stretch with no measure of error: at least the limit
-    sigma[unverified] = np.maximum(sigma[unverified], 2 * LIMIT_PX)
-    return FrameUncertainty(sigma, unverified, evidence, int(len(ok)), int((~ok).sum()))
+    return index, middle, residual, ok, evidence
 
 
 def _local_rms(values: NDArray[np.float64], neighbours: int) -> NDArray[np.float64]:

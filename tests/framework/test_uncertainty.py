@@ -47,9 +47,9 @@ def test_residuals_scale_into_sigma_for_every_frame():
 
 def test_a_jump_is_located_and_named_by_frames_and_seconds():
     """One held-out pair 5 px off: the frames around it exceed the limit, the warning names them."""
-    shift = np.full(18, 0.05)
+    shift = np.full(58, 0.05)
     shift[10] = 5.0
-    unc = frame_uncertainty(_level(shift=shift), W, H)
+    unc = frame_uncertainty(_level(n_frames=3000, shift=shift), W, H)
     summary = unc.summary(frame_rate_hz=1000.0)
     (above,) = summary["above_limit"]
     first, last = above["frames"]
