@@ -63,12 +63,19 @@ class Flicker:
             where the region shows no spectral line at the frequency.
         modulation: the spectral peak's amplitude over the mean count (whole frame).
         frames: (start, stop) binary frames analysed.
+        frame_rate_hz: the capture's binary frames per second.
     """
 
     frequency_hz: float
     depth: NDArray[np.float64]
     modulation: float
     frames: tuple[int, int]
+    frame_rate_hz: float
+
+    @property
+    def period_frames(self) -> float:
+        """The flicker period in binary frames."""
+        return self.frame_rate_hz / self.frequency_hz
 
     @property
     def flickering(self) -> NDArray[np.bool_]:
@@ -86,7 +93,7 @@ class Flicker:
         return {"frequency_hz": round(self.frequency_hz, 2), "depth": np.round(self.depth, 3).tolist(),
                 "regions": [f"{_ROW[r]}-{_COL[c]}" for r, c in zip(*np.nonzero(self.flickering))],
                 "partial": self.partial, "modulation": round(self.modulation, 4),
-                "frames": list(self.frames)}
+                "period_frames": round(self.period_frames, 2), "frames": list(self.frames)}
 
 
 _ROW = ("top", "middle", "bottom")
@@ -153,7 +160,8 @@ def detect_flicker(source: Any, *, frames: int = 8000, bin_frames: int = 10,
         return None
     whole = counts.sum(axis=1)
     modulation = float(np.abs(np.fft.rfft((whole / whole.mean() - 1) * window[:, 0]))[peak] / (window.sum() / 2))
-    return Flicker(frequency, depth, modulation, (start, start + samples * bin_frames))
+    return Flicker(frequency, depth, modulation, (start, start + samples * bin_frames),
+                   float(source.frame_rate_hz))
 
 
 def _region_counts(source: Any, start: int, samples: int, bin_frames: int, chunk: int) -> NDArray[np.float64]:

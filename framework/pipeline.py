@@ -246,6 +246,10 @@ class Stages:
                                         subbatch_px=spec.mosaic.subbatch_px)}
         self.schemes = [built[name] for name in level_schemes(spec)]
         self.notes: list[str] = []
+        if self.plan.extra_levels:
+            self.schemes += [self.schemes[-1]] * self.plan.extra_levels
+            self.notes.append(f"groups span whole flicker periods ({self.plan.group_size} frames): "
+                              f"{self.plan.extra_levels} more level(s) keep the last level's keyframes as dense")
         self._fit_levels()
 
     def _fit_levels(self) -> None:
@@ -356,7 +360,6 @@ def reconstruct(spec: BaseModel, source: PhotonSource, *, on_level: Callable[[Le
         ``homographies`` map frames to canvas pixels) and wall times in seconds.
     """
     from .executor import make_executor
-    from .flicker import detect_flicker
     from .outputs import Checkpoint
     from .quality import agreement_binning, assess, panorama_agreement
     from .uncertainty import frame_uncertainty
@@ -391,8 +394,7 @@ def reconstruct(spec: BaseModel, source: PhotonSource, *, on_level: Callable[[Le
                                        agreement_binning(plan))
         uncertainty = frame_uncertainty(last, source.width, source.height) if last is not None else None
         summary = uncertainty.summary(source.frame_rate_hz) if uncertainty is not None else None
-        flicker = detect_flicker(source)
-        flicker_record = flicker.record() if flicker is not None else None
+        flicker_record = plan.flicker.record() if plan.flicker is not None else None
         status, warnings = assess(plan, stats, agreement, summary, flicker_record)
         report.update(status=status, warnings=warnings, notes=list(stages.notes), group_size=plan.record(),
                       panorama_agreement=agreement, uncertainty=summary, frame_uncertainty=uncertainty,

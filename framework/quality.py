@@ -134,9 +134,10 @@ def assess(plan: GroupPlan, levels: list[dict[str, Any]],
             ranges whose predicted error exceeds its limit, or that rest on failed or
             extrapolated registrations, are warned about by frames and seconds.
         flicker: :meth:`~photonpano.flicker.Flicker.record` of the capture's flickering
-            light, or None. Flicker over part of the field is warned about: it biases
-            every registration alike, which no held-out pair can see (measured on
-            simulated half-lit captures: 0.4-5 px where steady light gives 0.1 px).
+            light, or None. Flicker over part of the field is warned about unless the
+            groups span whole periods (:func:`~photonpano.adaptive.whole_flicker_periods`):
+            it biases every registration alike, which no held-out pair can see
+            (measured on simulated half-lit captures: 0.4-5 px where steady light gives 0.1 px).
 
     Returns:
         ``(status, warnings)``: ``"ok"`` when no warning was raised, else ``"degraded"``;
@@ -171,7 +172,8 @@ def assess(plan: GroupPlan, levels: list[dict[str, Any]],
                             f"{q['pose_graph_residual_px']:.1f} px (median)")
     if uncertainty is not None:
         warnings.extend(_uncertainty_warnings(uncertainty))
-    if flicker is not None and flicker["partial"]:
+    periods = plan.group_size / flicker["period_frames"] if flicker is not None else 0.0
+    if flicker is not None and flicker["partial"] and not (periods >= 0.99 and abs(periods - round(periods)) < 0.01):
         deepest = max(map(max, flicker["depth"]))
         warnings.append(f"light flickering at {flicker['frequency_hz']:.4g} Hz over part of the scene "
                         f"({', '.join(flicker['regions'])} of the frame; depth up to {deepest:.2f}): "

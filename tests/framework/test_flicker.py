@@ -52,8 +52,51 @@ def test_partial_flicker_makes_the_run_degraded_and_whole_field_flicker_does_not
 
     plan = GroupPlan(300, 1, 30.0, 0.01, 3.0, "test", True, None)
     partial = {"frequency_hz": 120.0, "depth": [[0.0, 0.4, 0.8]] * 3, "partial": True,
-               "regions": ["top-right", "middle-right"]}
+               "regions": ["top-right", "middle-right"], "period_frames": 833.33}
     status, warnings = assess(plan, [], None, None, partial)
     assert status == "degraded" and "120 Hz" in warnings[0] and "top-right" in warnings[0]
+    # groups of whole periods (what group_size: auto chooses) see the lamp's mean level
+    assert assess(GroupPlan(1667, 1, 30.0, 0.01, 3.0, "test", True, None), [], None, None, partial)[0] == "ok"
     whole = {**partial, "depth": [[0.5] * 3] * 3, "partial": False}
     assert assess(plan, [], None, None, whole) == ("ok", [])
+
+
+def _flicker(frequency_hz=120.0, depth=((0.0, 0.4, 0.8),) * 3):
+    from photonpano.flicker import Flicker
+
+    return Flicker(frequency_hz, np.array(depth, float), 0.2, (0, 8000), 100_000.0)
+
+
+def test_groups_span_whole_periods_of_partial_flicker_with_a_level_per_doubling():
+    from photonpano.adaptive import GroupPlan, whole_flicker_periods
+
+    plan = GroupPlan(300, 1, 30.0, 0.01, 3.0, "motion", True, None)
+    longer = whole_flicker_periods(plan, _flicker(), 20_000)
+    assert longer.group_size == 833 and longer.extra_levels == 1  # one period of 833.3 frames; 2.8x longer
+    assert longer.photons_per_pixel_per_group == pytest.approx(30.0 * 833 / 300) and "120 Hz" in longer.reason
+    assert whole_flicker_periods(GroupPlan(1900, auto=True), _flicker(), 20_000).group_size == 1667  # two periods
+    whole_field = _flicker(depth=((0.5,) * 3,) * 3)
+    assert whole_flicker_periods(plan, whole_field, 20_000).group_size == 300  # a global gain harms no locator
+    assert whole_flicker_periods(plan, None, 20_000).group_size == 300
+    assert whole_flicker_periods(plan, _flicker(), 3_000).group_size == 300  # too short for 5 groups of 833
+
+
+@pytest.mark.slow
+def test_a_half_lit_capture_under_a_120_hz_lamp_is_registered_as_well_as_steady_light():
+    """Issue 28's acceptance: 20 000 frames, half the field lit by a 120 Hz lamp at 90 % depth: <= 0.15 px, ok."""
+    from photonpano.host import PluginHost
+    from photonpano.metrics import source_trajectory_error
+    from photonpano.pipeline import reconstruct
+    from photonpano.spec import validate_spec
+
+    settings = {"plugin": "simulate", "frames": 20_000, "flicker_hz": 120.0, "flicker_depth": 0.9,
+                "flicker_region": "right"}
+    spec = validate_spec({"source": settings}, PluginHost(), origin="test")
+    source = spec.source.build()
+    report: dict = {}
+    homographies, *_ = reconstruct(spec, source, report=report)
+    rmse = source_trajectory_error(homographies, source).rmse_px
+    assert rmse <= 0.15, rmse
+    assert report["status"] == "ok", report["warnings"]
+    assert report["flicker"]["partial"] and report["flicker"]["frequency_hz"] == pytest.approx(120.0, abs=2.0)
+    assert report["group_size"]["group_size"] % 833 == 0
