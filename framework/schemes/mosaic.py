@@ -13,6 +13,14 @@ locator and returns what it found), so the windows can run on threads or process
 The next level's template can be had without another pass over the photons: the merged
 frames are also accumulated onto the canvas at their registered positions (a flux
 average weighted by frames), each task returning the crop of the canvas it touched.
+
+A scene is rarely static: pixels of a merged frame that disagree with the panorama view
+by more than :data:`MOVER_SIGMAS` robust standard deviations (a passing object, or the
+ghost of one that the previous estimate's panorama still holds) are left out of its
+registration, its held-out cross-check and the next template (:func:`mask_disagreement`;
+the robustness term of burst merging: Hasinoff et al., "Burst photography for high dynamic
+range and low-light imaging on mobile cameras", SIGGRAPH Asia 2016, Sec. 5, and Wronski et
+al., "Handheld multi-frame super-resolution", SIGGRAPH 2019, Sec. 5).
 """
 
 from __future__ import annotations
@@ -33,7 +41,11 @@ from ..records import LocateResult, MergedFrames, PairRegistrations, Panorama
 from ..stages import Compositor, Locator
 from .base import LevelScheme, LevelTask
 
-__all__ = ["MosaicScheme"]
+__all__ = ["MosaicScheme", "mask_disagreement", "MOVER_SIGMAS"]
+
+MOVER_SIGMAS = 5.0
+"""Disagreement with the panorama view, in robust standard deviations of the smoothed
+difference, beyond which a merged frame's pixels are left out (see the module)."""
 
 
 @dataclass(frozen=True)
@@ -103,6 +115,7 @@ class MosaicScheme(LevelScheme):
             merged = task.merger.merge(source, task.homographies, groups.select(index))
             merge_s = time.perf_counter() - start
             views = panorama_views(template, to_canvas[index], source.height, source.width, task.group_size)
+            merged = mask_disagreement(merged, views)
             n = len(index)
             pairs = np.stack([np.arange(n), np.arange(n, 2 * n)], axis=1)
             found = locator.register_pairs(MergedFrames.concat(views, merged), pairs,
@@ -189,3 +202,49 @@ def _template_from_crops(crops: list[Any], shape: tuple[int, int],
     with np.errstate(divide="ignore", invalid="ignore"):
         flux = np.where(weights > 0, sums / weights, np.nan).astype(np.float32)
     return Panorama(flux=flux, frames=weights, homographies=homographies)
+
+
+def mask_disagreement(merged: MergedFrames, views: MergedFrames, sigmas: float = MOVER_SIGMAS,
+                      smooth_px: float = 2.0, margin_px: int = 3) -> MergedFrames:
+    """Untrust the pixels of merged frames that disagree with the panorama at their pose.
+
+    For each frame, the difference ``flux - gain * view`` (gain: ratio of the medians over
+    pixels both trust) is smoothed by a Gaussian of ``smooth_px``; pixels whose smoothed
+    difference exceeds ``sigmas`` times its robust standard deviation (1.4826 x median
+    absolute value) are untrusted, and so are those within ``margin_px`` of them. Photon
+    noise and sub-pixel misregistration stay well below; a moving object, or its ghost in
+    the view, does not.
+
+    Args:
+        merged: G merged frames (flux in photons/s, NaN where unobserved).
+        views: the panorama resampled into the same G grids
+            (:func:`~photonpano.compose.panorama_views`).
+        sigmas: threshold in robust standard deviations.
+        smooth_px: Gaussian sigma of the smoothing, in pixels.
+        margin_px: dilation of the untrusted pixels, in pixels.
+
+    Returns:
+        ``merged`` with ``masks`` narrowed (flux, frames and images untouched; frames
+        with fewer than 100 pixels trusted by both are left as they are).
+
+    Raises:
+        ValueError: if ``merged`` and ``views`` differ in shape.
+    """
+    import cv2
+
+    if merged.flux.shape != views.flux.shape:
+        raise ValueError(f"mask_disagreement: merged frames {merged.flux.shape} and views {views.flux.shape} "
+                         "differ in shape")
+    masks = merged.masks.copy()
+    kernel = np.ones((2 * margin_px + 1, 2 * margin_px + 1), np.uint8)
+    for i in range(len(masks)):
+        a, b = merged.flux[i], views.flux[i]
+        both = merged.masks[i] & views.masks[i] & np.isfinite(a) & np.isfinite(b)
+        if np.count_nonzero(both) < 100:
+            continue
+        gain = float(np.median(a[both])) / max(float(np.median(b[both])), 1e-30)
+        difference = cv2.GaussianBlur(np.where(both, a - gain * b, 0).astype(np.float32), (0, 0), smooth_px)
+        spread = 1.4826 * float(np.median(np.abs(difference[both]))) + 1e-30
+        outliers = cv2.dilate((np.abs(difference) > sigmas * spread).astype(np.uint8), kernel)
+        masks[i] &= outliers == 0
+    return MergedFrames(merged.flux, merged.frames, merged.images, masks, merged.ids)
