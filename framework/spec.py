@@ -82,7 +82,7 @@ class OutputsConfig(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True, use_attribute_docstrings=True)
 
     panorama_png: bool = True
-    """Write ``panorama.png``, the tone-mapped 16-bit sRGB panorama (grey + alpha: transparent where unobserved)."""
+    """Write ``panorama.png``, the tone-mapped 16-bit sRGB panorama (with alpha: transparent where unobserved)."""
     merged_frames: bool = False
     """Write each level's merged frames as ``level_<k>/merged.npy`` (float32 flux) and PNGs,
     at every level."""

@@ -4,10 +4,9 @@ from types import SimpleNamespace
 
 import cv2
 import numpy as np
-import pytest
 from photonpano.metrics import TRAJECTORY_MIN_SPAN_PX, plot_trajectory, trajectory_figure
 from photonpano.photons import tone_map
-from photonpano.png import write_grey_alpha_png, write_panorama_png
+from photonpano.png import write_panorama_png
 
 
 def _translations(x: np.ndarray, y: np.ndarray) -> np.ndarray:
@@ -70,20 +69,9 @@ def test_panorama_png_is_transparent_where_unobserved(tmp_path):
     flux[:5] = np.nan
     flux[10:20, 40:] = np.nan
     write_panorama_png(tmp_path / "panorama.png", flux)
-    png = cv2.imread(str(tmp_path / "panorama.png"), cv2.IMREAD_UNCHANGED)  # grey + alpha read as BGRA
+    png = cv2.imread(str(tmp_path / "panorama.png"), cv2.IMREAD_UNCHANGED)  # grey in B, G, R; alpha
     assert png.dtype == np.uint16 and png.shape == (37, 53, 4)
     expected = tone_map(flux, bits=16)
     for channel in range(3):
         np.testing.assert_array_equal(png[..., channel], expected)
     np.testing.assert_array_equal(png[..., 3], np.where(np.isfinite(flux), 65535, 0))
-
-
-def test_grey_alpha_png_round_trips_extremes(tmp_path):
-    grey = np.array([[0, 1, 65535, 256], [255, 65534, 4096, 7]], np.uint16)
-    alpha = np.array([[0, 65535, 65535, 1], [65535, 0, 32768, 65535]], np.uint16)
-    write_grey_alpha_png(tmp_path / "a.png", grey, alpha)
-    png = cv2.imread(str(tmp_path / "a.png"), cv2.IMREAD_UNCHANGED)
-    np.testing.assert_array_equal(png[..., 0], grey)
-    np.testing.assert_array_equal(png[..., 3], alpha)
-    with pytest.raises(ValueError, match="two \\(H, W\\) uint16 arrays"):
-        write_grey_alpha_png(tmp_path / "b.png", grey.astype(np.uint8), alpha)
