@@ -205,7 +205,7 @@ def _template_from_crops(crops: list[Any], shape: tuple[int, int],
 
 
 def mask_disagreement(merged: MergedFrames, views: MergedFrames, sigmas: float = MOVER_SIGMAS,
-                      smooth_px: float = 2.0, margin_px: int = 3) -> MergedFrames:
+                      smooth_px: float = 5.0, margin_px: int = 3) -> MergedFrames:
     """Untrust the pixels of merged frames that disagree with the panorama at their pose.
 
     For each frame, the difference ``flux - gain * view`` (gain: ratio of the medians over
