@@ -243,7 +243,8 @@ class Stages:
         built = {"pairwise": PairwiseScheme(self.locator, tuple(spec.pair_offsets)),
                  "mosaic": MosaicScheme(in_merged_pixels(spec.mosaic.locator, self.binning).build,
                                         spec.mosaic.template.build,
-                                        subbatch_px=spec.mosaic.subbatch_px)}
+                                        subbatch_px=spec.mosaic.subbatch_px,
+                                        reject_movers=spec.mosaic.reject_movers)}
         self.schemes = [built[name] for name in level_schemes(spec)]
         self.notes: list[str] = []
         if self.plan.extra_levels:

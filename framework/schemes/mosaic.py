@@ -14,10 +14,11 @@ The next level's template can be had without another pass over the photons: the 
 frames are also accumulated onto the canvas at their registered positions (a flux
 average weighted by frames), each task returning the crop of the canvas it touched.
 
-A scene is rarely static: pixels of a merged frame that disagree with the panorama view
-by more than :data:`MOVER_SIGMAS` robust standard deviations (a passing object, or the
-ghost of one that the previous estimate's panorama still holds) are left out of its
-registration, its held-out cross-check and the next template (:func:`mask_disagreement`;
+A scene is rarely static: with ``reject_movers`` (spec ``mosaic.reject_movers``, off by
+default), pixels of a merged frame that disagree with the panorama view by more than that
+many robust standard deviations (a passing object, or the ghost of one that the previous
+estimate's panorama still holds) are left out of its registration, its held-out
+cross-check and the next template (:func:`mask_disagreement`;
 the robustness term of burst merging: Hasinoff et al., "Burst photography for high dynamic
 range and low-light imaging on mobile cameras", SIGGRAPH Asia 2016, Sec. 5, and Wronski et
 al., "Handheld multi-frame super-resolution", SIGGRAPH 2019, Sec. 5).
@@ -41,11 +42,7 @@ from ..records import LocateResult, MergedFrames, PairRegistrations, Panorama
 from ..stages import Compositor, Locator
 from .base import LevelScheme, LevelTask
 
-__all__ = ["MosaicScheme", "mask_disagreement", "MOVER_SIGMAS"]
-
-MOVER_SIGMAS = 5.0
-"""Disagreement with the panorama view, in robust standard deviations of the smoothed
-difference, beyond which a merged frame's pixels are left out (see the module)."""
+__all__ = ["MosaicScheme", "mask_disagreement"]
 
 
 @dataclass(frozen=True)
@@ -70,14 +67,17 @@ class MosaicScheme(LevelScheme):
             did not leave one (e.g. ``flux-canvas``'s config ``build``).
         subbatch_px: sub-batch tolerance of that template, in canvas pixels.
         window: groups merged and registered per task.
+        reject_movers: robust standard deviations beyond which pixels disagreeing with
+            the panorama view are left out (:func:`mask_disagreement`); None: off.
     """
 
     name = "mosaic"
     needs_template = True
 
     def __init__(self, make_locator: Callable[[], Locator], make_compositor: Callable[[], Compositor], *,
-                 subbatch_px: float = 0.5, window: int = 16) -> None:
+                 subbatch_px: float = 0.5, window: int = 16, reject_movers: float | None = None) -> None:
         """Create the scheme from factories of its locator and template compositor."""
+        self.reject_movers = reject_movers
         self.make_locator = make_locator
         self.make_compositor = make_compositor
         self.subbatch_px = subbatch_px
@@ -115,7 +115,8 @@ class MosaicScheme(LevelScheme):
             merged = task.merger.merge(source, task.homographies, groups.select(index))
             merge_s = time.perf_counter() - start
             views = panorama_views(template, to_canvas[index], source.height, source.width, task.group_size)
-            merged = mask_disagreement(merged, views)
+            if self.reject_movers is not None:
+                merged = mask_disagreement(merged, views, self.reject_movers)
             n = len(index)
             pairs = np.stack([np.arange(n), np.arange(n, 2 * n)], axis=1)
             found = locator.register_pairs(MergedFrames.concat(views, merged), pairs,
@@ -204,16 +205,19 @@ def _template_from_crops(crops: list[Any], shape: tuple[int, int],
     return Panorama(flux=flux, frames=weights, homographies=homographies)
 
 
-def mask_disagreement(merged: MergedFrames, views: MergedFrames, sigmas: float = MOVER_SIGMAS,
-                      smooth_px: float = 5.0, margin_px: int = 3) -> MergedFrames:
+def mask_disagreement(merged: MergedFrames, views: MergedFrames, sigmas: float = 5.0,
+                      smooth_px: float = 2.0, margin_px: int = 3, min_width_px: int = 9) -> MergedFrames:
     """Untrust the pixels of merged frames that disagree with the panorama at their pose.
 
     For each frame, the difference ``flux - gain * view`` (gain: ratio of the medians over
     pixels both trust) is smoothed by a Gaussian of ``smooth_px``; pixels whose smoothed
     difference exceeds ``sigmas`` times its robust standard deviation (1.4826 x median
-    absolute value) are untrusted, and so are those within ``margin_px`` of them. Photon
-    noise and sub-pixel misregistration stay well below; a moving object, or its ghost in
-    the view, does not.
+    absolute value) are candidates; a morphological opening by a disc ``min_width_px``
+    wide drops thin ones (a misregistered edge) and points (a misregistered star), and
+    what is left is untrusted with a margin of ``margin_px``. The test assumes the
+    difference's spread is the same everywhere, which the flux estimate's noise is not
+    (it grows with the flux): on static high-contrast scenes it untrusts bright regions
+    too, which is why the scheme leaves it off by default.
 
     Args:
         merged: G merged frames (flux in photons/s, NaN where unobserved).
@@ -222,6 +226,7 @@ def mask_disagreement(merged: MergedFrames, views: MergedFrames, sigmas: float =
         sigmas: threshold in robust standard deviations.
         smooth_px: Gaussian sigma of the smoothing, in pixels.
         margin_px: dilation of the untrusted pixels, in pixels.
+        min_width_px: narrowest disagreeing region untrusted, in pixels.
 
     Returns:
         ``merged`` with ``masks`` narrowed (flux, frames and images untouched; frames
@@ -237,6 +242,7 @@ def mask_disagreement(merged: MergedFrames, views: MergedFrames, sigmas: float =
                          "differ in shape")
     masks = merged.masks.copy()
     kernel = np.ones((2 * margin_px + 1, 2 * margin_px + 1), np.uint8)
+    opening = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (min_width_px, min_width_px))
     for i in range(len(masks)):
         a, b = merged.flux[i], views.flux[i]
         both = merged.masks[i] & views.masks[i] & np.isfinite(a) & np.isfinite(b)
@@ -245,6 +251,8 @@ def mask_disagreement(merged: MergedFrames, views: MergedFrames, sigmas: float =
         gain = float(np.median(a[both])) / max(float(np.median(b[both])), 1e-30)
         difference = cv2.GaussianBlur(np.where(both, a - gain * b, 0).astype(np.float32), (0, 0), smooth_px)
         spread = 1.4826 * float(np.median(np.abs(difference[both]))) + 1e-30
-        outliers = cv2.dilate((np.abs(difference) > sigmas * spread).astype(np.uint8), kernel)
+        outliers = (np.abs(difference) > sigmas * spread).astype(np.uint8)
+        outliers = cv2.morphologyEx(outliers, cv2.MORPH_OPEN, opening)  # thin edges and points go
+        outliers = cv2.dilate(outliers, kernel)
         masks[i] &= outliers == 0
     return MergedFrames(merged.flux, merged.frames, merged.images, masks, merged.ids)
