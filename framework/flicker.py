@@ -144,11 +144,11 @@ def detect_flicker(source: Any, *, frames: int = 8000, bin_frames: int = 10,
         return None
     power = (spectrum ** 2).sum(axis=1)
     peak = int(np.flatnonzero(band)[np.argmax(power[band])])
-    # a lamp is a strong spectral line, far above the band's typical level, in the regions it
-    # shake modulates a region's counts by a few percent at most (measured: <= 3 % for
-    # 5 px at 30-45 Hz in regions of 32x64 pixels), and an object crossing a region is a
-    # transient whose power spreads over neighbouring frequencies
-    # (above the peak only: below it lie the shake and the drift left by the high-pass)
+    # a lamp is a strong spectral line in the regions it lights: far above the frequencies
+    # just above it (below lie the shake and the drift the high-pass left). Shake modulates
+    # a region's counts by a few percent at most (measured: <= 3 % for 5 px at 30-45 Hz in
+    # regions of 32x64 pixels); an object crossing a region is a transient whose power
+    # spreads over neighbouring frequencies.
     near = np.arange(peak + 3, min(len(frequencies), peak + 6))
     significant = ((spectrum[peak] ** 2 >= MIN_SIGNIFICANCE * np.median(spectrum[near] ** 2, axis=0))
                    & (spectrum[peak] >= MIN_AMPLITUDE))
