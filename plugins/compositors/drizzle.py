@@ -98,6 +98,10 @@ class Drizzle(Compositor):
             counts = counts.astype(np.float32)
         if weights is None:
             weights = np.ones(counts.shape[1:], np.float32)
+        homographies = np.asarray(homographies, np.float64)
+        finite = np.isfinite(homographies).all(axis=(1, 2))  # the compiled kernels assume finite numbers
+        if not finite.all():
+            counts, n_frames, homographies = counts[finite], np.asarray(n_frames)[finite], homographies[finite]
         args = (counts, np.asarray(n_frames, np.int64), np.ascontiguousarray(homographies, np.float64),
                 np.ascontiguousarray(weights, np.float32), self._acc)
         self._splat(*args) if self.kernel == "point" else self._splat(*args, float(self.pixfrac))

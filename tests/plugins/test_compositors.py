@@ -177,6 +177,48 @@ def test_square_drops_match_their_overlap_areas(scale, pixfrac):
     np.testing.assert_allclose(acc, expected, rtol=1e-4, atol=1e-3)
 
 
+@pytest.mark.parametrize("kernel", ["square", "point"])
+def test_frames_at_or_past_the_canvas_edge_never_write_outside_it(kernel):
+    """Frames at the canvas edge, past the line at infinity or NaN never write outside the canvas.
+
+    Rows ending a hair inside the last canvas row, a denominator crossing zero along a
+    row and NaN homographies: a guard array after the canvas stays untouched, and the
+    splat matches the bounds-checked reference where it is defined.
+    """
+    from photonpano.plugins.compositors._splat import splat_point, splat_square
+
+    counts = np.full((3, 6, 8), 5, np.uint16)
+    n_frames, weights, shape = np.array([3, 3, 3]), np.ones((6, 8), np.float32), (10, 12)
+    edge = shape[0] - 1 - 5 - 1e-9  # the last frame row lands 1e-9 px inside row 9 (float32: on it)
+    homographies = np.array([
+        [[1, 0, 2.0], [0, 1, edge], [0, 0, 1]],
+        [[1, 0, 11.0 - 7 - 1e-9], [0, 1, 1.0], [0, 0, 1]],
+        [[1, 0, 1.0], [0, 1, 1.0], [-0.2, 0, 1]]], float)  # the line at infinity at column 5
+    storage = np.zeros(2 * shape[0] * shape[1] + 64, np.float32)
+    acc = storage[:2 * shape[0] * shape[1]].reshape(*shape, 2)
+    if kernel == "square":
+        splat_square(counts, n_frames, homographies, weights, acc, 1.0)
+        expected = _square_drops_reference(counts[:2], n_frames[:2], homographies[:2], weights, shape, 1.0)
+        first = np.zeros((*shape, 2), np.float32)
+        splat_square(counts[:2], n_frames[:2], homographies[:2], weights, first, 1.0)
+        np.testing.assert_allclose(first, expected, rtol=1e-4, atol=1e-3)
+    else:
+        splat_point(counts, n_frames, homographies, weights, acc)
+    assert not storage[2 * shape[0] * shape[1]:].any()
+    assert np.isfinite(acc).all()
+
+
+def test_drizzle_skips_frames_without_finite_homographies():
+    """The compiled kernels assume finite numbers: a NaN homography's frames are left out, not splatted."""
+    from photonpano.records import Canvas
+
+    drizzle = Drizzle(1.0, "square", 1.0)
+    drizzle.prepare(Canvas(10, 12, np.eye(3)[None]), None)
+    h = np.array([[[1, 0, 2.0], [0, 1, 2.0], [0, 0, 1]], [[np.nan, 0, 0], [0, 1, 0], [0, 0, 1]]])
+    drizzle.feed(np.full((2, 6, 8), 5, np.uint16), np.array([3, 3]), h)
+    assert drizzle._acc[..., 1].sum() == pytest.approx(6 * 8 * 3)
+
+
 def test_drops_just_over_a_canvas_pixel_are_one_canvas_pixel():
     """Drops within SIDE_TOLERANCE of a canvas pixel are one canvas pixel: within the excess of the exact drop."""
     from photonpano.plugins.compositors._splat import SIDE_TOLERANCE, splat_square
