@@ -16,10 +16,10 @@ binary frame: the root mean square of the residuals near the frame, times
 :data:`RESIDUAL_TO_SIGMA`. A residual sees only the *difference* of two neighbouring
 groups' errors; the part of the error that neighbours share (a slow drift that one
 global homography does not absorb) does not show in it, and the factor accounts for that
-part. It was set once, on the evaluation suite (``benchmarks/suite.py``: 30 captures of
-its 16 photographs, paths and light levels): over the captures that ended ``ok``, 97.8 %
-of frames have an actual error within twice their predicted sigma, and each capture's
-median sigma is 0.6-1.6 times its RMSE. Frames whose trajectory
+part. It and :data:`NEIGHBOURS` were set on the evaluation suite (``benchmarks/suite.py``:
+48 captures of its 16 photographs, paths, light levels and nuisances): over the captures
+that ended ``ok``, 97.1 % of frames have an actual error within twice their predicted
+sigma, and each capture's median sigma is 0.59-1.57 times its RMSE. Frames whose trajectory
 rests on registrations that failed (bridged from neighbours) or on no registration at
 all (before the first or after the last group's reference frame by more than half a
 group) are marked *unverified*.
