@@ -5,6 +5,8 @@
 - :func:`simulate_highspeed_video`: a conventional high-speed camera (intensity frames
   with motion blur and read noise) panning across the bundled photograph.
 - :func:`write_video`: frames to a video file with PyAV.
+- :func:`reconstruct_simulated`: a ``simulate`` capture reconstructed by the pipeline,
+  with its trajectory error and confidence report.
 """
 
 from __future__ import annotations
@@ -117,3 +119,28 @@ def simulate_highspeed_video(frames: int = 1200, fps: float = 1000.0, height: in
     truth = fine.reshape(frames, subframes, 3, 3).mean(axis=1)  # exposure-average pose
     truth /= truth[:, 2:3, 2:3]
     return codes, truth
+
+
+def reconstruct_simulated(source: dict, overrides=()):
+    """Simulate a capture and reconstruct it as ``photonpano run`` would.
+
+    Args:
+        source: ``simulate`` settings (``plugin`` is added).
+        overrides: ``--set``-style ``key=value`` strings for the spec.
+
+    Returns:
+        ``(error, report)``: the :class:`~photonpano.metrics.TrajectoryError` against the
+        simulated truth and the confidence report (``run.json``'s, plus
+        ``frame_uncertainty``).
+    """
+    from photonpano.host import PluginHost
+    from photonpano.metrics import source_trajectory_error
+    from photonpano.pipeline import reconstruct
+    from photonpano.spec import apply_overrides, validate_spec
+
+    spec = validate_spec(apply_overrides({"source": {"plugin": "simulate", **source}}, list(overrides)),
+                         PluginHost(), origin="test")
+    capture = spec.source.build()
+    report: dict = {}
+    homographies, _, _, _ = reconstruct(spec, capture, report=report)
+    return source_trajectory_error(homographies, capture), report

@@ -2,19 +2,7 @@
 
 import numpy as np
 import pytest
-from photonpano.host import PluginHost
-from photonpano.metrics import source_trajectory_error
-from photonpano.pipeline import reconstruct
-from photonpano.spec import apply_overrides, validate_spec
-
-
-def _run(source, overrides=()):
-    spec = validate_spec(apply_overrides({"source": {"plugin": "simulate", **source}}, list(overrides)),
-                         PluginHost(), origin="test")
-    capture = spec.source.build()
-    report: dict = {}
-    homographies, _, _, _ = reconstruct(spec, capture, report=report)
-    return source_trajectory_error(homographies, capture), report
+from capture_helpers import reconstruct_simulated as _run
 
 
 @pytest.mark.slow

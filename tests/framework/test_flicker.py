@@ -84,19 +84,11 @@ def test_groups_span_whole_periods_of_partial_flicker_with_a_level_per_doubling(
 @pytest.mark.slow
 def test_a_half_lit_capture_under_a_120_hz_lamp_is_registered_as_well_as_steady_light():
     """Issue 28's acceptance: 20 000 frames, half the field lit by a 120 Hz lamp at 90 % depth: <= 0.15 px, ok."""
-    from photonpano.host import PluginHost
-    from photonpano.metrics import source_trajectory_error
-    from photonpano.pipeline import reconstruct
-    from photonpano.spec import validate_spec
+    from capture_helpers import reconstruct_simulated
 
-    settings = {"plugin": "simulate", "frames": 20_000, "flicker_hz": 120.0, "flicker_depth": 0.9,
-                "flicker_region": "right"}
-    spec = validate_spec({"source": settings}, PluginHost(), origin="test")
-    source = spec.source.build()
-    report: dict = {}
-    homographies, *_ = reconstruct(spec, source, report=report)
-    rmse = source_trajectory_error(homographies, source).rmse_px
-    assert rmse <= 0.15, rmse
+    error, report = reconstruct_simulated({"frames": 20_000, "flicker_hz": 120.0, "flicker_depth": 0.9,
+                                           "flicker_region": "right"})
+    assert error.rmse_px <= 0.15, error.rmse_px
     assert report["status"] == "ok", report["warnings"]
     assert report["flicker"]["partial"] and report["flicker"]["frequency_hz"] == pytest.approx(120.0, abs=2.0)
     assert report["group_size"]["group_size"] % 833 == 0

@@ -45,17 +45,10 @@ def test_a_global_gain_is_no_disagreement_and_shapes_are_checked():
 @pytest.mark.slow
 def test_a_bright_disc_crossing_the_scene_does_not_pull_the_trajectory():
     """20 000 frames, a disc of radius 30 px crossing at 0.08 px/frame: 1.27 px without the mask, 0.12 with it."""
-    from photonpano.host import PluginHost
-    from photonpano.metrics import source_trajectory_error
-    from photonpano.pipeline import reconstruct
-    from photonpano.spec import validate_spec
+    from capture_helpers import reconstruct_simulated
 
-    settings = {"plugin": "simulate", "frames": 20_000, "mover_radius_px": 30.0, "mover_speed_px_per_frame": 0.08,
-                "mover_intensity": 1.0}
-    spec = validate_spec({"source": settings, "mosaic": {"reject_movers": 5.0}}, PluginHost(), origin="test")
-    source = spec.source.build()
-    report: dict = {}
-    homographies, *_ = reconstruct(spec, source, report=report)
-    rmse = source_trajectory_error(homographies, source).rmse_px
-    assert rmse <= 0.2, rmse
+    error, report = reconstruct_simulated({"frames": 20_000, "mover_radius_px": 30.0,
+                                           "mover_speed_px_per_frame": 0.08, "mover_intensity": 1.0},
+                                          ["mosaic.reject_movers=5"])
+    assert error.rmse_px <= 0.2, error.rmse_px
     assert report["status"] == "ok", report["warnings"]
