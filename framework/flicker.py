@@ -174,9 +174,11 @@ def _region_counts(source: Any, start: int, samples: int, bin_frames: int, chunk
     for first in range(0, samples, chunk):
         last = min(samples, first + chunk)
         edges = start + np.arange(first, last + 1, dtype=np.int64) * bin_frames
-        sums = np.asarray(source.sum_ranges(edges), np.float64)  # (k, h, w)
-        out[first:last] = np.add.reduceat(np.add.reduceat(sums, ys[:-1], axis=1), xs[:-1], axis=2).reshape(
-            len(sums), -1)
+        sums = source.sum_ranges(edges)  # (k, h, w) uint16 counts (float32 for intensity sources)
+        accumulator = np.float64 if sums.dtype.kind == "f" else np.int64
+        rows_summed = [sums[:, y0:y1].sum(axis=1, dtype=accumulator) for y0, y1 in zip(ys[:-1], ys[1:])]
+        out[first:last] = np.stack([[band[:, x0:x1].sum(axis=1) for x0, x1 in zip(xs[:-1], xs[1:])]
+                                    for band in rows_summed]).transpose(2, 0, 1).reshape(len(sums), -1)
     return out
 
 
