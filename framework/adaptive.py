@@ -347,9 +347,8 @@ def whole_flicker_periods(plan: GroupPlan, flicker: Any, n_frames: int, *, min_g
     plan = replace(plan, flicker=flicker)
     if flicker is None or not flicker.partial:
         return plan
-    period = flicker.period_frames
-    periods = max(1, round(plan.group_size / period))
-    m = int(round(periods * period))
+    periods = max(1, round(plan.group_size / flicker.period_frames))
+    m = int(round(periods * flicker.period_frames))
     if m == plan.group_size or m > n_frames // min_groups:
         return plan
     extra = int(min(max_extra_levels, max(0, round(math.log2(m / plan.group_size)))))

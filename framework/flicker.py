@@ -88,6 +88,11 @@ class Flicker:
         lit = self.depth[self.flickering]
         return bool(len(lit)) and (len(lit) < self.depth.size or float(lit.min()) < 0.5 * float(lit.max()))
 
+    def spans_whole_periods(self, frames: int) -> bool:
+        """Whether ``frames`` binary frames hold a whole number (>= 1) of flicker periods (within 1 %)."""
+        periods = frames / self.period_frames
+        return periods >= 0.99 and abs(periods - round(periods)) < 0.01
+
     def record(self) -> dict[str, Any]:
         """The ``run.json`` entry: frequency, per-region depths, affected regions, partial or not."""
         return {"frequency_hz": round(self.frequency_hz, 2), "depth": np.round(self.depth, 3).tolist(),

@@ -395,10 +395,9 @@ def reconstruct(spec: BaseModel, source: PhotonSource, *, on_level: Callable[[Le
                                        agreement_binning(plan))
         uncertainty = frame_uncertainty(last, source.width, source.height) if last is not None else None
         summary = uncertainty.summary(source.frame_rate_hz) if uncertainty is not None else None
-        flicker_record = plan.flicker.record() if plan.flicker is not None else None
-        status, warnings = assess(plan, stats, agreement, summary, flicker_record)
+        status, warnings = assess(plan, stats, agreement, summary)
         report.update(status=status, warnings=warnings, notes=list(stages.notes), group_size=plan.record(),
                       panorama_agreement=agreement, uncertainty=summary, frame_uncertainty=uncertainty,
-                      flicker=flicker_record)
+                      flicker=plan.flicker.record() if plan.flicker is not None else None)
         timings["confidence"] = time.perf_counter() - t0
     return homographies, stats, pano, timings

@@ -120,12 +120,15 @@ def agreement_binning(plan: GroupPlan, photons: float = 20.0) -> int:
 
 
 def assess(plan: GroupPlan, levels: list[dict[str, Any]],
-           agreement: dict[str, Any] | None, uncertainty: dict[str, Any] | None = None,
-           flicker: dict[str, Any] | None = None) -> tuple[str, list[str]]:
+           agreement: dict[str, Any] | None, uncertainty: dict[str, Any] | None = None) -> tuple[str, list[str]]:
     """Decide ``status`` and the warnings of a run from its figures.
 
     Args:
-        plan: the group-size plan (its probe's findings are checked too).
+        plan: the group-size plan (its probe's findings are checked too, and its
+            ``flicker``: flicker over part of the field is warned about unless the groups
+            span whole periods (:func:`~photonpano.adaptive.whole_flicker_periods`): it
+            biases every registration alike, which no held-out pair can see (measured on
+            simulated half-lit captures: 0.4-5 px where steady light gives 0.1 px).
         levels: per-level statistics rows, each with a ``"quality"`` entry from
             :func:`level_figures` (and ``"registration_check"`` where the binned check ran).
         agreement: :func:`panorama_agreement`'s result, or None if it was not measured.
@@ -133,11 +136,6 @@ def assess(plan: GroupPlan, levels: list[dict[str, Any]],
             (:meth:`~photonpano.uncertainty.FrameUncertainty.summary`), or None: frame
             ranges whose predicted error exceeds its limit, or that rest on failed or
             extrapolated registrations, are warned about by frames and seconds.
-        flicker: :meth:`~photonpano.flicker.Flicker.record` of the capture's flickering
-            light, or None. Flicker over part of the field is warned about unless the
-            groups span whole periods (:func:`~photonpano.adaptive.whole_flicker_periods`):
-            it biases every registration alike, which no held-out pair can see
-            (measured on simulated half-lit captures: 0.4-5 px where steady light gives 0.1 px).
 
     Returns:
         ``(status, warnings)``: ``"ok"`` when no warning was raised, else ``"degraded"``;
@@ -172,11 +170,11 @@ def assess(plan: GroupPlan, levels: list[dict[str, Any]],
                             f"{q['pose_graph_residual_px']:.1f} px (median)")
     if uncertainty is not None:
         warnings.extend(_uncertainty_warnings(uncertainty))
-    periods = plan.group_size / flicker["period_frames"] if flicker is not None else 0.0
-    if flicker is not None and flicker["partial"] and not (periods >= 0.99 and abs(periods - round(periods)) < 0.01):
-        deepest = max(map(max, flicker["depth"]))
-        warnings.append(f"light flickering at {flicker['frequency_hz']:.4g} Hz over part of the scene "
-                        f"({', '.join(flicker['regions'])} of the frame; depth up to {deepest:.2f}): "
+    flicker = plan.flicker
+    if flicker is not None and flicker.partial and not flicker.spans_whole_periods(plan.group_size):
+        regions = ", ".join(flicker.record()["regions"])
+        warnings.append(f"light flickering at {flicker.frequency_hz:.4g} Hz over part of the scene "
+                        f"({regions} of the frame; depth up to {flicker.depth.max():.2f}): "
                         "brightness changes between virtual exposures bias the registrations")
     if agreement is not None and not agreement["median"] >= t["agreement"]:
         warnings.append(f"merged frames agree poorly with the panorama at their pose (median correlation "

@@ -50,15 +50,13 @@ def test_a_short_or_slow_capture_is_not_analysed():
 def test_partial_flicker_makes_the_run_degraded_and_whole_field_flicker_does_not():
     from photonpano.adaptive import GroupPlan
 
-    plan = GroupPlan(300, 1, 30.0, 0.01, 3.0, "test", True, None)
-    partial = {"frequency_hz": 120.0, "depth": [[0.0, 0.4, 0.8]] * 3, "partial": True,
-               "regions": ["top-right", "middle-right"], "period_frames": 833.33}
-    status, warnings = assess(plan, [], None, None, partial)
+    plan = GroupPlan(300, 1, 30.0, 0.01, 3.0, "test", True, None, _flicker())
+    status, warnings = assess(plan, [], None, None)
     assert status == "degraded" and "120 Hz" in warnings[0] and "top-right" in warnings[0]
     # groups of whole periods (what group_size: auto chooses) see the lamp's mean level
-    assert assess(GroupPlan(1667, 1, 30.0, 0.01, 3.0, "test", True, None), [], None, None, partial)[0] == "ok"
-    whole = {**partial, "depth": [[0.5] * 3] * 3, "partial": False}
-    assert assess(plan, [], None, None, whole) == ("ok", [])
+    assert assess(GroupPlan(1667, 1, 30.0, 0.01, 3.0, "test", True, None, _flicker()), [], None, None)[0] == "ok"
+    whole = GroupPlan(300, 1, 30.0, 0.01, 3.0, "test", True, None, _flicker(depth=((0.5,) * 3,) * 3))
+    assert assess(whole, [], None, None) == ("ok", [])
 
 
 def _flicker(frequency_hz=120.0, depth=((0.0, 0.4, 0.8),) * 3):
