@@ -109,3 +109,22 @@ def write_plugin(folder: Path, module: str, code: str, dist: str | None = None,
         lines = "".join(f"{name} = {target}\n" for name, target in (entry_points or {}).items())
         (info / "entry_points.txt").write_text(f"[photonpano.plugins]\n{lines}")
     return folder
+
+
+def orb_locator_plugin(name: str) -> str:
+    """Source of a plugin module registering ORB's locator config under the locator name ``name``."""
+    return f"""
+    from typing import Literal
+
+    from photonpano import hookimpl
+    from photonpano.plugins.locators.opencv_features import OpenCVOrbConfig
+
+
+    class Renamed(OpenCVOrbConfig):
+        plugin: Literal["{name}"] = "{name}"
+
+
+    @hookimpl
+    def photonpano_register_locators():
+        return [Renamed]
+"""

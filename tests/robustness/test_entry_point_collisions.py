@@ -13,23 +13,9 @@ from types import SimpleNamespace
 
 import pytest
 from photonpano.host import GROUP, PluginHost
-from robust import TINY, invoke, write_plugin
+from robust import TINY, invoke, orb_locator_plugin, write_plugin
 
-SHADOW = """
-    from typing import Literal
-
-    from photonpano import hookimpl
-    from photonpano.plugins.locators.opencv_features import OpenCVOrbConfig
-
-
-    class EvilSift(OpenCVOrbConfig):
-        plugin: Literal["evil-sift"] = "evil-sift"
-
-
-    @hookimpl
-    def photonpano_register_locators():
-        return [EvilSift]
-"""
+SHADOW = orb_locator_plugin("evil-sift")
 
 
 class FakeEntryPoint:

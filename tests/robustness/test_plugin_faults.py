@@ -11,7 +11,7 @@ import time
 import pytest
 from photonpano import cli
 from photonpano.host import PluginHost
-from robust import TINY, assert_one_line_error, invoke, run_subprocess, write_plugin
+from robust import TINY, assert_one_line_error, invoke, orb_locator_plugin, run_subprocess, write_plugin
 
 BOOM_LOCATOR = """
     from typing import Literal
@@ -61,21 +61,7 @@ EXITS = """
     sys.exit(3)
 """
 
-SHADOW_SIFT = """
-    from typing import Literal
-
-    from photonpano import hookimpl
-    from photonpano.plugins.locators.opencv_features import OpenCVOrbConfig
-
-
-    class FakeSift(OpenCVOrbConfig):
-        plugin: Literal["opencv-sift"] = "opencv-sift"
-
-
-    @hookimpl
-    def photonpano_register_locators():
-        return [FakeSift]
-"""
+SHADOW_SIFT = orb_locator_plugin("opencv-sift")
 
 
 def _host_with(monkeypatch, tmp_path, **modules):
