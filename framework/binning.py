@@ -23,7 +23,7 @@ from numpy.typing import NDArray
 
 from . import geometry
 from .jit import cached_njit
-from .records import LocateResult, Panorama
+from .records import LocateResult
 from .stages import LocatorConfig, PhotonSource
 
 __all__ = ["BinnedSource", "BinnedBlocks", "RegistrationGrid", "bin_counts", "block_size", "in_merged_pixels",
@@ -143,7 +143,7 @@ def _sum_block_ranges(stored, starts, scale, out):  # pragma: no cover - compile
 class BinnedBlocks:
     """Binned photon counts of consecutive blocks of frames, counted once and kept on disk.
 
-    Every level merges (and the first mosaic template composites) the same photons
+    Every level merges (and each mosaic template composites) the same photons
     again. Binned k x k and summed over blocks of ``block`` frames into one byte per
     binned pixel, a bit-packed capture shrinks ``block k^2 / 8`` times (254x496 frames,
     k = 2, blocks of 25: 126 MB per 100 000 frames against 1.57 GB): counted once, in
@@ -356,20 +356,8 @@ class RegistrationGrid:
             return homographies
         return geometry.normalize(self._to_sensor @ homographies @ self._to_binned)
 
-    def template_inward(self, template: Panorama | None) -> Panorama | None:
-        """A panorama whose homographies map sensor frames -> one mapping binned frames (same canvas)."""
-        if template is None or self.factor == 1:
-            return template
-        return Panorama(template.flux, template.frames, geometry.normalize(template.homographies @ self._to_sensor))
-
-    def template_outward(self, template: Panorama | None) -> Panorama | None:
-        """The inverse of :meth:`template_inward`."""
-        if template is None or self.factor == 1:
-            return template
-        return Panorama(template.flux, template.frames, geometry.normalize(template.homographies @ self._to_binned))
-
     def located_outward(self, located: LocateResult) -> LocateResult:
-        """A scheme's result in sensor pixels: keyframes, registrations (pixel maps between frames) and template.
+        """A scheme's result in sensor pixels: keyframes and registrations (pixel maps between frames).
 
         Only the merged frames it may hold stay binned (they are images of the binned grid).
         """
@@ -383,4 +371,4 @@ class RegistrationGrid:
         if cross is not None:
             cross = dataclasses.replace(cross, homographies=self.outward(cross.homographies))
         return dataclasses.replace(located, keyframes=self.outward(located.keyframes), registrations=regs,
-                                   template=self.template_outward(located.template), crosscheck=cross)
+                                   crosscheck=cross)

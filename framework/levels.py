@@ -8,7 +8,6 @@ frozen :class:`~photonpano.records.LevelResult`.
 
 from __future__ import annotations
 
-import dataclasses
 import threading
 import time
 from typing import Callable, Sequence
@@ -21,7 +20,7 @@ from .binning import RegistrationGrid
 from .errors import StageError
 from .executor import Executor, SerialExecutor
 from .guards import guard_keyframes, plausible
-from .records import Groups, LevelResult, Panorama
+from .records import Groups, LevelResult
 from .schemes import LevelScheme, LevelTask
 from .stages import Interpolator, Merger, PhotonSource, Resampler
 
@@ -32,8 +31,7 @@ def estimate_motion(source: PhotonSource, resampler: Resampler, merger: Merger, 
                     schemes: Sequence[LevelScheme], *, group_size: int, executor: Executor | None = None,
                     keep_merged: bool = False, on_level: Callable[[LevelResult], None] | None = None,
                     progress: Callable[[str, int], Callable[[int], None]] | None = None, start_level: int = 1,
-                    initial: NDArray[np.float64] | None = None,
-                    template: Panorama | None = None, binning: int = 1,
+                    initial: NDArray[np.float64] | None = None, binning: int = 1,
                     crosscheck: bool = True) -> NDArray[np.float64]:
     """Estimate a homography for every binary frame by stratified re-sampling.
 
@@ -59,10 +57,9 @@ def estimate_motion(source: PhotonSource, resampler: Resampler, merger: Merger, 
         start_level: resume with this level (the result equals that of an uninterrupted run).
         initial: (T, 3, 3) float64 homographies after level ``start_level - 1`` (that
             :class:`~photonpano.records.LevelResult`'s); None: identities.
-        template: that level's :attr:`~photonpano.records.LevelResult.template`.
         binning: the schemes merge and register frames binned ``binning`` x
-            ``binning`` (:mod:`photonpano.binning`); homographies, keyframes and
-            templates cross into sensor pixels here, so every level's result is in
+            ``binning`` (:mod:`photonpano.binning`); homographies and keyframes
+            cross into sensor pixels here, so every level's result is in
             sensor pixels (only its merged frames, if kept, are binned images). With
             binning and two or more levels to run, the binned photons are counted once
             for all of them (:meth:`~photonpano.binning.RegistrationGrid.count_once`;
@@ -103,23 +100,20 @@ def estimate_motion(source: PhotonSource, resampler: Resampler, merger: Merger, 
             scheme, (groups, resample_s) = schemes[level - 1], resampled[level]
             t1 = time.perf_counter()
             task = LevelTask(level, grid.source, merger, groups, grid.inward(homographies), group_size, executor,
-                             keep_merged, grid.template_inward(template),
-                             next_template=level < len(schemes) and schemes[level].needs_template,
-                             crosscheck=crosscheck and level == len(schemes),
+                             keep_merged, crosscheck=crosscheck and level == len(schemes),
                              progress=progress(f"level {level}: merge + locate", len(groups)) if progress else None)
             located = grid.located_outward(scheme.locate(task))
             t2 = time.perf_counter()
             current = homographies[groups.reference]
             keyframes, rejected = guard_keyframes(current, located.keyframes, source.width, source.height)
             updated = _interpolate(interpolator, groups, current, keyframes, homographies, source, level)
-            homographies, template = _gauge(updated, homographies, located.template)
+            homographies = _gauge(updated)
             t3 = time.perf_counter()
             first = count_s if level == start_level else 0.0
             timings = {"resample": resample_s, "merge": located.merge_s + first, "locate": t2 - t1 - located.merge_s,
                        "interpolate": t3 - t2}
             if on_level is not None:
-                on_level(LevelResult(level, scheme.name, groups, dataclasses.replace(located, template=template),
-                                     homographies, timings, rejected))
+                on_level(LevelResult(level, scheme.name, groups, located, homographies, timings, rejected))
         return homographies
     finally:
         grid.close()
@@ -154,19 +148,10 @@ def _interpolate(interpolator: Interpolator, groups: Groups, current: NDArray[np
     return updated
 
 
-def _gauge(updated: NDArray[np.float64], previous: NDArray[np.float64],
-           template: Panorama | None) -> tuple[NDArray[np.float64], Panorama | None]:
-    """Fix panorama coordinates to the middle frame's pixels, and carry a template along.
+def _gauge(updated: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Fix panorama coordinates to the middle frame's pixels.
 
     The panorama has the middle frame's scale and perspective (as a stitching reference
-    image in the middle of the sequence keeps distortion low). A template built on the
-    previous estimate maps frames to its canvas by ``C @ previous``; it keeps its canvas
-    and maps them by the same ``C`` applied to the updated estimate.
+    image in the middle of the sequence keeps distortion low).
     """
-    gauge = np.linalg.inv(updated[len(updated) // 2])
-    homographies = geometry.normalize(gauge @ updated)
-    if template is None:
-        return homographies, None
-    canvas_from_panorama = template.homographies[0] @ np.linalg.inv(previous[0]) @ np.linalg.inv(gauge)
-    return homographies, Panorama(template.flux, template.frames,
-                                  geometry.normalize(canvas_from_panorama @ homographies))
+    return geometry.normalize(np.linalg.inv(updated[len(updated) // 2]) @ updated)

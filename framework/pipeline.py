@@ -293,8 +293,7 @@ class Stages:
         from .levels import estimate_motion
 
         start = {} if resume is None else {
-            "start_level": resume.level + 1, "initial": resume.homographies,
-            "template": None if resume.template is None else Panorama(*resume.template)}
+            "start_level": resume.level + 1, "initial": resume.homographies}
         return estimate_motion(self.source, self.resampler, self.merger, self.interpolator, self.schemes,
                                group_size=self.plan.group_size, executor=executor,
                                keep_merged=self.spec.outputs.merged_frames, on_level=on_level, progress=progress,
@@ -376,9 +375,7 @@ def reconstruct(spec: BaseModel, source: PhotonSource, *, on_level: Callable[[Le
             on_level(result)
         stats.append(stages.level_statistics(result))
         if checkpoint is not None:
-            t = result.template
-            checkpoint(Checkpoint(result.level, result.homographies, list(stats),
-                                  None if t is None else (t.flux, t.frames, t.homographies)))
+            checkpoint(Checkpoint(result.level, result.homographies, list(stats)))
 
     timings: dict[str, float] = {}
     with make_executor(spec.executor, spec.workers, spec.dask_address) as executor:

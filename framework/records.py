@@ -219,8 +219,6 @@ class LocateResult:
         merged: the level's merged frames if they were asked for (dumps), else None.
         merge_s: wall time spent merging, in seconds (part of the locate step's time).
         locator_cache: feature-cache statistics of the scheme's locators, or None.
-        template: the panorama the next level registers against, if the scheme built it
-            (on the input estimate's canvas), else None.
         crosscheck: held-out registrations of consecutive merged frames directly against
             each other (not used for the keyframes; see :mod:`photonpano.uncertainty`),
             if the level was asked for them, else None.
@@ -234,7 +232,6 @@ class LocateResult:
     merged: MergedFrames | None = None
     merge_s: float = 0.0
     locator_cache: dict[str, int] | None = None
-    template: Panorama | None = None
     crosscheck: PairRegistrations | None = None
     crosscheck_index: NDArray[np.int64] | None = None
 
@@ -289,11 +286,6 @@ class LevelResult:
     def merged(self) -> MergedFrames | None:
         """The level's merged frames, if kept for dumps (``outputs.merged_frames``)."""
         return self.located.merged
-
-    @property
-    def template(self) -> Panorama | None:
-        """The next level's template, if the scheme built it (what a checkpoint keeps)."""
-        return self.located.template
 
     def statistics(self) -> dict[str, Any]:
         """Return JSON-ready per-level statistics.

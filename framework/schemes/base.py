@@ -18,7 +18,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..executor import Executor
-from ..records import Groups, LocateResult, Panorama
+from ..records import Groups, LocateResult
 from ..stages import Merger, PhotonSource
 
 __all__ = ["LevelTask", "LevelScheme"]
@@ -38,10 +38,6 @@ class LevelTask:
         group_size: binary frames per group m (the trust threshold of template pixels).
         executor: where independent work runs.
         keep_merged: return the merged frames in the result (``outputs.merged_frames``).
-        template: the panorama of the current estimate, if the previous level built it
-            (its ``homographies`` map frames to its canvas); None: build it if needed.
-        next_template: the next level registers against a panorama: build it too if
-            that can be had without another pass over the photons.
         progress: called with the number of groups done, or None.
         crosscheck: also register consecutive merged frames directly against each
             other, held out of the keyframes (:attr:`LocateResult.crosscheck`), where
@@ -57,8 +53,6 @@ class LevelTask:
     group_size: int
     executor: Executor
     keep_merged: bool = False
-    template: Panorama | None = None
-    next_template: bool = False
     progress: Callable[[int], None] | None = None
     crosscheck: bool = False
 
@@ -78,7 +72,7 @@ class LevelScheme(abc.ABC):
     name: ClassVar[str]
     needs_template: ClassVar[bool] = False
     """True if the scheme registers against the panorama of the current estimate: it cannot
-    run at level 1, and the level before it may build that panorama for it."""
+    run at level 1."""
 
     @abc.abstractmethod
     def locate(self, task: LevelTask) -> LocateResult:
