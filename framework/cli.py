@@ -329,7 +329,7 @@ def _log_failed() -> bool:
     return any(isinstance(h, LogFileHandler) and h.failure for h in logging.getLogger("photonpano").handlers)
 
 
-from . import cli_tools  # noqa: E402, F401  (registers pose, convert, batch and compare on ``app``)
+from . import cli_tools  # noqa: E402, F401  (registers pose, convert, batch, compare and score on ``app``)
 
 if __name__ == "__main__":  # pragma: no cover
     # ``python -m photonpano.cli``: run the imported module's app, on which cli_tools registered its commands

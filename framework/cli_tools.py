@@ -1,4 +1,4 @@
-"""Commands beside the main job: ``pose`` (experimental 6-DoF poses), ``convert``, ``batch``, ``compare``.
+"""Commands beside the main job: ``pose`` (experimental 6-DoF poses), ``convert``, ``batch``, ``compare``, ``score``.
 
 Registered on :data:`photonpano.cli.app`; expected failures print one line and exit 1.
 """
@@ -13,7 +13,7 @@ import typer
 from .cli import ForceOption, OutOption, SetOption, _capture_spec, _fail, _host, _observed, app, one_line_errors
 from .errors import PhotonpanoError
 
-__all__ = ["execute_pose", "pose", "convert", "batch", "compare"]
+__all__ = ["execute_pose", "pose", "convert", "batch", "compare", "score"]
 
 
 def execute_pose(spec: Any, out: Path, force: bool, host: Any) -> None:
@@ -189,3 +189,35 @@ def compare(input: Annotated[str, typer.Argument(help="A spec (.yaml), a capture
     typer.echo(markdown_table(rows))
     if not any(row["status"] == "ok" for row in rows):
         _fail("no locator completed (see the table)")
+
+
+@app.command()
+@one_line_errors
+def score(panorama: Annotated[Path, typer.Argument(help="A reconstruction (PNG, TIFF, JPEG or .npy in [0, 1]), or "
+                                                    "a folder of them.")],
+          reference: Annotated[Path, typer.Argument(help="The reference image, or a folder of references (each "
+                                                    "paired with the image at the same relative path).")],
+          json_: Annotated[bool, typer.Option("--json", help="Print the scores as JSON (summary and per image) "
+                                              "instead of the table.")] = False) -> None:
+    """Score reconstructions against references with the Single Photon Challenge's metrics.
+
+    PSNR (peak 1) and MS-SSIM (5 scales, 11x11 Gaussian window, sigma 1.5) per image; the
+    table gives their mean and the 5 % and 1 % quantiles over the images (the challenge's
+    worst-case lows). See photonpano.score.
+    """
+    import json
+
+    from .score import format_table, score_paths, summarize
+
+    scores = score_paths(panorama, reference)
+    summary = summarize(scores)
+    if json_:
+        def number(v: float) -> float | str:
+            return v if v == v and abs(v) != float("inf") else str(v)
+
+        summary = {k: ({m: number(x) for m, x in v.items()} if isinstance(v, dict) else v) for k, v in summary.items()}
+        summary["per_image"] = [{"name": s.name, "psnr_db": number(s.psnr_db), "ms_ssim": number(s.ms_ssim)}
+                                for s in scores]
+        typer.echo(json.dumps(summary, indent=2))
+    else:
+        typer.echo(format_table(summary))
