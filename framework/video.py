@@ -302,6 +302,8 @@ def render_video(run: Path, output: Path, *, mode: str = "stabilised", exposure:
         raise OutputError(f"output {output} exists; pass --force to replace it")
     if frames is not None and frames < 1:
         raise PhotonpanoError(f"--frames must be at least 1, got {frames}")
+    if exposure is not None and exposure < 1:
+        raise PhotonpanoError(f"--exposure must be at least 1 binary frame, got {exposure}")
     require_av()
     result, capture = open_run(run, source=mode == "stabilised")
     to_canvas, pano = result.homographies, result.panorama
