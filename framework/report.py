@@ -60,13 +60,14 @@ def png_data_uri(png: bytes) -> str:
     return "data:image/png;base64," + base64.b64encode(png).decode("ascii")
 
 
-def panorama_png(flux: NDArray, max_side: int = MAX_PANORAMA_SIDE) -> bytes:
+def panorama_png(flux: NDArray, max_side: int | None = None) -> bytes:
     """The panorama as an 8-bit grey PNG with alpha, tone-mapped as ``panorama.png``.
 
     Args:
         flux: (Hc, Wc) float linear flux in photons/s, NaN where unobserved (transparent);
             (Hc, Wc, C) colour flux is shown by its channel mean.
-        max_side: a longer side is scaled down to this many pixels (area average).
+        max_side: a longer side is scaled down to this many pixels (area average);
+            None: :data:`MAX_PANORAMA_SIDE`.
 
     Returns:
         PNG bytes of an (Hc, Wc) image (or scaled), 2 channels grey + alpha encoded as
@@ -87,7 +88,7 @@ def panorama_png(flux: NDArray, max_side: int = MAX_PANORAMA_SIDE) -> bytes:
     grey = tone_map(flux)
     alpha = np.where(np.isfinite(flux), np.uint8(255), np.uint8(0))
     image = np.dstack([grey, grey, grey, alpha])
-    side = max(flux.shape)
+    side, max_side = max(flux.shape), max_side or MAX_PANORAMA_SIDE
     if side > max_side:
         size = (max(1, round(flux.shape[1] * max_side / side)), max(1, round(flux.shape[0] * max_side / side)))
         image = cv2.resize(image, size, interpolation=cv2.INTER_AREA)
@@ -144,7 +145,7 @@ def _status(summary: dict[str, Any]) -> str:
 def _list(items: list[Any], css: str, element_id: str) -> str:
     if not items:
         return f'<p id="{element_id}">none</p>'
-    rows = "".join(f'<li class="{css}">{_e(item)}</li>' for item in items)
+    rows = "\n".join(f'<li class="{css}">{_e(item)}</li>' for item in items)
     return f'<ul id="{element_id}">{rows}</ul>'
 
 
