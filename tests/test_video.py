@@ -129,3 +129,18 @@ def test_video_of_a_run_without_level_dumps_says_what_to_set(run_folder, tmp_pat
     (out / "homographies.npy").unlink()
     result = runner.invoke(app, ["video", str(out), "-o", str(tmp_path / "l.mp4")])
     assert result.exit_code == 1 and "no homographies.npy" in result.output
+
+
+def test_spec_output_video_is_written_with_the_run(tmp_path):
+    out = tmp_path / "run"
+    spec = {**SPEC, "outputs": {"video": True, "report": False, "trajectory_plot": False}}
+    photonpano.run(spec, out_dir=out, progress=False)
+    frames = _decode(out / "video.mp4")
+    assert len(frames) == 2400 // 300  # one per level-1 group's worth of frames, without overlap
+    pano = np.load(out / "panorama.npy")
+    assert frames.shape[1:] == (pano.shape[0] + pano.shape[0] % 2, pano.shape[1] + pano.shape[1] % 2)
+    rows, cols = _common_rectangle(frames)
+    assert _shifts(frames, (rows, cols)).max() < 0.5
+    import json
+
+    assert "video.mp4" in json.loads((out / "manifest.json").read_text())["files"]
