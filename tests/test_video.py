@@ -144,3 +144,27 @@ def test_spec_output_video_is_written_with_the_run(tmp_path):
     import json
 
     assert "video.mp4" in json.loads((out / "manifest.json").read_text())["files"]
+
+
+def test_a_capture_that_cannot_be_reopened_is_one_line(run_folder, tmp_path):
+    """A run whose capture is gone (a moved .npy cube) or truncated: one line naming the path."""
+    import json
+    import shutil
+
+    cube = tmp_path / "cube.npy"
+    np.save(cube, np.zeros((2400, 128, 31), np.uint8))  # packed frames, 248 pixels wide
+    out = tmp_path / "run"
+    shutil.copytree(run_folder, out)
+    summary = json.loads((out / "run.json").read_text())
+    summary["spec"]["source"] = {"plugin": "npy-cube", "path": str(cube)}
+    (out / "run.json").write_text(json.dumps(summary))
+    np.save(cube, np.zeros((1000, 128, 31), np.uint8))  # the capture changed since the run
+    result = runner.invoke(app, ["video", str(out), "-o", str(tmp_path / "v.mp4")])
+    assert result.exit_code == 1 and "1000 frames" in result.output and "2400" in result.output, result.output
+    cube.unlink()
+    result = runner.invoke(app, ["video", str(out), "-o", str(tmp_path / "v.mp4")])
+    assert result.exit_code == 1 and str(cube) in result.output and "Traceback" not in result.output, result.output
+    assert not (tmp_path / "v.mp4").exists()
+    # the flythrough needs no capture
+    assert runner.invoke(app, ["video", str(out), "-o", str(tmp_path / "v.mp4"), "--mode", "flythrough",
+                               "--frames", "2"]).exit_code == 0
