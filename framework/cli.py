@@ -2,7 +2,7 @@
 
 ``run`` a spec, ``pano`` an input with the paper's default spec, ``demo`` on the bundled
 photograph, list ``plugins``, ``validate`` a spec and print its JSON ``schema``; the
-commands beside the main job (``pose``, ``convert``, ``compare``) are in
+commands beside the main job (``pose``, ``convert``, ``compare``, ``video``) are in
 :mod:`photonpano.cli_tools`.
 Expected failures (bad input, bad spec, broken plugin) print one line and exit 1.
 """
