@@ -168,3 +168,16 @@ def test_a_capture_that_cannot_be_reopened_is_one_line(run_folder, tmp_path):
     # the flythrough needs no capture
     assert runner.invoke(app, ["video", str(out), "-o", str(tmp_path / "v.mp4"), "--mode", "flythrough",
                                "--frames", "2"]).exit_code == 0
+
+
+def test_without_pyav_the_error_names_the_extra(run_folder, tmp_path, monkeypatch):
+    import sys
+
+    from photonpano.errors import MissingDependency
+
+    monkeypatch.setitem(sys.modules, "av", None)  # as if not installed
+    result = runner.invoke(app, ["video", str(run_folder), "-o", str(tmp_path / "v.mp4")])
+    assert result.exit_code == 1 and "photonpano[video]" in result.output and "Traceback" not in result.output
+    with pytest.raises(MissingDependency, match=r"photonpano\[video\]"):  # before the run, not after it
+        photonpano.run({**SPEC, "outputs": {"video": True}}, out_dir=tmp_path / "run", progress=False)
+    assert not (tmp_path / "run").exists()
