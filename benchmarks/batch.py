@@ -85,7 +85,7 @@ def main() -> int:
     with tempfile.TemporaryDirectory(prefix="photonpano-batch-") as scratch:
         root = Path(scratch)
         inputs = [capture(root, i, args.frames, args.simulate_in_run) for i in range(args.captures)]
-        no_plot = ["--set", "outputs.trajectory_plot=false"]
+        no_plot = ["--set", "outputs.trajectory_plot=false", "--set", "outputs.report=false"]
         t0, c0 = time.perf_counter(), children_cpu_s()
         for path in inputs:
             command = "run" if path.suffix == ".yaml" else "pano"

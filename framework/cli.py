@@ -2,7 +2,7 @@
 
 ``run`` a spec, ``pano`` an input with the paper's default spec, ``demo`` on the bundled
 photograph, list ``plugins``, ``validate`` a spec and print its JSON ``schema``; the
-commands beside the main job (``pose``, ``convert``, ``compare``) are in
+commands beside the main job (``pose``, ``convert``, ``compare``, ``video``) are in
 :mod:`photonpano.cli_tools`.
 Expected failures (bad input, bad spec, broken plugin) print one line and exit 1.
 """
@@ -329,7 +329,7 @@ def _log_failed() -> bool:
     return any(isinstance(h, LogFileHandler) and h.failure for h in logging.getLogger("photonpano").handlers)
 
 
-from . import cli_tools  # noqa: E402, F401  (registers pose, convert, batch, compare and score on ``app``)
+from . import cli_tools  # noqa: E402, F401  (registers pose, convert, batch, compare, score and video on ``app``)
 
 if __name__ == "__main__":  # pragma: no cover
     # ``python -m photonpano.cli``: run the imported module's app, on which cli_tools registered its commands

@@ -1,4 +1,4 @@
-"""Commands beside the main job: ``pose`` (experimental 6-DoF poses), ``convert``, ``batch``, ``compare``, ``score``.
+"""Commands beside the main job: ``pose`` (6-DoF poses), ``convert``, ``batch``, ``compare``, ``score``, ``video``.
 
 Registered on :data:`photonpano.cli.app`; expected failures print one line and exit 1.
 """
@@ -13,7 +13,7 @@ import typer
 from .cli import ForceOption, OutOption, SetOption, _capture_spec, _fail, _host, _observed, app, one_line_errors
 from .errors import PhotonpanoError
 
-__all__ = ["execute_pose", "pose", "convert", "batch", "compare", "score"]
+__all__ = ["execute_pose", "pose", "convert", "batch", "compare", "score", "video"]
 
 
 def execute_pose(spec: Any, out: Path, force: bool, host: Any) -> None:
@@ -221,3 +221,47 @@ def score(panorama: Annotated[Path, typer.Argument(help="A reconstruction (PNG, 
         typer.echo(json.dumps(summary, indent=2))
     else:
         typer.echo(format_table(summary))
+def video(run: Annotated[Path, typer.Argument(help="A finished run folder (run.json, homographies.npy, "
+                                              "panorama.npy).")],
+          output: Annotated[Path, typer.Option("--output", "-o", help="The .mp4 file to write (must not exist "
+                                               "unless --force).")],
+          mode: Annotated[str, typer.Option(help="stabilised: virtual exposures warped onto the panorama "
+                                            "canvas; flythrough: the panorama as the camera saw it along the "
+                                            "estimated path; levels: each level's merged frames (a run with "
+                                            "outputs.merged_frames).")] = "stabilised",
+          exposure: Annotated[Optional[int], typer.Option(help="Binary frames per virtual exposure "
+                                                          "(stabilised); default: the run's level-1 group "
+                                                          "size.")] = None,
+          fps: Annotated[float, typer.Option(help="Playback frames per second.")] = 30.0,
+          frames: Annotated[Optional[int], typer.Option(help="Video frames, spread evenly over the capture; "
+                                                        "default: one per exposure (at most 1000), every "
+                                                        "merged frame for levels.")] = None,
+          width: Annotated[Optional[int], typer.Option(help="Output width in pixels (the height keeps the "
+                                                       "aspect); default: the frames' own size.")] = None,
+          force: Annotated[bool, typer.Option("--force", help="Replace an existing output file.")] = False) -> None:
+    """Render a finished run as an H.264 video (PyAV, the video extra). See docs/outputs.md."""
+    from .cli import _state
+    from .progress import RichProgress
+    from .video import render_video
+
+    bars = None if _state["quiet"] else RichProgress()
+    task: dict[str, Any] = {}
+
+    def start(total: int) -> None:
+        if bars is not None:
+            bars.bars.start()
+            task["id"] = bars.bars.add_task(f"video ({mode})", total=total)
+
+    def advance(n: int) -> None:
+        if bars is not None and "id" in task:
+            bars.bars.advance(task["id"], n)
+
+    try:
+        info = render_video(run, output, mode=mode, exposure=exposure, fps=fps, frames=frames, width=width,
+                            force=force, advance=advance, start=start)
+    finally:
+        if bars is not None and task:
+            bars.stop()
+    for note in info.notes:
+        typer.secho(f"note: {note}", fg=typer.colors.YELLOW, err=True)
+    typer.echo(f"wrote {output}: {info.frames} frames of {info.width}x{info.height} at {fps:g} fps ({info.codec})")

@@ -10,7 +10,9 @@ Outputs (the contract other tools read, see ``docs/outputs.md``):
 - ``run.json``: versions, spec, timings per stage and level, per-level statistics and,
   for simulated captures, the accuracy against ground truth.
 - ``spec.yaml``: the resolved spec (defaults filled in).
-- optional: ``level_<k>/`` merged frames, ``trajectory.png``.
+- ``report.html``: a self-contained page of the run (status, warnings, panorama,
+  trajectory, levels, spec, versions; :mod:`photonpano.report`).
+- optional: ``level_<k>/`` merged frames, ``trajectory.png``, ``video.mp4``.
 """
 
 from __future__ import annotations
@@ -80,6 +82,18 @@ class RunResult:
     out_dir: Path | None = None
     uncertainty: NDArray[np.float64] | None = None
 
+    def _repr_html_(self) -> str:
+        """A notebook's view: status, key figures and a panorama thumbnail (:func:`photonpano.report.summary_html`)."""
+        from .report import summary_html
+
+        return summary_html(self.summary, self.panorama)
+
+    def show(self) -> None:
+        """Show the run: its report in a notebook, else the panorama in a window (:func:`photonpano.report.show`)."""
+        from .report import show
+
+        show(self)
+
 
 def run_pipeline(spec: BaseModel, out_dir: Path | None, host: PluginHost, *, force: bool = False,
                  resume: bool = False) -> RunResult:
@@ -110,6 +124,10 @@ def run_pipeline(spec: BaseModel, out_dir: Path | None, host: PluginHost, *, for
     from .spec import check_available
 
     check_available(spec)
+    if out_dir is not None and spec.outputs.video:
+        from .video_encode import require_av
+
+        require_av()  # before the run, not after it
     with reporting(host):
         if out_dir is None:
             return _run_into(spec, None, host)
@@ -193,14 +211,38 @@ def _run_into(spec: BaseModel, folder, host: PluginHost) -> RunResult:
                                                       compositor=spec.compositor, progress=advance)
         timings["ground_truth_report"] = time.perf_counter() - t0
         error = source_trajectory_error(homographies, source)
+    plot = None
     if folder is not None and spec.outputs.trajectory_plot:
-        folder.write_with("trajectory.png",
-                          lambda path: plot_trajectory(path, homographies, pano.homographies, source, error, sigma))
+        plot = folder.write_with("trajectory.png", lambda path: plot_trajectory(path, homographies, pano.homographies,
+                                                                                source, error, sigma))
+    if folder is not None and spec.outputs.video:
+        _write_video(folder, source, pano, summary, progress)
     host.hook.photonpano_run_finished(spec=spec, summary=summary, out_dir=out_dir)
+    if folder is not None and spec.outputs.report:
+        from .report import report_html
+
+        page = report_html(json.loads(json.dumps(summary, default=json_default)), pano.flux, pano.homographies,
+                           sigma, trajectory=plot.read_bytes() if plot is not None else None,
+                           title=f"photonpano run: {out_dir.name}")
+        folder.write_text("report.html", page)
     if folder is not None:
         folder.commit(json.dumps(summary, indent=2, default=json_default))
     return RunResult(spec=spec, homographies=pano.homographies, panorama=pano.flux, summary=summary, out_dir=out_dir,
                      uncertainty=sigma)
+
+
+def _write_video(folder, source: PhotonSource, pano: Panorama, summary: dict[str, Any], progress: Any) -> None:
+    """Write ``video.mp4``: the stabilised exposures (``photonpano video``'s defaults) through ``folder``."""
+    from .video import default_exposure, encode, exposure_starts, stabilised_frames, white_point
+
+    n = len(pano.homographies)
+    exposure = default_exposure(summary, n)
+    count = max(1, min(n // exposure, 1000))
+    frames = stabilised_frames(source, pano.homographies, pano.flux.shape[:2], exposure,
+                               exposure_starts(n, exposure, count, source.frame_step))
+    advance = progress("video", count)
+    folder.write_with("video.mp4", lambda path: encode(path, frames, count, fps=30.0, white=white_point(pano.flux),
+                                                       advance=advance))
 
 
 class Stages:

@@ -16,7 +16,7 @@ from typing import Any, Callable, Iterator
 
 from . import hookimpl
 
-__all__ = ["reporting", "start_task", "RichProgress", "TqdmProgress", "LogObserver", "level_line"]
+__all__ = ["reporting", "start_task", "RichProgress", "TqdmProgress", "tqdm_class", "LogObserver", "level_line"]
 
 log = logging.getLogger("photonpano")
 
@@ -126,13 +126,26 @@ class RichProgress:
         self.bars.stop()
 
 
+def tqdm_class() -> Any:
+    """The tqdm bar class: ``tqdm.auto``'s (widgets in a notebook) where ipywidgets is installed, else text bars.
+
+    Without ipywidgets a notebook's ``tqdm.auto`` bar warns ``IProgress not found`` and
+    draws nothing; the text bar works everywhere.
+    """
+    import importlib.util
+
+    if importlib.util.find_spec("ipywidgets") is None:
+        from tqdm.std import tqdm
+    else:
+        from tqdm.auto import tqdm
+    return tqdm
+
+
 class TqdmProgress:
-    """Progress bars with tqdm (``tqdm.auto``: widgets in a notebook, text in a terminal)."""
+    """Progress bars with tqdm (:func:`tqdm_class`: widgets in a notebook with ipywidgets, text otherwise)."""
 
     def __init__(self) -> None:
-        from tqdm.auto import tqdm
-
-        self._tqdm = tqdm
+        self._tqdm = tqdm_class()
         self.bars: dict[str, Any] = {}
 
     @hookimpl

@@ -88,6 +88,12 @@ class OutputsConfig(BaseModel):
     at every level."""
     trajectory_plot: bool = True
     """Write ``trajectory.png``, the estimated (and true, if known) frame centres."""
+    report: bool = True
+    """Write ``report.html``: one self-contained page (images inlined) with the status, warnings,
+    panorama, trajectory, per-level figures, spec and versions."""
+    video: bool = False
+    """Write ``video.mp4``: the stabilised virtual exposures on the panorama canvas, as
+    ``photonpano video`` renders them by default (needs the ``video`` extra, PyAV)."""
 
 
 class _SpecBase(BaseModel):

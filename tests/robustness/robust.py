@@ -17,14 +17,14 @@ from typer.testing import CliRunner
 
 TINY = ["--set", "source.frames=1500", "--set", "source.height=96", "--set", "source.width=200",
         "--set", "group_size=250", "--set", "levels=2", "--set", "pair_offsets=[1, 2]",
-        "--set", "outputs.trajectory_plot=false"]
+        "--set", "outputs.trajectory_plot=false", "--set", "outputs.report=false"]
 """A demo small enough for a test (about a second)."""
 
 SMALL_SPEC = """\
 source: {plugin: simulate, frames: 3000, height: 96, width: 200, flux: 0.5, vibration_px: 2.0}
 group_size: 250
 levels: 3
-outputs: {trajectory_plot: false}
+outputs: {trajectory_plot: false, report: false}
 """
 """The run of the kill and resume tests: three levels (the later two against the panorama)."""
 
