@@ -9,14 +9,6 @@ What a keyframe homography measures matters (paper suppl. S.2): a locator regist
 ``measurement: exposure-average`` (the default) a cubic B-spline is fitted so that its
 averages over each group's frames match the keyframes; with ``reference-frame`` the
 spline passes through the keyframes at their reference frames (the paper's main text).
-
-Keyframes are noisy measurements: a locator's error is largest in the parameters a
-merged frame pins down least (rotation, zoom and perspective, p1-p4, p7, p8), while the
-camera's translation (p5, p6) may vibrate fast. With ``smoothness: auto`` (the default)
-each parameter gets its own second-difference penalty, chosen by generalised
-cross-validation (Craven and Wahba, "Smoothing noisy data with spline functions",
-Numerische Mathematik 31, 1979): a parameter that the keyframes measure as noise is
-smoothed until its residuals look like noise, one that carries motion keeps it.
 """
 
 from __future__ import annotations
@@ -41,11 +33,9 @@ class CubicLKConfig(InterpolatorConfig):
     least-squares B-spline whose group averages match the keyframes, knots every
     max(keyframe spacing, m/2) frames), or the pose of the reference frame itself (an
     interpolating not-a-knot spline, the paper's main text)."""
-    smoothness: Annotated[float, Field(ge=0)] | Literal["auto"] = "auto"
+    smoothness: Annotated[float, Field(ge=0)] = 1e-3
     """exposure-average: weight of the second-difference penalty on spline coefficients,
-    relative to the data term (it settles coefficients the groups do not pin down); or
-    ``auto``: per parameter, the weight in [1e-3, 1e4] that minimises the generalised
-    cross-validation score (noisy parameters are smoothed more)."""
+    relative to the data term; it settles coefficients the groups do not pin down."""
     extrapolate: Literal["linear", "constant"] = "linear"
     """reference-frame: beyond the first and last keyframe, continue the end tangent
     (linear) or hold the end value (constant)."""
@@ -116,62 +106,10 @@ class CubicLKInterpolator(Interpolator):
         lo, hi = groups.start - 0.5, groups.stop - 0.5
         design = (integral(hi) - integral(lo)) / lengths[:, None]  # (G, K) group means
         second = np.diff(np.eye(n_basis), 2, axis=0)
-        gram, penalty = design.T @ design, second.T @ second
-        scale = np.trace(gram) / n_basis
-        if self.config.smoothness == "auto":
-            coef = _gcv_coefficients(design, gram, penalty * scale, params)
-        else:
-            coef = np.linalg.solve(gram + self.config.smoothness * scale * penalty, design.T @ params)
+        scale = np.trace(design.T @ design) / n_basis
+        lhs = design.T @ design + self.config.smoothness * scale * second.T @ second
+        coef = np.linalg.solve(lhs, design.T @ params)
         return BSpline(knots, coef, 3)(np.arange(n_frames, dtype=np.float64))
-
-
-AUTO_SMOOTHNESS = np.logspace(-3, 4, 29)
-"""Penalty weights ``smoothness: auto`` chooses from (relative to the data term)."""
-
-
-def _gcv_coefficients(design: NDArray[np.float64], gram: NDArray[np.float64], penalty: NDArray[np.float64],
-                      params: NDArray[np.float64]) -> NDArray[np.float64]:
-    """Penalised least-squares coefficients, one penalty weight per parameter chosen by GCV.
-
-    Minimises ``|design c - y|^2 + lam c' penalty c`` for each column y of ``params``,
-    with ``lam`` from :data:`AUTO_SMOOTHNESS` minimising ``G |y - A y|^2 / (G - tr A)^2``
-    (A the hat matrix; Craven and Wahba 1979). One generalised eigen-decomposition of
-    (gram, penalty) serves every weight (Demmler-Reinsch basis).
-
-    Args:
-        design: (G, K) float64 group means of the K B-spline basis functions.
-        gram: (K, K) ``design' design``.
-        penalty: (K, K) positive semi-definite second-difference penalty.
-        params: (G, 8) float64 keyframe parameters.
-
-    Returns:
-        (K, 8) float64 spline coefficients.
-    """
-    from scipy.linalg import eigh
-
-    n_groups, n_basis = design.shape
-    ridge = 1e-9 * np.trace(gram) / n_basis * np.eye(n_basis)  # basis functions no group covers
-    gamma, basis = eigh(penalty, gram + ridge)  # basis' gram basis = I, basis' penalty basis = diag(gamma)
-    gamma = np.maximum(gamma, 0)
-    projected = basis.T @ (design.T @ params)  # (K, 8)
-    fitted_basis = design @ basis  # (G, K)
-    best = np.full(params.shape[1], np.inf)
-    coef = np.zeros((n_basis, params.shape[1]))
-    for lam in AUTO_SMOOTHNESS:
-        shrink = 1 / (1 + lam * gamma)
-        dof = shrink.sum()
-        if dof >= n_groups - 0.5:
-            continue
-        weights = projected * shrink[:, None]
-        score = n_groups * ((params - fitted_basis @ weights) ** 2).sum(axis=0) / (n_groups - dof) ** 2
-        better = score < best
-        best[better] = score[better]
-        coef[:, better] = (basis @ weights)[:, better]
-    if not np.isfinite(best).all():  # fewer groups than the spline's degrees of freedom: the least penalty
-        lam = AUTO_SMOOTHNESS[0]
-        missing = ~np.isfinite(best)
-        coef[:, missing] = np.linalg.solve(gram + lam * penalty, design.T @ params[:, missing])
-    return coef
 
 
 @hookimpl
