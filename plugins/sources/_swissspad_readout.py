@@ -208,6 +208,39 @@ def list_bin_files(folder: Path) -> list[Path]:
                   key=lambda p: _natural_key(p.relative_to(folder)))
 
 
+def bin_files(path: Path | list[Path], plugin: str, expected: str) -> tuple[list[Path], str]:
+    """The ``.bin`` readout files a source's ``path`` names, and a label for messages.
+
+    Args:
+        path: a folder (its ``.bin`` files, :func:`list_bin_files`), one file, or a list of files.
+        plugin: the source plugin's name, for messages.
+        expected: what the files are, for the message of an empty folder.
+
+    Returns:
+        ``(files, label)``: the files in reading order and the folder's or file's name.
+
+    Raises:
+        SourceError: an empty list or folder, or a path that is not a file or folder.
+    """
+    from photonpano.errors import SourceError
+
+    if isinstance(path, list):
+        if not path:
+            raise SourceError(f"source ({plugin}): the list of .bin files is empty")
+        for p in path:
+            if not p.is_file():
+                raise SourceError(f"source ({plugin}): {p} does not exist or is not a file")
+        return list(path), f"{len(path)} files"
+    if path.is_dir():
+        files = list_bin_files(path)
+        if not files:
+            raise SourceError(f"source ({plugin}): no .bin files in {path}; expected {expected}")
+        return files, path.name
+    if path.is_file():
+        return [path], path.name
+    raise SourceError(f"source ({plugin}): {path} does not exist")
+
+
 def layout_scores(raw: NDArray[np.uint8]) -> dict[str, float]:
     """Measure how well raw readout frames fit each layout.
 

@@ -37,7 +37,7 @@ from numpy.typing import NDArray
 from photonpano import hookimpl
 from photonpano.errors import SourceError
 from photonpano.plugins.sources._capture_config import BinaryCaptureConfig
-from photonpano.plugins.sources._swissspad_readout import Transform
+from photonpano.plugins.sources._swissspad_readout import Transform, bin_files
 from photonpano.stages import PhotonSource, SourceConfig
 from photonpano.streaming import ReopenOnPickle
 from pydantic import Field
@@ -88,25 +88,6 @@ class Spad512Config(BinaryCaptureConfig):
         return Spad512(self)
 
 
-def _files_of(config_path: Path | list[Path]) -> tuple[list[Path], str]:
-    from photonpano.plugins.sources._swissspad_readout import list_bin_files
-
-    if isinstance(config_path, list):
-        if not config_path:
-            raise SourceError("source (spad512): the list of .bin files is empty")
-        for p in config_path:
-            if not p.is_file():
-                raise SourceError(f"source (spad512): {p} does not exist or is not a file")
-        return list(config_path), f"{len(config_path)} files"
-    if config_path.is_dir():
-        files = list_bin_files(config_path)
-        if not files:
-            raise SourceError(f"source (spad512): no .bin files in {config_path}; expected SPAD512 readout files")
-        return files, config_path.name
-    if config_path.is_file():
-        return [config_path], config_path.name
-    raise SourceError(f"source (spad512): {config_path} does not exist")
-
 
 class Spad512(ReopenOnPickle, PhotonSource):
     """Pi Imaging SPAD512 1-bit readouts (see :class:`Spad512Config`).
@@ -137,7 +118,7 @@ class Spad512(ReopenOnPickle, PhotonSource):
         from photonpano.streaming import FrameFiles, FrameSegment
 
         self.config = config
-        self.files, label = _files_of(config.path)
+        self.files, label = bin_files(config.path, "spad512", "SPAD512 readout files")
         fb = config.height * config.width // 8
         geometry = f"{config.height}x{config.width}"
         sizes = []

@@ -23,7 +23,7 @@ from numpy.typing import NDArray
 from photonpano import hookimpl
 from photonpano.errors import SourceError
 from photonpano.plugins.sources._capture_config import BinaryCaptureConfig
-from photonpano.plugins.sources._swissspad_readout import BIN_FILE_BYTES, LAYOUTS
+from photonpano.plugins.sources._swissspad_readout import BIN_FILE_BYTES, LAYOUTS, bin_files
 from photonpano.plugins.sources._swissspad_sensor import SwissSpadCorrections
 from photonpano.stages import PhotonSource, SourceConfig
 from photonpano.streaming import ReopenOnPickle, write_npy_blocks
@@ -54,26 +54,6 @@ class SwissSpadBinConfig(SwissSpadCorrections, BinaryCaptureConfig):
         return SwissSpadBin(self)
 
 
-def _files_of(config_path: Path | list[Path]) -> tuple[list[Path], str]:
-    from photonpano.plugins.sources._swissspad_readout import list_bin_files
-
-    if isinstance(config_path, list):
-        if not config_path:
-            raise SourceError("source (swissspad-bin): the list of .bin files is empty")
-        for p in config_path:
-            if not p.is_file():
-                raise SourceError(f"source (swissspad-bin): {p} does not exist or is not a file")
-        return list(config_path), f"{len(config_path)} files"
-    if config_path.is_dir():
-        files = list_bin_files(config_path)
-        if not files:
-            raise SourceError(f"source (swissspad-bin): no .bin files in {config_path}; expected SwissSPAD2 "
-                              "raw readout files")
-        return files, config_path.name
-    if config_path.is_file():
-        return [config_path], config_path.name
-    raise SourceError(f"source (swissspad-bin): {config_path} does not exist")
-
 
 class SwissSpadBin(ReopenOnPickle, PhotonSource):
     """SwissSPAD2 raw readouts (see :class:`SwissSpadBinConfig`).
@@ -98,7 +78,7 @@ class SwissSpadBin(ReopenOnPickle, PhotonSource):
 
         self.config = config
         self.layout = LAYOUTS[config.layout]
-        self.files, label = _files_of(config.path)
+        self.files, label = bin_files(config.path, "swissspad-bin", "SwissSPAD2 raw readout files")
         self.notes: list[str] = []
         segments = []
         fb = self.layout.frame_bytes
