@@ -13,7 +13,9 @@ Every capture is simulated from one of the real photographs in ``benchmarks/phot
 For each capture it prints (and with ``--write``, puts into ``docs/accuracy.md``) the
 trajectory RMSE and largest per-frame error after global alignment, the panorama's PSNR
 gap to the merge of the same photons with the *true* homographies on the run's own
-canvas, ``status``, the predicted uncertainty (median sigma, and the share of frames whose
+canvas, how the default compositor compares with ``flux-canvas`` (both with the estimated
+homographies; and with ``flux-canvas`` given the true ones), ``status``, the predicted
+uncertainty (median sigma, and the share of frames whose
 actual error is within twice their sigma), and the wall time; then the suite's aggregate
 against the confidence rules of ``docs/outputs.md``:
 
@@ -120,6 +122,7 @@ def run_capture(capture: Capture, dump: Path | None = None) -> dict:
     from photonpano.host import PluginHost
     from photonpano.metrics import ground_truth_report, source_trajectory_error
     from photonpano.pipeline import reconstruct
+    from photonpano.plugins.compositors.flux_canvas import FluxCanvasConfig
     from photonpano.spec import validate_spec
     from photonpano.uncertainty import held_out_residuals
 
@@ -137,7 +140,8 @@ def run_capture(capture: Capture, dump: Path | None = None) -> dict:
     except Exception as exc:  # noqa: BLE001 - a failed run is a row too (it must fail with a reason)
         return {**row, "failed": str(exc).splitlines()[0], "seconds": time.perf_counter() - t0}
     seconds = time.perf_counter() - t0
-    gt = ground_truth_report(source, homographies, pano, spec.panorama_subbatch_px, compositor=spec.compositor)
+    gt = ground_truth_report(source, homographies, pano, spec.panorama_subbatch_px, compositor=spec.compositor,
+                             references=(FluxCanvasConfig(scale=spec.compositor.scale),), references_estimated=True)
     error = source_trajectory_error(homographies, source).per_frame_px
     unc = report.get("frame_uncertainty")
     sigma = unc.sigma_px if unc is not None else np.full(len(error), np.nan)
@@ -149,6 +153,8 @@ def run_capture(capture: Capture, dump: Path | None = None) -> dict:
         np.savez(dump / f"{capture.name.replace('/', '--')}.npz", error=error, sigma=sigma, unverified=unverified,
                  **pairs)
     return {**row, "rmse": gt["trajectory_rmse_px"], "max": gt["trajectory_max_px"], "psnr_gap": gt["psnr_gap_db"],
+            "over_flux_canvas": gt["psnr_db"] - gt["psnr_estimated_by"]["flux-canvas"],
+            "over_flux_canvas_true": gt["psnr_db"] - gt["psnr_true_homographies_by"]["flux-canvas"],
             "status": report["status"], "warnings": report["warnings"],
             "sigma_median": float(np.median(sigma)), "within_2_sigma": float(np.mean(error <= 2 * sigma)),
             "seconds": seconds, "confidence_s": timings.get("confidence", 0.0)}
@@ -172,6 +178,8 @@ def aggregate(rows: list[dict]) -> dict:
         "ok_sigma_over_rmse": [float(np.min(ratios)), float(np.median(ratios)), float(np.max(ratios))]
         if ratios else None,
         "ok_sigma_not_within_3x": [r["capture"] for r, q in zip(ok, ratios) if not 1 / 3 <= q <= 3],
+        "compositor_below_flux_canvas": [r["capture"] for r in done if r["over_flux_canvas"] < -0.05],
+        "compositor_below_true_bilinear": [r["capture"] for r in done if r["over_flux_canvas_true"] < -0.2],
     }
 
 
@@ -193,14 +201,16 @@ def verdict(summary: dict) -> list[str]:
 
 def markdown(rows: list[dict], summary: dict) -> str:
     """The rows and the aggregate as Markdown."""
-    lines = ["| capture | frames | RMSE (px) | max (px) | PSNR gap (dB) | status | median sigma (px) "
-             "| frames within 2 sigma | wall (s) |", "| --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
+    lines = ["| capture | frames | RMSE (px) | max (px) | PSNR gap (dB) | over flux-canvas (dB) "
+             "| over true bilinear (dB) | status | median sigma (px) | frames within 2 sigma | wall (s) |",
+             "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
     for r in rows:
         if "failed" in r:
-            lines.append(f"| {r['capture']} | {r['frames']} | failed: {r['failed']} | | | error | | | |")
+            lines.append(f"| {r['capture']} | {r['frames']} | failed: {r['failed']} | | | | | error | | | |")
             continue
         lines.append(f"| {r['capture']} | {r['frames']} | {r['rmse']:.3f} | {r['max']:.2f} | {r['psnr_gap']:.2f} "
-                     f"| {r['status']} | {r['sigma_median']:.3f} | {r['within_2_sigma']:.0%} | {r['seconds']:.1f} |")
+                     f"| {r['over_flux_canvas']:+.2f} | {r['over_flux_canvas_true']:+.2f} | {r['status']} "
+                     f"| {r['sigma_median']:.3f} | {r['within_2_sigma']:.0%} | {r['seconds']:.1f} |")
     s = summary
     ratio = s["ok_sigma_over_rmse"]
     lines += ["", f"{s['captures']} captures, {s['failed']} failed. RMSE > 1 px: {s['rmse_over_1px']}, of them "
@@ -208,6 +218,10 @@ def markdown(rows: list[dict], summary: dict) -> str:
               f"of them degraded: {len(s['rmse_under_0.3px_degraded'])}. Frames of ok captures within 2 sigma: "
               f"{s['ok_frames_within_2_sigma']:.1%}; median sigma / RMSE over ok captures: "
               + (f"{ratio[0]:.2f} to {ratio[2]:.2f} (median {ratio[1]:.2f})." if ratio else "none.")]
+    lines.append(f"Default compositor below flux-canvas by more than 0.05 dB (same estimated motion): "
+                 f"{len(s['compositor_below_flux_canvas'])} {s['compositor_below_flux_canvas'] or ''}; below the "
+                 f"bilinear merge with the true motion by more than 0.2 dB: {len(s['compositor_below_true_bilinear'])} "
+                 f"{s['compositor_below_true_bilinear'] or ''}.")
     broken = verdict(summary)
     lines.append("Every confidence rule holds." if not broken else "Rules broken: " + "; ".join(broken) + ".")
     return "\n".join(lines)
@@ -243,6 +257,7 @@ def main(argv: list[str] | None = None) -> int:
             print(f"{row['capture']:40s} failed: {row['failed']}", flush=True)
         else:
             print(f"{row['capture']:40s} RMSE {row['rmse']:7.3f} max {row['max']:7.2f} gap {row['psnr_gap']:5.2f} dB "
+                  f"fc {row['over_flux_canvas']:+5.2f}/{row['over_flux_canvas_true']:+5.2f} dB "
                   f"{row['status']:8s} sigma {row['sigma_median']:6.3f} within-2s {row['within_2_sigma']:4.0%} "
                   f"{row['seconds']:5.1f} s", flush=True)
     summary = aggregate(rows)

@@ -140,7 +140,7 @@ def source_trajectory_error(homographies: NDArray[np.float64], source: Any) -> T
 
 def ground_truth_report(source, homographies: np.ndarray, pano, subbatch_px: float, *,
                         compositor: Any = None, references: tuple[Any, ...] = (),
-                        progress: Any = None) -> dict[str, Any]:
+                        references_estimated: bool = False, progress: Any = None) -> dict[str, Any]:
     """Measure a reconstruction against a capture's ground truth.
 
     The trajectory error is taken after the best global alignment G (the panorama's
@@ -161,13 +161,18 @@ def ground_truth_report(source, homographies: np.ndarray, pano, subbatch_px: flo
         references: more compositor configs to composite the true motion with on the
             same canvas, scored on the same pixels (e.g. ``flux-canvas`` to measure
             what drizzle gains).
+        references_estimated: also composite each reference with the *estimated*
+            homographies on the same canvas (what another compositor would have made of
+            the same run).
         progress: called with the number of binary frames composited into the true-motion
             reference.
 
     Returns:
         ``{"trajectory_rmse_px", "trajectory_max_px"}`` and, with a scene, ``"psnr_db",
         "psnr_true_homographies_db", "psnr_gap_db"`` and, with ``references``,
-        ``"psnr_true_homographies_by"``: plugin key -> PSNR in dB.
+        ``"psnr_true_homographies_by"``: plugin key -> PSNR in dB (and with
+        ``references_estimated``, ``"psnr_estimated_by"`` the same for the estimated
+        homographies).
     """
     import cv2
 
@@ -184,9 +189,11 @@ def ground_truth_report(source, homographies: np.ndarray, pano, subbatch_px: flo
                       config.build() if config is not None else BilinearCompositor(),
                       subbatch_px=subbatch_px, canvas_shape=shape, progress=progress if config is compositor else None)
               for config in (compositor, *references)]
+    others = [compose(source, pano.homographies, config.build(), subbatch_px=subbatch_px, canvas_shape=shape)
+              for config in references] if references_estimated else []
     scene = scene_on_canvas(source, canvas_from_scene, shape)
     both = np.isfinite(pano.flux) & np.isfinite(scene)
-    for truth in truths:
+    for truth in truths + others:
         both &= np.isfinite(truth.flux)
     mask = cv2.erode(both.astype(np.uint8), np.ones((7, 7), np.uint8)).astype(bool)
     estimated_db, true_db = psnr(pano.flux, scene, mask), psnr(truths[0].flux, scene, mask)
@@ -194,6 +201,9 @@ def ground_truth_report(source, homographies: np.ndarray, pano, subbatch_px: flo
     if references:
         report["psnr_true_homographies_by"] = {config.plugin: psnr(truth.flux, scene, mask)
                                                for config, truth in zip(references, truths[1:])}
+    if others:
+        report["psnr_estimated_by"] = {config.plugin: psnr(other.flux, scene, mask)
+                                       for config, other in zip(references, others)}
     return report
 
 
