@@ -116,8 +116,9 @@ def run_capture(capture: Capture, dump: Path | None = None) -> dict:
     """Simulate and reconstruct one capture with the default settings; return its row.
 
     With ``dump``, the per-frame actual error and predicted sigma go to
-    ``dump/<photo>--<variant>.npz`` (``error``, ``sigma``, ``unverified`` per frame and the
-    last level's evidence pairs ``middle``, ``residual``, ``ok``; for recalibrating offline).
+    ``dump/<photo>--<variant>.npz`` (``error``, ``sigma``, ``unverified`` per frame, the
+    final ``homographies``, ``width`` and ``height``, and the last level's evidence pairs
+    ``middle``, ``residual``, ``ok``; for recalibrating offline).
     """
     from photonpano.host import PluginHost
     from photonpano.metrics import ground_truth_report, source_trajectory_error
@@ -151,7 +152,7 @@ def run_capture(capture: Capture, dump: Path | None = None) -> dict:
         pairs = dict(zip(("middle", "residual", "ok"), evidence[1:4])) if evidence is not None else {}
         unverified = unc.unverified if unc is not None else np.zeros(len(error), bool)
         np.savez(dump / f"{capture.name.replace('/', '--')}.npz", error=error, sigma=sigma, unverified=unverified,
-                 **pairs)
+                 homographies=homographies, width=source.width, height=source.height, **pairs)
     return {**row, "rmse": gt["trajectory_rmse_px"], "max": gt["trajectory_max_px"], "psnr_gap": gt["psnr_gap_db"],
             "over_flux_canvas": gt["psnr_db"] - gt["psnr_estimated_by"]["flux-canvas"],
             "over_flux_canvas_true": gt["psnr_db"] - gt["psnr_true_homographies_by"]["flux-canvas"],

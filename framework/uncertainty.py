@@ -12,14 +12,24 @@ model validation (cross-validation of a fit by measurements it did not see; Hast
 Tibshirani and Friedman, *The Elements of Statistical Learning*, Sec. 7.10).
 
 From the held-out residuals :func:`frame_uncertainty` predicts a 1-sigma error for every
-binary frame: the root mean square of the residuals near the frame, times
-:data:`RESIDUAL_TO_SIGMA`. A residual sees only the *difference* of two neighbouring
-groups' errors; the part of the error that neighbours share (a slow drift that one
-global homography does not absorb) does not show in it, and the factor accounts for that
-part. It and :data:`NEIGHBOURS` were set on the evaluation suite (``benchmarks/suite.py``:
-48 captures of its 16 photographs, paths, light levels and nuisances): over the captures
-that ended ``ok``, 97.1 % of frames have an actual error within twice their predicted
-sigma, and each capture's median sigma is 0.59-1.57 times its RMSE. Frames whose trajectory
+binary frame from two terms:
+
+- *local*: the root mean square of the residuals near the frame, times
+  :data:`RESIDUAL_TO_SIGMA`;
+- *drift*: a residual sees only the *difference* of two neighbouring groups' errors, so
+  the part of the error that neighbours share, a slow drift of the whole chain of
+  registrations (which the mosaic levels keep: their template is made from the same
+  chain), does not show in it. It grows with how far the camera travelled from the
+  middle frame (the panorama's reference): :data:`DRIFT_PER_FRAME_EXTENT` times the
+  capture's median local sigma per frame extent travelled (the frame's width or height
+  along the displacement). A fast pan across three frame widths drifted by 1-2 px at its
+  ends while its local residuals predicted 0.4 px.
+
+The two add in quadrature. The constants and :data:`NEIGHBOURS` were set on the
+evaluation suite (``benchmarks/suite.py``: 48 captures of its 16 photographs, paths,
+light levels and nuisances; see docs/accuracy.md for the current figures: the share of
+frames of ``ok`` captures whose actual error is within twice their predicted sigma, and
+each capture's median sigma over its RMSE). Frames whose trajectory
 rests on registrations that failed (bridged from neighbours) or on no registration at
 all (before the first or after the last group's reference frame by more than half a
 group) are marked *unverified*.
@@ -40,11 +50,16 @@ from numpy.typing import NDArray
 from . import geometry
 from .records import LevelResult
 
-__all__ = ["FrameUncertainty", "frame_uncertainty", "held_out_residuals", "RESIDUAL_TO_SIGMA", "NEIGHBOURS", "LIMIT_PX"]
+__all__ = ["FrameUncertainty", "frame_uncertainty", "held_out_residuals", "frame_extents_travelled",
+           "RESIDUAL_TO_SIGMA", "DRIFT_PER_FRAME_EXTENT", "NEIGHBOURS", "LIMIT_PX"]
 
-RESIDUAL_TO_SIGMA = 1.75
-"""Predicted per-frame sigma over the local RMS of held-out pair residuals (calibrated on
-the evaluation suite, see the module)."""
+RESIDUAL_TO_SIGMA = 1.4
+"""Local term of the predicted per-frame sigma over the local RMS of held-out pair
+residuals (calibrated on the evaluation suite, see the module)."""
+
+DRIFT_PER_FRAME_EXTENT = 2.5
+"""Drift term of the predicted sigma per frame extent travelled from the middle frame, in
+units of the capture's median local sigma (calibrated on the evaluation suite)."""
 
 NEIGHBOURS = 8
 """Residuals on each side of a pair that enter its local RMS."""
@@ -121,7 +136,10 @@ def frame_uncertainty(result: LevelResult, width: int, height: int) -> FrameUnce
     frames = np.arange(n, dtype=np.float64)
     known = np.isfinite(sigma_pairs)
     if known.any():
-        sigma = np.interp(frames, middle[known], sigma_pairs[known])
+        local = np.interp(frames, middle[known], sigma_pairs[known])
+        drift = DRIFT_PER_FRAME_EXTENT * float(np.median(local)) * frame_extents_travelled(result.homographies,
+                                                                                           width, height)
+        sigma = np.hypot(local, drift)
     else:
         sigma = np.full(n, np.inf)
     reference = result.groups.reference
@@ -136,6 +154,30 @@ def frame_uncertainty(result: LevelResult, width: int, height: int) -> FrameUnce
     # a failed registration leaves its stretch with no measure of error: at least the limit
     sigma[unverified] = np.maximum(sigma[unverified], 2 * LIMIT_PX)
     return FrameUncertainty(sigma, unverified, kind, int(len(ok)), int((~ok).sum()))
+
+
+def frame_extents_travelled(homographies: NDArray[np.float64], width: int, height: int) -> NDArray[np.float64]:
+    """How far each frame's centre lies from the middle frame's, in frame extents.
+
+    Args:
+        homographies: (T, 3, 3) float64 frame-to-panorama homographies (panorama: the
+            middle frame's pixels).
+        width: frame width in pixels.
+        height: frame height in pixels.
+
+    Returns:
+        (T,) float64 distance of each frame centre from the middle frame's centre, over the
+        frame's extent along that direction (``|ux| width + |uy| height`` for the unit
+        direction u): 1 where the frames just stop overlapping side by side.
+    """
+    centre = np.array([width / 2.0, height / 2.0, 1.0])
+    mapped = homographies @ centre
+    offset = mapped[:, :2] / mapped[:, 2:] - (homographies[len(homographies) // 2] @ centre)[:2]
+    distance = np.linalg.norm(offset, axis=1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        direction = np.abs(offset) / distance[:, None]
+    extent = np.where(distance > 0, direction[:, 0] * width + direction[:, 1] * height, 1.0)
+    return np.where(distance > 0, distance / extent, 0.0)
 
 
 Evidence = tuple[NDArray[np.intp], NDArray[np.float64], NDArray[np.float64], NDArray[np.bool_], str]

@@ -5,16 +5,24 @@ import pytest
 from photonpano import geometry
 from photonpano.quality import _uncertainty_warnings
 from photonpano.records import Groups, LevelResult, LocateResult, PairRegistrations
-from photonpano.uncertainty import LIMIT_PX, NEIGHBOURS, RESIDUAL_TO_SIGMA, _local_rms, frame_uncertainty
+from photonpano.uncertainty import (
+    DRIFT_PER_FRAME_EXTENT,
+    LIMIT_PX,
+    NEIGHBOURS,
+    RESIDUAL_TO_SIGMA,
+    _local_rms,
+    frame_extents_travelled,
+    frame_uncertainty,
+)
 
 W, H = 64, 32
 
 
-def _level(n_frames=1000, m=100, shift=None, failed=()):
-    """A mosaic-like last level whose held-out pairs measured the true motion, off by ``shift[g]`` px."""
+def _level(n_frames=1000, m=100, shift=None, failed=(), speed=0.01):
+    """A mosaic-like last level (a pan at ``speed`` px/frame); its held-out pairs are off by ``shift[g]`` px."""
     ref = np.arange(m // 2, n_frames - m // 2 + 1, m // 2)
     groups = Groups(start=ref - m // 2, stop=ref + m // 2, reference=ref)
-    homographies = np.stack([geometry.translation(0.01 * t, 0.0) for t in range(n_frames)])
+    homographies = np.stack([geometry.translation(speed * t, 0.0) for t in range(n_frames)])
     g = len(ref)
     index = np.stack([np.arange(g - 1), np.arange(1, g)], axis=1)
     truth = np.linalg.inv(homographies[ref[:-1]]) @ homographies[ref[1:]]
@@ -37,12 +45,25 @@ def test_local_rms_ignores_missing_values():
 
 
 def test_residuals_scale_into_sigma_for_every_frame():
-    """Held-out pairs off by 0.1 px predict RESIDUAL_TO_SIGMA x 0.1 px for every frame; none is unverified."""
+    """Held-out pairs off by 0.1 px predict RESIDUAL_TO_SIGMA x 0.1 px, plus the drift term; none is unverified."""
     result = _level(shift=np.full(18, 0.1))
     unc = frame_uncertainty(result, W, H)
     assert unc.sigma_px.shape == (1000,) and unc.sigma_px.dtype == np.float64
-    assert np.allclose(unc.sigma_px, RESIDUAL_TO_SIGMA * 0.1)
+    local = RESIDUAL_TO_SIGMA * 0.1
+    travelled = frame_extents_travelled(result.homographies, W, H)
+    assert travelled[500] == 0 and travelled[0] == pytest.approx(5 / W)  # 0.01 px/frame, 500 frames from the middle
+    assert np.allclose(unc.sigma_px, np.hypot(local, DRIFT_PER_FRAME_EXTENT * local * travelled))
     assert not unc.unverified.any() and unc.evidence == "held-out pairs" and unc.failed == 0
+
+
+def test_sigma_grows_with_the_frame_extents_travelled_from_the_middle():
+    """A pan across three frame widths: the same local residuals predict more error at its ends (chain drift)."""
+    n = 1000
+    wide = frame_uncertainty(_level(n_frames=n, shift=np.full(18, 0.1), speed=3 * W / n), W, H)
+    local = RESIDUAL_TO_SIGMA * 0.1
+    assert wide.sigma_px[n // 2] == pytest.approx(local)
+    assert wide.sigma_px[0] == pytest.approx(np.hypot(local, DRIFT_PER_FRAME_EXTENT * local * 1.5))
+    assert np.all(np.diff(wide.sigma_px[n // 2:]) >= 0)
 
 
 def test_a_jump_is_located_and_named_by_frames_and_seconds():
