@@ -113,7 +113,11 @@ def _host():
 
 @contextmanager
 def _observed(host):
-    """Register the log observer and, unless ``--quiet``, progress bars on ``host`` for a block."""
+    """Register the log observer and, unless ``--quiet``, progress bars on ``host`` for a block.
+
+    Yields the :class:`~photonpano.progress.RichProgress` (None with ``--quiet``): lines a
+    command prints while bars are drawn go through its console, above the bars.
+    """
     from .progress import LogObserver, RichProgress, reporting
 
     observers = {"cli-log": LogObserver()}
@@ -126,7 +130,7 @@ def _observed(host):
         host.register(observer, name=name)
     try:
         with reporting(host):
-            yield
+            yield bars
     finally:
         if bars is not None:
             bars.stop()

@@ -183,8 +183,9 @@ def compare(input: Annotated[str, typer.Argument(help="A spec (.yaml), a capture
 
     refuse_symlink(output, "output folder")  # never written through, --force or not
     prepare_output(output, force)
-    with _observed(host):
-        rows = compare_locators(data, keys, host, output, origin=input, log=typer.echo,
+    with _observed(host) as bars:
+        log = bars.bars.console.print if bars is not None else typer.echo  # above the bars, not glued to them
+        rows = compare_locators(data, keys, host, output, origin=input, log=log,
                                 on_row=lambda done: write_comparison(done, output, data), refine=refine)
     typer.echo(markdown_table(rows))
     if not any(row["status"] == "ok" for row in rows):

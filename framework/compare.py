@@ -53,6 +53,8 @@ def compare_locators(base: dict[str, Any], locators: list[str], host: PluginHost
         origin: name used in spec error messages.
         source: an already opened capture to reuse (None: built from the spec once).
         log: optional callable receiving one progress line per finished level and run.
+            Inside :func:`photonpano.progress.reporting`, each locator's levels also
+            report progress as tasks ``"<locator>: level k: merge + locate"``.
         on_row: optional callable receiving the rows so far after each locator (to
             write partial results of a long comparison).
         refine: keep the spec's ``level_schemes`` (False: every level registers pairs
@@ -82,6 +84,7 @@ def _compare_one(item: str, base: dict[str, Any], host: PluginHost, out_dir: Pat
     from .executor import make_executor
     from .metrics import source_trajectory_error
     from .pipeline import Stages
+    from .progress import start_task
     from .spec import apply_overrides, validate_spec
 
     key, *options = item.split(":")
@@ -116,7 +119,8 @@ def _compare_one(item: str, base: dict[str, Any], host: PluginHost, out_dir: Pat
                     f"{stats['failed_pairs']} failed pairs" + _rmse_text(stats.get("trajectory_rmse_px")))
 
         with make_executor(spec.executor, spec.workers, spec.dask_address) as executor:
-            homographies = stages.estimate_motion(executor, on_level=on_level)
+            homographies = stages.estimate_motion(executor, on_level=on_level,
+                                                  progress=lambda task, total: start_task(f"{label}: {task}", total))
     except PhotonpanoError as exc:
         row["status"] = str(exc)
         return source

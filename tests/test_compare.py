@@ -70,3 +70,32 @@ def test_compare_on_a_video_capture_merges_intensities_and_keeps_the_camera_stat
     assert json.loads((out / "compare.json").read_text())["runs"][0]["status"] == "ok"
     c = apply(np.load(out / "opencv-sift" / "homographies.npy"), corners(384, 384))
     assert np.abs(c - c[:1]).max() < 1.0
+
+
+def test_compare_reports_progress_per_locator_and_level():
+    """Each locator's levels draw their own bars (the CLI draws them; here a recording observer)."""
+    from photonpano import hookimpl
+    from photonpano.compare import compare_locators
+    from photonpano.host import PluginHost
+    from photonpano.progress import reporting
+
+    class Recorder:
+        def __init__(self):
+            self.done = {}
+
+        @hookimpl
+        def photonpano_progress(self, task, total, advance):
+            self.done.setdefault(task, [total, 0])[1] += advance
+
+    host, recorder = PluginHost(), Recorder()
+    host.register(recorder, name="recorder")
+    base = {"source": {"plugin": "simulate", "frames": 1200, "height": 64, "width": 128, "vibration_px": 1},
+            "group_size": 300, "levels": 2}
+    with reporting(host):
+        rows = compare_locators(base, ["opencv-ecc", "opencv-ecc:pyramid_levels=2"], host)
+    assert [r["status"] for r in rows] == ["ok", "ok"]
+    for row in rows:
+        for level in row["levels"]:
+            total, done = recorder.done[f"{row['locator']}: level {level['level']}: merge + locate"]
+            assert total == done == level["groups"]
+    assert len(recorder.done) == 1 + 4  # the simulation, and two levels of each locator
