@@ -114,19 +114,19 @@ def test_the_kit_catches_a_half_pixel_centre_convention():
         check.test_pixel_centres_at_integers(locator)
 
 
-@pytest.mark.parametrize("compositor", ["half-pixel", "mean-counts"])
+@pytest.mark.parametrize("compositor", ["half-pixel", "mean-counts", "detection-rate"])
 def test_the_kit_catches_broken_compositors(compositor):
-    """Frames painted 0.5 px off their homographies, or mean counts instead of flux, fail the kit."""
+    """Frames painted 0.5 px off their homographies, or mean counts or detection rates as flux, fail the kit."""
     check = _BrokenCompositorContract()
     capture = tiny_capture()
     panorama = check._compose(_BrokenCompositorConfig(bug=compositor).build(), capture)
-    with pytest.raises(AssertionError, match=r"PSNR 3[23]\.\d+ dB"):  # measured: 32.2 and 32.8 dB
+    with pytest.raises(AssertionError, match=r"PSNR 3[23]\.\d+ dB"):  # measured: 32.2, 32.8 and 32.8 dB
         check.test_panorama_has_documented_types_and_matches_the_scene(panorama, capture)
     if compositor == "half-pixel":
         with pytest.raises(AssertionError, match=r"offset by \(\+0\.[45]"):  # measured: (+0.505, -0.038) px
             check.test_frames_land_where_their_homographies_say(panorama, capture)
     else:
-        with pytest.raises(AssertionError, match="not counts"):
+        with pytest.raises(AssertionError, match="not counts"):  # measured: 1e-5 x and 0.946 x the scene's flux
             check.test_flux_is_calibrated_in_photons_per_second(panorama, capture)
 
 
@@ -170,15 +170,17 @@ class _HalfPixelContract(LocatorContract):
 
 
 class _BrokenCompositorConfig(CompositorConfig):
-    """A compositor with a deliberate bug: frames 0.5 px off, or mean counts per frame as flux."""
+    """A compositor with a deliberate bug: frames 0.5 px off, mean counts per frame or detections per second as flux."""
 
     plugin: Literal["broken-compositor-test"] = "broken-compositor-test"
-    bug: Literal["half-pixel", "mean-counts"] = "half-pixel"
+    bug: Literal["half-pixel", "mean-counts", "detection-rate"] = "half-pixel"
     """Which bug."""
 
     def build(self):
         """Return the buggy compositor."""
-        return _HalfPixelCompositor() if self.bug == "half-pixel" else _MeanCountsCompositor()
+        if self.bug == "half-pixel":
+            return _HalfPixelCompositor()
+        return _MeanCountsCompositor(per_second=self.bug == "detection-rate")
 
 
 class _HalfPixelCompositor(BilinearCompositor):
@@ -189,14 +191,20 @@ class _HalfPixelCompositor(BilinearCompositor):
 
 
 class _MeanCountsCompositor(BilinearCompositor):
+    def __init__(self, per_second):
+        super().__init__()
+        self.per_second = per_second
+
     def prepare(self, canvas, source):
         super().prepare(canvas, source)
         self._exposure_s = source.exposure_s
 
     def finish(self):
         panorama = super().finish()
-        # the detection probability per binary frame, 1 - exp(-flux t): what dividing counts by frames gives
-        mean_counts = -np.expm1(-panorama.flux * np.float32(self._exposure_s))
+        # the detection probability per binary frame, 1 - exp(-flux t): what dividing counts by frames gives;
+        # divided by t, the detection rate (no Poisson inversion: low where bright)
+        t = np.float32(self._exposure_s)
+        mean_counts = -np.expm1(-panorama.flux * t) / (t if self.per_second else np.float32(1))
         return Panorama(flux=mean_counts.astype(np.float32), frames=panorama.frames,
                         homographies=panorama.homographies)
 
