@@ -139,13 +139,21 @@ class CompositorContract(PluginContract):
             f"(> {self.max_offset_px} px): pixel centres at integers, frame-to-canvas homographies as given?")
 
     def test_scale_sets_the_canvas(self, config: Any, capture: Any) -> None:
-        """A config at ``scale: 2`` paints a canvas about twice as large in each direction."""
+        """A config at ``scale: 2`` paints a canvas about twice as large, the scene where its homographies say.
+
+        Placement as in :meth:`test_frames_land_where_their_homographies_say`, within
+        ``max_offset_px`` canvas pixels (built-ins at scale 2: at most 0.075 px).
+        """
         if type(config).missing_requirements():
             pytest.skip("optional requirement missing")
         one = self._compose(config.model_copy(update={"scale": 1.0}).build(), capture)
         two = self._compose(config.model_copy(update={"scale": 2.0}).build(), capture)
         ratio = np.array(two.flux.shape) / np.array(one.flux.shape)
         np.testing.assert_allclose(ratio, 2.0, atol=0.05)
+        offset = misplacement_px(two.flux, capture, *self._scene(two, capture)[1:])
+        assert np.hypot(*offset) <= self.max_offset_px, (
+            f"at scale 2 the panorama is offset by ({offset[0]:+.3f}, {offset[1]:+.3f}) canvas px from the true "
+            f"scene (> {self.max_offset_px} px)")
 
     def test_threads_and_chunks_do_not_change_the_result(self, config: Any, capture: Any) -> None:
         """Fed in small chunks on 3 threads (forks joined) == fed serially in big chunks."""

@@ -89,7 +89,7 @@ class LocatorContract(PluginContract):
         np.testing.assert_allclose(ok_h[:, 2, 2], 1.0, atol=1e-9)
 
     def test_recovers_a_known_warp_in_the_right_direction(self, built: Any) -> None:
-        """Pair (a, b) gives the map of b's pixels to a's, pixel centres at integers."""
+        """Pair (a, b) gives the map of b's pixels to a's (the pixel-centre convention: :meth:`half_turn`)."""
         truth = self.truth()
         merged = synthetic_pair(truth, *self.size)
         result = self._run(built, merged, [[0, 1]], [self.start(truth)])
