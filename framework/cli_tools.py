@@ -1,6 +1,7 @@
 """Commands beside the main job: ``pose`` (6-DoF poses), ``convert``, ``batch``, ``compare``, ``score``, ``video``.
 
-Registered on :data:`photonpano.cli.app`; expected failures print one line and exit 1.
+Registered on :data:`photonpano.cli_base.app` (the ``photonpano`` command, see
+:mod:`photonpano.cli`); expected failures print one line and exit 1.
 """
 
 from __future__ import annotations
@@ -10,7 +11,7 @@ from typing import Annotated, Any, Optional
 
 import typer
 
-from .cli import ForceOption, OutOption, SetOption, _capture_spec, _fail, _host, _observed, app, one_line_errors
+from .cli_base import ForceOption, OutOption, SetOption, _capture_spec, _fail, _host, _observed, app, one_line_errors
 from .errors import PhotonpanoError
 
 __all__ = ["execute_pose", "pose", "convert", "batch", "compare", "score", "video"]
@@ -135,7 +136,7 @@ def batch(inputs: Annotated[list[str], typer.Argument(
     failed (the others still run). See docs/scaling.md.
     """
     from .batch import main as batch_main
-    from .cli import _state
+    from .cli_base import _state
 
     code = batch_main(inputs, output, set_ or [], force, _state["quiet"], _host())
     if code:
@@ -241,7 +242,7 @@ def video(run: Annotated[Path, typer.Argument(help="A finished run folder (run.j
                                                        "aspect); default: the frames' own size.")] = None,
           force: Annotated[bool, typer.Option("--force", help="Replace an existing output file.")] = False) -> None:
     """Render a finished run as an H.264 video (PyAV, the video extra). See docs/outputs.md."""
-    from .cli import _state
+    from .cli_base import _state
     from .progress import RichProgress
     from .video import render_video
 

@@ -38,6 +38,7 @@ from .errors import PluginError, SpecError
 from .faults import short_repr
 from .host import PluginHost
 from .spec_compat import move_refine_locator, move_scale
+from .spec_defaults import DEFAULT_PLUGINS, MOSAIC_PLUGINS
 from .spec_errors import (
     PLUGIN_SLOTS,
     blame_set,
@@ -59,22 +60,6 @@ from .yaml_guard import load_yaml
 __all__ = ["DEFAULT_PLUGINS", "OutputsConfig", "spec_model", "load_spec", "validate_spec", "resolve_relative_paths",
            "apply_overrides", "dump_spec", "read_spec_file", "capture_instead_of_spec", "check_available",
            "level_schemes", "plugin_configs"]
-
-DEFAULT_PLUGINS: dict[str, str] = {
-    "resampler": "midpoint",
-    "merger": "flux-mle",
-    "locator": "opencv-sift",
-    "interpolator": "cubic-lk",
-    "compositor": "drizzle",
-    "pose_estimator": "pycolmap-sfm",
-}
-"""The paper's choice for each stage, used when a spec omits the stage."""
-
-MOSAIC_PLUGINS: dict[str, str] = {"locator": "opencv-ecc", "template": "flux-canvas"}
-"""Defaults of the ``mosaic`` scheme's locator and template compositor. A locator used
-there starts from its config's ``template_defaults`` (settings for registering against a
-low-noise panorama)."""
-
 
 class OutputsConfig(BaseModel):
     """Which optional outputs to write besides homographies, panorama and run.json."""

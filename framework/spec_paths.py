@@ -7,6 +7,7 @@ from pathlib import Path
 from typing import Any, Literal
 
 from .host import PluginHost
+from .spec_defaults import DEFAULT_PLUGINS
 from .stages import STAGES
 
 __all__ = ["resolve_relative_paths"]
@@ -43,8 +44,6 @@ def resolve_relative_paths(data: dict[str, Any], host: PluginHost, base_dir: Pat
     Returns:
         A new mapping (``data`` is not modified).
     """
-    from .spec import DEFAULT_PLUGINS
-
     out = dict(data)
     for stage in STAGES:
         section = out.get(stage)

@@ -30,3 +30,27 @@ def test_framework_imports_no_built_in_plugin():
                  if str(p.relative_to(FRAMEWORK)) not in ALLOWED}
     offenders = {k: v for k, v in offenders.items() if v}
     assert not offenders, f"framework modules importing built-in plugins: {offenders}"
+
+
+def framework_imports(path: Path) -> set[str]:
+    """Return the framework modules (paths relative to framework/, no suffix) that ``path`` imports, lazily too."""
+    package = path.relative_to(FRAMEWORK).parent.parts
+    found = set()
+    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        if isinstance(node, ast.ImportFrom) and node.level:
+            base = list(package[:len(package) - node.level + 1]) + (node.module.split(".") if node.module else [])
+            found |= {"/".join(base + [a.name]) for a in node.names} | {"/".join(base)}
+        elif isinstance(node, (ast.Import, ast.ImportFrom)):
+            names = [a.name for a in node.names] if isinstance(node, ast.Import) else \
+                [node.module or ""] + [f"{node.module}.{a.name}" for a in node.names]
+            found |= {n.removeprefix("photonpano.").replace(".", "/") for n in names if n.startswith("photonpano.")}
+    return found
+
+
+def test_no_two_framework_modules_import_each_other():
+    """No import cycle of two modules (e.g. cli <-> cli_tools, spec <-> spec_paths), lazy imports included."""
+    modules = {str(p.relative_to(FRAMEWORK).with_suffix("")): p for p in FRAMEWORK.rglob("*.py")}
+    graph = {name: framework_imports(path) & set(modules) - {name} for name, path in modules.items()}
+    assert "cli_base" in graph["cli_tools"] and "spec_defaults" in graph["spec_paths"]  # the scanner sees them
+    pairs = sorted({tuple(sorted((a, b))) for a, targets in graph.items() for b in targets if a in graph[b]})
+    assert not pairs, f"modules importing each other: {pairs}"

@@ -1,19 +1,24 @@
 """The contract kit (photonpano.testing) on built-in and deliberately broken plugins.
 
-The built-in plugins of every other stage kind must pass; broken ones must be caught.
+The built-in plugins of every other stage kind must pass; broken ones must be caught:
+a swapped direction and a half-pixel centre convention (locators), frames painted
+0.5 px off and mean counts returned as flux (compositors).
 """
 
 from typing import Literal
 
 import numpy as np
 import pytest
+from photonpano.compose import BilinearCompositor
 from photonpano.plugins.interpolators.cubic_lk import CubicLKConfig
 from photonpano.plugins.mergers.flux_mle import FluxMLEConfig
 from photonpano.plugins.resamplers.midpoint import MidpointConfig
 from photonpano.plugins.sources.npy_cube import NpyCubeConfig
 from photonpano.plugins.sources.simulate import SimulateConfig
-from photonpano.stages import Locator, LocatorConfig, PairRegistrations
+from photonpano.records import Panorama
+from photonpano.stages import CompositorConfig, Locator, LocatorConfig, PairRegistrations
 from photonpano.testing import (
+    CompositorContract,
     InterpolatorContract,
     LocatorContract,
     MergerContract,
@@ -95,3 +100,115 @@ def test_the_kit_catches_a_swapped_direction():
     check = _SwappedContract()
     with pytest.raises(AssertionError, match="direction swapped"):
         check.test_recovers_a_known_warp_in_the_right_direction(_SwappedConfig().build())
+
+
+def test_the_kit_catches_a_half_pixel_centre_convention():
+    """Coordinates off by (0.5, 0.5) px: 0.41 px on the perspective pair (passes 0.5 px), > 1 px on a half turn."""
+    check = _HalfPixelContract()
+    locator = _HalfPixelConfig().build()
+    truth = check.truth()
+    result = locator.register_pairs(synthetic_pair(truth), np.array([[0, 1]]), np.eye(3)[None])
+    # what the kit's first pair sees of it: about the locator's own error (measured 0.41 vs 0.40 px)
+    assert corner_error_px(result.homographies[0], truth, 240, 160) < check.tolerance_px
+    with pytest.raises(AssertionError, match="half turn about the frame centre"):
+        check.test_pixel_centres_at_integers(locator)
+
+
+@pytest.mark.parametrize("compositor", ["half-pixel", "mean-counts", "detection-rate"])
+def test_the_kit_catches_broken_compositors(compositor):
+    """Frames painted 0.5 px off their homographies, or mean counts or detection rates as flux, fail the kit."""
+    check = _BrokenCompositorContract()
+    capture = tiny_capture()
+    panorama = check._compose(_BrokenCompositorConfig(bug=compositor).build(), capture)
+    with pytest.raises(AssertionError, match=r"PSNR 3[23]\.\d+ dB"):  # measured: 32.2, 32.8 and 32.8 dB
+        check.test_panorama_has_documented_types_and_matches_the_scene(panorama, capture)
+    if compositor == "half-pixel":
+        with pytest.raises(AssertionError, match=r"offset by \(\+0\.[45]"):  # measured: (+0.505, -0.038) px
+            check.test_frames_land_where_their_homographies_say(panorama, capture)
+    else:
+        with pytest.raises(AssertionError, match="not counts"):  # measured: 1e-5 x and 0.946 x the scene's flux
+            check.test_flux_is_calibrated_in_photons_per_second(panorama, capture)
+
+
+def test_selectable_in_a_spec_skips_naming_a_missing_extra(monkeypatch):
+    """Without the plugin's optional extra the check skips with the module and install hint, not fails."""
+    from photonpano.plugins.locators.kornia_sift import KorniaSiftConfig
+
+    class _Check(LocatorContract):
+        config_class = KorniaSiftConfig
+        entry_point = "kornia-sift"
+
+    config = KorniaSiftConfig()
+    monkeypatch.setattr(KorniaSiftConfig, "requires", ("photonpano_no_such_module",))
+    with pytest.raises(pytest.skip.Exception, match=r"needs photonpano_no_such_module: pip install"):
+        _Check().test_selectable_in_a_spec(config)
+
+
+class _HalfPixelConfig(LocatorConfig):
+    """A locator whose coordinates put pixel centres at half-integers (x + 0.5 for x)."""
+
+    plugin: Literal["half-pixel-test"] = "half-pixel-test"
+
+    def build(self):
+        """Return the buggy locator."""
+        return _HalfPixelLocator()
+
+
+class _HalfPixelLocator(Locator):
+    def register_pairs(self, merged, pairs, initial):
+        from photonpano import geometry
+        from photonpano.plugins.locators.opencv_sift import OpenCVSiftConfig
+
+        good = OpenCVSiftConfig().build().register_pairs(merged, pairs, initial)
+        half = geometry.translation(0.5, 0.5)
+        return PairRegistrations(geometry.normalize(half @ good.homographies @ np.linalg.inv(half)), good.matches,
+                                 good.inliers, good.ok)
+
+
+class _HalfPixelContract(LocatorContract):
+    config_class = _HalfPixelConfig
+
+
+class _BrokenCompositorConfig(CompositorConfig):
+    """A compositor with a deliberate bug: frames 0.5 px off, mean counts per frame or detections per second as flux."""
+
+    plugin: Literal["broken-compositor-test"] = "broken-compositor-test"
+    bug: Literal["half-pixel", "mean-counts", "detection-rate"] = "half-pixel"
+    """Which bug."""
+
+    def build(self):
+        """Return the buggy compositor."""
+        if self.bug == "half-pixel":
+            return _HalfPixelCompositor()
+        return _MeanCountsCompositor(per_second=self.bug == "detection-rate")
+
+
+class _HalfPixelCompositor(BilinearCompositor):
+    def feed(self, counts, n_frames, homographies, weights=None):
+        from photonpano import geometry
+
+        super().feed(counts, n_frames, geometry.translation(0.5, 0.0) @ homographies, weights)
+
+
+class _MeanCountsCompositor(BilinearCompositor):
+    def __init__(self, per_second):
+        super().__init__()
+        self.per_second = per_second
+
+    def prepare(self, canvas, source):
+        super().prepare(canvas, source)
+        self._exposure_s = source.exposure_s
+
+    def finish(self):
+        panorama = super().finish()
+        # the detection probability per binary frame, 1 - exp(-flux t): what dividing counts by frames gives;
+        # divided by t, the detection rate (no Poisson inversion: low where bright)
+        t = np.float32(self._exposure_s)
+        mean_counts = -np.expm1(-panorama.flux * t) / (t if self.per_second else np.float32(1))
+        return Panorama(flux=mean_counts.astype(np.float32), frames=panorama.frames,
+                        homographies=panorama.homographies)
+
+
+class _BrokenCompositorContract(CompositorContract):
+    config_class = _BrokenCompositorConfig
+
