@@ -104,8 +104,11 @@ class _PerChannel(Compositor):
             part.join(theirs)
 
     def finish(self) -> Any:
-        """The :class:`~photonpano.compose.Panorama`: (Hc, Wc, 3) float32 flux in photons/s
-        (R, G, B; NaN where a channel saw nothing) and (Hc, Wc, 3) frames."""
+        """The colour :class:`~photonpano.compose.Panorama`.
+
+        Its flux is (Hc, Wc, 3) float32 in photons/s behind the R, G, B filters (NaN
+        where a channel saw nothing), its frames (Hc, Wc, 3) float32.
+        """
         from photonpano.compose import Panorama
 
         panos = [part.finish() for part in self._parts]
