@@ -66,3 +66,18 @@ def test_demosaic_through_motion_beats_per_frame_demosaic(capture):
     with pytest.raises(ValueError, match="no colour filter layout"):
         compose(SimulateConfig(frames=100, height=64, width=128, scene_width=400).build(),
                 to_canvas[:100], CfaChannels(make), canvas_shape=shape)
+
+
+def test_chroma_edge_error_sees_colour_fringes():
+    x = np.linspace(-1, 1, 64, dtype=np.float32)
+    edge = np.broadcast_to(np.clip(0.5 + 4 * x, 0.05, 0.95), (32, 64))  # a grey step
+    grey = np.stack([edge] * 3, axis=-1)
+    fringed = grey.copy()
+    fringed[:, 1:, 0] = edge[:, :-1]  # red one pixel off: colour fringes on the step
+    assert chroma_edge_error(grey, grey) == 0
+    assert chroma_edge_error(fringed, grey) > 5 / 255  # measured 8.7 8-bit codes
+    assert chroma_edge_error(2 * grey, grey) < 1e-6  # a gain is not an error
+    with pytest.raises(ValueError, match="expected two"):
+        chroma_edge_error(edge, edge)
+    with pytest.raises(ValueError, match="radius_px"):
+        FrameDemosaic(DrizzleConfig().build, radius_px=1.0)
