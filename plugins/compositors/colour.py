@@ -18,6 +18,12 @@ Two ways to a colour panorama, both wrapping the spec's compositor once per chan
   interpolation of a regular lattice of that spacing, generalised to the irregular
   layout), and the dense planes are then composited with the run's homographies.
 
+:class:`ColourPanorama` is the panorama stage's compositor when the source asks for
+colour (``colour_panorama: true``, see
+:meth:`~photonpano.stages.SourceConfig.panorama_compositor`): the spec's compositor on
+the inpainted counts (the panorama, unchanged) and :class:`CfaChannels` on the raw
+counts, from one read of the capture.
+
 Registration never sees the colour: the sources' ``sum_ranges`` inpaint the filtered
 pixels from their unfiltered neighbours, so the motion comes from the luminance of all
 pixels; these compositors read the raw counts with :meth:`read` (``source.raw_sums``,
@@ -34,7 +40,7 @@ import numpy as np
 from numpy.typing import NDArray
 from photonpano.stages import Compositor
 
-__all__ = ["CfaChannels", "FrameDemosaic", "cfa_corrector"]
+__all__ = ["CfaChannels", "FrameDemosaic", "ColourPanorama", "cfa_corrector"]
 
 CHANNELS = ("R", "G", "B")
 
@@ -186,3 +192,79 @@ class FrameDemosaic(_PerChannel):
         for part, mask, inverse, covered in zip(self._parts, self._masks, self._inverse, self._covered):
             dense = np.stack([self._filter(frame * mask) for frame in counts]) * inverse
             part.feed(dense, n_frames, homographies, covered if weights is None else covered * weights)
+
+
+class ColourPanorama(Compositor):
+    """The panorama and its colour planes in one pass: the panorama stage's colour compositor.
+
+    Feeds the spec's compositor the source's corrected counts (filtered pixels inpainted,
+    what ``sum_ranges`` returns: the panorama is the one without colour) and a
+    :class:`CfaChannels` of the same compositor the raw counts, from one read of each
+    sub-batch. :meth:`finish` returns the panorama with ``colour`` set.
+
+    Args:
+        make: builds the spec's compositor (its config's ``build``).
+    """
+
+    def __init__(self, make: Callable[[], Compositor]) -> None:
+        """Build the panorama's and the colour planes' compositors."""
+        self._flux, self._colour = make(), CfaChannels(make)
+        self.scale = self._flux.scale
+
+    def prepare(self, canvas: Any, source: Any) -> None:
+        """Prepare both on ``canvas`` (see :meth:`Compositor.prepare`).
+
+        Raises:
+            ValueError: if the source has no colour filter layout.
+        """
+        self._corrector = cfa_corrector(source, "colour_panorama")
+        self._flux.prepare(canvas, source)
+        self._colour.prepare(canvas, source)
+
+    def read(self, source: Any, edges: NDArray[np.int64]) -> NDArray[np.uint16]:
+        """(2, B, H, W) uint16: the corrected (inpainted) and the raw counts of ``edges``."""
+        raw = source.raw_sums(edges)
+        fixed = self._corrector.geometry(raw)
+        out = np.empty((2, *fixed.shape), fixed.dtype)
+        out[1] = fixed  # first: apply inpaints in place when the geometry is the identity
+        out[0] = self._corrector.apply(raw, np.asarray(edges, np.int64))
+        return out
+
+    def feed(self, counts: NDArray, n_frames: NDArray[np.int64], homographies: NDArray[np.float64],
+             weights: NDArray[np.float32] | None = None) -> None:
+        """Feed the corrected counts to the panorama and the raw ones to the colour planes."""
+        self._flux.feed(counts[0], n_frames, homographies, weights)
+        self._colour.feed(counts[1], n_frames, homographies, weights)
+
+    def fork(self) -> ColourPanorama | None:
+        """An empty copy on the same canvas, if both compositors fork."""
+        flux, colour = self._flux.fork(), self._colour.fork()
+        if flux is None or colour is None:
+            return None
+        other = copy.copy(self)
+        other._flux, other._colour = flux, colour
+        return other
+
+    def join(self, other: Compositor) -> None:
+        """Add a fork's sums."""
+        self._flux.join(other._flux)
+        self._colour.join(other._colour)
+
+    def finish(self) -> Any:
+        """The panorama (see :meth:`Compositor.finish`) with ``colour``: (Hc, Wc, 3) float32 R, G, B."""
+        import dataclasses
+
+        return dataclasses.replace(self._flux.finish(), colour=self._colour.finish().flux)
+
+
+def panorama_compositor(config: Any, build: Callable[[], Compositor]) -> Compositor:
+    """The panorama stage's compositor of a source config with ``colour_panorama``.
+
+    Args:
+        config: a source config with a ``colour_panorama`` field.
+        build: builds the spec's compositor.
+
+    Returns:
+        :class:`ColourPanorama` of ``build`` when ``config.colour_panorama``, else ``build()``.
+    """
+    return ColourPanorama(build) if getattr(config, "colour_panorama", False) else build()

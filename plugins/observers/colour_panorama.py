@@ -7,7 +7,11 @@ The SwissSPAD2 colour half array has red, green or blue filters on one pixel in 
 panorama with the colour compositor :class:`~photonpano.plugins.compositors.colour.CfaChannels`
 (demosaic through motion: each detection splatted into its own colour plane by the
 spec's compositor) on the run's homographies and canvas, from the capture still open
-(``photonpano_panorama_finished``). Hot/dead pixels are left out.
+(``photonpano_panorama_finished``). Hot/dead pixels are left out. In a run the panorama
+stage has already composited the colour planes in the same pass as the panorama
+(:class:`~photonpano.plugins.compositors.colour.ColourPanorama`, ``panorama.colour``);
+this observer then only writes them, and composites them itself only for a panorama
+without them.
 
 Outputs in the run folder: ``panorama_rgb.npy`` ((Hc, Wc, 3) float32 linear flux in
 photons/s per channel, R, G, B; NaN where a channel saw nothing), the same as a float32
@@ -72,8 +76,10 @@ def photonpano_panorama_finished(panorama: Any, spec: Any, source: Any, out_dir:
     from photonpano.outputs import atomic_path, save_npy
     from photonpano.photons import linear_to_srgb
 
-    rgb = colour_panorama(source, panorama.homographies, panorama.flux.shape[:2], make=spec.compositor.build,
-                          subbatch_px=spec.panorama_subbatch_px)
+    rgb = getattr(panorama, "colour", None)
+    if rgb is None:
+        rgb = colour_panorama(source, panorama.homographies, panorama.flux.shape[:2], make=spec.compositor.build,
+                              subbatch_px=spec.panorama_subbatch_px)
     save_npy(out_dir / "panorama_rgb.npy", rgb)
     with atomic_path(out_dir / "panorama_rgb.tif") as tmp:
         write_flux_tiff(tmp, rgb)

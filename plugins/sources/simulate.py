@@ -154,6 +154,16 @@ class SimulateConfig(SourceConfig):
             raise ValueError("colour_panorama needs cfa (the colour filter array layout)")
         return self
 
+    def panorama_compositor(self, build):
+        """The panorama stage's compositor (see :meth:`SourceConfig.panorama_compositor`).
+
+        With ``colour_panorama`` the panorama and its colour planes in one pass
+        (:class:`~photonpano.plugins.compositors.colour.ColourPanorama`); else ``build()``.
+        """
+        from photonpano.plugins.compositors.colour import panorama_compositor
+
+        return panorama_compositor(self, build)
+
     def build(self) -> SimulatedCapture:
         """Simulate the capture (takes about 0.5 ms per binary frame)."""
         return SimulatedCapture(self)
