@@ -10,7 +10,8 @@ compositor (``drizzle``, noise-adaptive, scale 1):
 
 - ``motion true-H`` / ``motion est-H``: demosaic through motion
   (:class:`~photonpano.plugins.compositors.colour.CfaChannels`: each detection splatted
-  into its own colour plane), with the true and the estimated homographies;
+  into its own colour plane), with the true homographies, and the run's own colour
+  panorama (``colour_panorama: true``, the estimated homographies);
 - ``frame-dm r2`` / ``r3``: the baseline (:class:`~photonpano.plugins.compositors.colour.FrameDemosaic`):
   each sub-batch's sparse colour plane interpolated to every frame pixel (normalised
   convolution with a tent of half-width 2 or 3 frame pixels, the irregular layout's
@@ -87,7 +88,7 @@ def main() -> None:
         source_spec = {"plugin": "simulate", "photo": str(PHOTOS / f"{name}.jpg"), "cfa": "colorspad",
                        "frames": args.frames, "flux": args.flux, "height": args.height, "width": args.width,
                        "scene_width": args.scene_width, "speed_px_per_frame": 80 / args.frames,
-                       "vibration_px": 3.0}
+                       "vibration_px": 3.0, "colour_panorama": True}
         spec = validate_spec(apply_overrides({"source": source_spec}, args.overrides), host, origin=name)
         source = spec.source.build()
         t0 = time.perf_counter()
@@ -98,11 +99,12 @@ def main() -> None:
         true_h, shape = canvas_from_scene @ source.ground_truth, pano.flux.shape
         truth = colour_scene_on_canvas(source, canvas_from_scene, shape)
         make, sub = spec.compositor.build, spec.panorama_subbatch_px
-        runs = {"motion true-H": (CfaChannels(make), true_h), "motion est-H": (CfaChannels(make), pano.homographies),
+        runs = {"motion true-H": (CfaChannels(make), true_h),
                 "frame-dm r2": (FrameDemosaic(make, radius_px=2.0), true_h),
                 "frame-dm r3": (FrameDemosaic(make, radius_px=3.0), true_h)}
         panos = {key: compose(source, h, comp, subbatch_px=sub, canvas_shape=shape).flux
                  for key, (comp, h) in runs.items()}
+        panos = {"motion true-H": panos.pop("motion true-H"), "motion est-H": pano.colour, **panos}
         scores = score(panos, truth)
         for key, (dbs, chroma) in scores.items():
             print(f"{name:>20} {key:>14} {dbs[0]:>7.2f} {dbs[1]:>6.2f} {dbs[2]:>6.2f} {chroma:>7.2f}")
