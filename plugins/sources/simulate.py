@@ -139,7 +139,9 @@ class SimulateConfig(SourceConfig):
     """Colour filter array of the simulated sensor, as the SwissSPAD sources' ``cfa``: an RGB
     image (white = no filter, pure red/green/blue = that filter) or an ``.npy`` of codes
     (-1 none, 0 R, 1 G, 2 B), cropped to its top-left ``height x width``; ``colorspad``:
-    the bundled real SwissSPAD2 colour half-array layout. None: a monochrome sensor."""
+    the bundled real SwissSPAD2 colour half-array layout. None: a monochrome sensor. The
+    moving disc, hot pixels and dark counts are added alike behind every filter (hot
+    pixels are not inpainted)."""
     cfa_transmission: Annotated[float, Field(gt=0, le=1)] = 1 / 3
     """Filter transmission: a pixel behind filter c sees ``cfa_transmission`` times the
     photo's linear channel c (an unfiltered pixel sees the luminance). 1/3: a filter
