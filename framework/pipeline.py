@@ -346,7 +346,7 @@ class Stages:
         """The panorama of every binary frame by the spec's compositor (:func:`photonpano.compose.compose`)."""
         from .compose import compose
 
-        return compose(self.source, homographies, self.spec.compositor.build(),
+        return compose(self.source, homographies, self.spec.source.panorama_compositor(self.spec.compositor.build),
                        subbatch_px=self.spec.panorama_subbatch_px, progress=progress, executor=executor)
 
     def level_statistics(self, result: LevelResult) -> dict[str, Any]:

@@ -176,11 +176,16 @@ class Panorama:
             (weighted by the compositor's kernel; (Hc, Wc, C) with channels).
         homographies: (T, 3, 3) float64 frame-to-canvas homographies (canvas pixels,
             including the super-resolution scale).
+        colour: (Hc, Wc, 3) float32 flux in photons/s behind the R, G, B filters of a
+            colour-filtered sensor, composited in the same pass as ``flux`` (see
+            :meth:`~photonpano.stages.SourceConfig.panorama_compositor`); NaN where a
+            channel saw nothing; None without colour.
     """
 
     flux: NDArray[np.float32]
     frames: NDArray[np.float32]
     homographies: NDArray[np.float64]
+    colour: NDArray[np.float32] | None = None
 
 
 @dataclass(frozen=True)

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import abc
 from pathlib import Path
-from typing import TYPE_CHECKING, Annotated, Any, ClassVar
+from typing import TYPE_CHECKING, Annotated, Any, Callable, ClassVar
 
 import numpy as np
 from numpy.typing import NDArray
@@ -56,6 +56,19 @@ class SourceConfig(StageConfig):
     """Config base of sources; ``build()`` returns a :class:`PhotonSource`."""
 
     stage: ClassVar[str] = "source"
+
+    def panorama_compositor(self, build: Callable[[], Compositor]) -> Compositor:
+        """The panorama stage's compositor for captures of this config.
+
+        Args:
+            build: builds the spec's compositor (its config's ``build``).
+
+        Returns:
+            ``build()`` by default; sources whose panorama holds more than the flux wrap
+            it (a colour-filtered sensor's colour planes in the same pass, see
+            :mod:`photonpano.plugins.compositors.colour`).
+        """
+        return build()
 
 
 class PhotonSource(abc.ABC):

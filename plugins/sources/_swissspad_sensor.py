@@ -90,6 +90,16 @@ class SwissSpadCorrections(SourceConfig):
             raise ValueError("colour_panorama needs cfa (the colour filter array layout)")
         return self
 
+    def panorama_compositor(self, build):
+        """The panorama stage's compositor (see :meth:`SourceConfig.panorama_compositor`).
+
+        With ``colour_panorama`` the panorama and its colour planes in one pass
+        (:class:`~photonpano.plugins.compositors.colour.ColourPanorama`); else ``build()``.
+        """
+        from photonpano.plugins.compositors.colour import panorama_compositor
+
+        return panorama_compositor(self, build)
+
 
 def _resolve(path: Path | str | None, kind: Literal["inpaint_mask", "cfa"]) -> Path | None:
     if path == "colorspad":

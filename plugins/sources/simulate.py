@@ -5,6 +5,19 @@ undone to get linear intensity, the camera's field of view follows a known path 
 it, and every binary frame is drawn from Eq. (2), ``P(1) = 1 - exp(-flux * I)``.
 Real-scene nuisances can be added (all off by default): a flickering mains lamp over part
 of the scene, a bright disc moving across it, hot pixels and dark counts.
+
+**Colour filters** (``cfa``, off by default): a colour-filtered sensor such as the
+SwissSPAD2 colour half array (red, green or blue filters on one pixel in four, the real
+layout with ``cfa: colorspad``). The photo's linear R, G, B channels are kept; an
+unfiltered pixel sees the Rec. 709 luminance ``Y = 0.2126 R + 0.7152 G + 0.0722 B`` (the
+monochrome simulation, so ``scene_flux`` is unchanged) and a pixel behind filter c sees
+``cfa_transmission * C`` (C its linear channel: a white scene gives a filtered pixel
+``cfa_transmission`` of an unfiltered pixel's photons). As the SwissSPAD sources do,
+:meth:`SimulatedCapture.sum_ranges` inpaints the filtered pixels from their unfiltered
+neighbours (registration and the main panorama see luminance at every pixel) and
+:meth:`SimulatedCapture.raw_sums` keeps them, with the layout in ``corrector.cfa``, for
+the colour compositor (:mod:`photonpano.plugins.compositors.colour`); ``scene_flux_rgb``
+is the true colour scene.
 """
 
 from __future__ import annotations
@@ -20,7 +33,7 @@ from photonpano import hookimpl
 from photonpano.errors import SourceError
 from photonpano.outputs import atomic_path
 from photonpano.stages import PhotonSource, SourceConfig
-from pydantic import Field
+from pydantic import Field, model_validator
 
 BUNDLED_PHOTO = "office_equirect.jpg"
 LAMP_RAMP_PX = 20.0
@@ -122,6 +135,36 @@ class SimulateConfig(SourceConfig):
     dark_count_rate: Annotated[float, Field(ge=0, allow_inf_nan=False)] = 0.0
     """Dark counts in counts per pixel per binary frame, on every pixel:
     ``P(1) = 1 - exp(-(flux * I + dark_count_rate))``. Not in ``scene_flux``."""
+    cfa: Literal["colorspad"] | Path | None = None
+    """Colour filter array of the simulated sensor, as the SwissSPAD sources' ``cfa``: an RGB
+    image (white = no filter, pure red/green/blue = that filter) or an ``.npy`` of codes
+    (-1 none, 0 R, 1 G, 2 B), cropped to its top-left ``height x width``; ``colorspad``:
+    the bundled real SwissSPAD2 colour half-array layout. None: a monochrome sensor. The
+    moving disc, hot pixels and dark counts are added alike behind every filter (hot
+    pixels are not inpainted)."""
+    cfa_transmission: Annotated[float, Field(gt=0, le=1)] = 1 / 3
+    """Filter transmission: a pixel behind filter c sees ``cfa_transmission`` times the
+    photo's linear channel c (an unfiltered pixel sees the luminance). 1/3: a filter
+    passing one of three equal bands of white light."""
+    colour_panorama: bool = False
+    """Also write ``panorama_rgb.npy`` / ``.tif`` / ``.png`` (needs ``cfa``), as the
+    SwissSPAD sources do."""
+
+    @model_validator(mode="after")
+    def _colour_needs_cfa(self):
+        if self.colour_panorama and self.cfa is None:
+            raise ValueError("colour_panorama needs cfa (the colour filter array layout)")
+        return self
+
+    def panorama_compositor(self, build):
+        """The panorama stage's compositor (see :meth:`SourceConfig.panorama_compositor`).
+
+        With ``colour_panorama`` the panorama and its colour planes in one pass
+        (:class:`~photonpano.plugins.compositors.colour.ColourPanorama`); else ``build()``.
+        """
+        from photonpano.plugins.compositors.colour import panorama_compositor
+
+        return panorama_compositor(self, build)
 
     def build(self) -> SimulatedCapture:
         """Simulate the capture (takes about 0.5 ms per binary frame)."""
@@ -191,15 +234,17 @@ def camera_path(config: SimulateConfig, scene_shape: tuple[int, int]) -> NDArray
     return h
 
 
-def load_scene(photo: Path, scene_width: int) -> NDArray[np.float32]:
-    """Load a photograph as linear luminance resized to ``scene_width`` pixels.
+def load_scene(photo: Path, scene_width: int, colour: bool = False) -> NDArray[np.float32]:
+    """Load a photograph as linear luminance (or colour) resized to ``scene_width`` pixels.
 
     Args:
         photo: path of an sRGB image readable by OpenCV.
         scene_width: output width in pixels (the height keeps the aspect ratio).
+        colour: return the linear R, G, B channels instead of the luminance.
 
     Returns:
-        (Hs, Ws) float32 linear luminance in [0, 1] (Rec. 709 weights).
+        (Hs, Ws) float32 linear luminance in [0, 1] (Rec. 709 weights), or with
+        ``colour`` (Hs, Ws, 3) float32 linear R, G, B in [0, 1].
 
     Raises:
         SourceError: if the file is missing or cannot be decoded.
@@ -215,8 +260,10 @@ def load_scene(photo: Path, scene_width: int) -> NDArray[np.float32]:
     # the 256 sRGB codes through a table, then the weighted channel sum: 20x faster on a
     # 13-megapixel photo than the curve evaluated per pixel (2.4 s -> 0.1 s), within 1e-7
     linear = cv2.LUT(bgr, srgb_to_linear(np.arange(256, dtype=np.float32) / np.float32(255)))
-    lum = cv2.transform(linear, np.array([[0.0722, 0.7152, 0.2126]], dtype=np.float32))  # BGR order
     height = max(1, round(bgr.shape[0] * scene_width / bgr.shape[1]))
+    if colour:
+        return np.ascontiguousarray(cv2.resize(linear, (scene_width, height), interpolation=cv2.INTER_AREA)[..., ::-1])
+    lum = cv2.transform(linear, np.array([[0.0722, 0.7152, 0.2126]], dtype=np.float32))  # BGR order
     return cv2.resize(lum, (scene_width, height), interpolation=cv2.INTER_AREA)
 
 
@@ -288,6 +335,13 @@ class SimulatedCapture(PhotonSource):
         mover_centres: (T, 2) float64 scene ``(x, y)`` of the moving disc's centre per
             frame; None without one.
         hot_pixel_mask: (H, W) bool, the hot pixels; None without them.
+        corrector: with ``cfa``, the :class:`~photonpano.plugins.sources._swissspad_sensor.SensorCorrector`
+            that inpaints the filtered pixels in :meth:`sum_ranges`; its ``cfa`` holds the
+            (H, W) int8 codes (-1 none, 0/1/2 R/G/B), as the SwissSPAD sources'; None without.
+        scene_flux_rgb: with ``cfa``, (Hs, Ws, 3) float32 true flux in photons/s behind
+            the R, G and B filters (``flux * cfa_transmission * C / exposure_s``, the
+            flickering lamp at its mean level as in ``scene_flux``), on ``scene_flux``'s
+            grid; None without.
     """
 
     def __init__(self, config: SimulateConfig) -> None:
@@ -302,29 +356,47 @@ class SimulatedCapture(PhotonSource):
 
         self.config = config
         photo = config.photo or bundled_photo()
-        scene = load_scene(photo, config.scene_width)
+        rgb = None
+        if config.cfa is not None:
+            rgb = load_scene(photo, config.scene_width, colour=True)
+            scene = rgb @ np.array([0.2126, 0.7152, 0.0722], np.float32)  # the luminance of load_scene
+        else:
+            scene = load_scene(photo, config.scene_width)
         if config.mean_intensity is not None:
-            scene = np.minimum(scene * np.float32(config.mean_intensity / max(float(scene.mean()), 1e-12)), 1)
+            gain = np.float32(config.mean_intensity / max(float(scene.mean()), 1e-12))
+            scene = np.minimum(scene * gain, 1)
+            rgb = None if rgb is None else np.minimum(rgb * gain, 1)
         self.n_frames, self.height, self.width = config.frames, config.height, config.width
         self.frame_rate_hz = config.frame_rate_hz
         self.exposure_s = 1.0 / config.frame_rate_hz
         pitch = config.pixel_pitch
-        to_scene = camera_path(config, scene.shape) @ scale_matrix(pitch)  # frame pixels -> scene pixels
+        to_scene = camera_path(config, scene.shape[:2]) @ scale_matrix(pitch)  # frame pixels -> scene pixels
         self.ground_truth = geometry.normalize(scale_matrix(1.0 / pitch) @ to_scene)
         self.lamp = lamp_factors(config)
+        level = np.float32(1)  # the flickering lamp's mean level over the capture
         if config.flicker_hz > 0:
-            mask = lamp_mask(scene.shape, config.flicker_region)
-            mean_scene = scene * (1 + mask * np.float32(self.lamp.mean() - 1))
-            self.scene_flux = (config.flux * mean_scene / self.exposure_s).astype(np.float32)
+            level = 1 + lamp_mask(scene.shape, config.flicker_region) * np.float32(self.lamp.mean() - 1)
+            self.scene_flux = (config.flux * (scene * level) / self.exposure_s).astype(np.float32)
         else:
             self.scene_flux = (config.flux * scene / self.exposure_s).astype(np.float32)
         self.scene_pitch = float(pitch)
+        self.corrector, self.scene_flux_rgb = None, None
+        if rgb is not None:
+            from ._swissspad_sensor import SensorCorrector, SwissSpadCorrections
+
+            self.corrector = SensorCorrector(SwissSpadCorrections.model_construct(cfa=config.cfa),
+                                             (config.height, config.width), None, "simulate")
+            transmission = np.float32(config.cfa_transmission)
+            self.scene_flux_rgb = (np.float32(config.flux / self.exposure_s) * transmission
+                                   * rgb * np.asarray(level)[..., None]).astype(np.float32)
+            # each pixel's intensity: channel 0 the luminance, 1-3 R, G, B through the filter
+            scene = np.concatenate([scene[..., None], transmission * rgb], axis=-1)
         self.mover_centres = None
         if config.mover_radius_px > 0:
             angle = np.deg2rad(config.mover_direction_deg)
             velocity = config.mover_speed_px_per_frame * np.array([np.cos(angle), np.sin(angle)])
             steps = np.arange(config.frames, dtype=np.float64) - (config.frames - 1) / 2
-            centre = np.array([(scene.shape[1] - 1) / 2, (scene.shape[0] - 1) / 2])
+            centre = np.array([(scene.shape[1] - 1) / 2, (scene.shape[0] - 1) / 2])  # (Hs, Ws) luminance
             self.mover_centres = centre + steps[:, None] * velocity
         self.hot_pixel_mask = None
         n_hot = round(config.hot_pixel_fraction * config.height * config.width)
@@ -342,6 +414,8 @@ class SimulatedCapture(PhotonSource):
             extras.append(f"hot pixels {config.hot_pixel_fraction:.3g}")
         if config.dark_count_rate > 0:
             extras.append(f"dark counts {config.dark_count_rate:g}")
+        if config.cfa is not None:
+            extras.append(f"cfa {Path(config.cfa).name}")
         self.name = f"simulate({', '.join([photo.name, config.path, f'flux {config.flux}', *extras])})"
 
         shape = (config.frames, config.height, config.width // 8)
@@ -382,7 +456,7 @@ class SimulatedCapture(PhotonSource):
             # the lamp's share at each frame pixel, from the frame pixel's scene coordinate
             # (the ramp of lamp_mask evaluated there; 10x cheaper than warping the mask too):
             # share = clip(a x + b y + c) for an affine to_scene, else through the division
-            axis, sign, centre = _lamp_edge(scene.shape, config.flicker_region)
+            axis, sign, centre = _lamp_edge(scene.shape[:2], config.flicker_region)
             row = to_scene[:, axis] * (sign / LAMP_RAMP_PX)
             row[:, 2] += 0.5 - sign * centre / LAMP_RAMP_PX
             affine = bool(np.all(to_scene[:, 2, :2] == 0) and np.all(to_scene[:, 2, 2] == 1))
@@ -426,8 +500,14 @@ class SimulatedCapture(PhotonSource):
             scales = np.sqrt(np.abs(np.linalg.det(to_scene[:, :2, :2] / to_scene[:, 2:, 2:])))
             disc = (centres, scales, config.mover_radius_px, np.float32(config.mover_intensity))
 
+        pick = None
+        if scene.ndim == 3:  # colour filters: each pixel's channel (0 luminance, 1-3 R, G, B)
+            pick = (self.corrector.cfa.astype(np.intp) + 1)[..., None]
+
         def intensity(t: int) -> NDArray[np.float32]:
             image = cv2.warpPerspective(scene, to_scene[t], size, flags=flags)
+            if pick is not None:
+                image = np.take_along_axis(image, pick, axis=2)[..., 0]
             if split:
                 share = lamp_share(t)
                 if isinstance(share, np.ndarray):  # (H, W), (1, W) or (H, 1)
@@ -449,7 +529,16 @@ class SimulatedCapture(PhotonSource):
         return intensity
 
     def sum_ranges(self, edges: NDArray[np.int64]) -> NDArray[np.uint16]:
-        """Count detections over frame ranges (see :meth:`PhotonSource.sum_ranges`)."""
+        """Count detections over frame ranges (see :meth:`PhotonSource.sum_ranges`).
+
+        With ``cfa`` the filtered pixels are inpainted from their unfiltered neighbours
+        (:meth:`~photonpano.plugins.sources._swissspad_sensor.SensorCorrector.apply`).
+        """
+        counts = self.raw_sums(edges)
+        return counts if self.corrector is None else self.corrector.apply(counts, np.asarray(edges, np.int64))
+
+    def raw_sums(self, edges: NDArray[np.int64]) -> NDArray[np.uint16]:
+        """(B, H, W) uint16 detections over frame ranges, filtered pixels as they are."""
         from photonpano.photons import sum_packed_ranges
 
         return sum_packed_ranges(self.cube, edges)

@@ -66,3 +66,22 @@ def test_colour_panorama_recovers_each_channel(colour_cube, tmp_path):
     assert png.shape == (254, 496, 3) and png.dtype == np.uint16
     with pytest.raises(ValueError, match="no colour filter layout"):
         colour_panorama(NpyCubeConfig(path=path, fix="colorspad").build(), homographies, (254, 496))
+
+
+def test_panorama_stage_composites_colour_in_the_same_pass(colour_cube):
+    path, _ = colour_cube
+    cfg = NpyCubeConfig(path=path, fix="colorspad", cfa="colorspad", colour_panorama=True)
+    source = cfg.build()
+    homographies = np.repeat(np.eye(3)[None], 400, axis=0)
+    from photonpano.compose import compose
+    from photonpano.plugins.compositors.colour import ColourPanorama
+
+    make = DrizzleConfig().build
+    stage = cfg.panorama_compositor(make)
+    assert isinstance(stage, ColourPanorama)
+    assert not isinstance(NpyCubeConfig(path=path, fix="colorspad", cfa="colorspad").panorama_compositor(make),
+                          ColourPanorama)
+    pano = compose(source, homographies, stage, canvas_shape=(254, 496))
+    plain = compose(source, homographies, make(), canvas_shape=(254, 496))
+    np.testing.assert_array_equal(pano.flux, plain.flux)  # the panorama is the one without colour
+    np.testing.assert_allclose(pano.colour, colour_panorama(source, homographies, (254, 496), make=make), rtol=1e-5)
