@@ -223,6 +223,10 @@ def score(panorama: Annotated[Path, typer.Argument(help="A reconstruction (PNG, 
         typer.echo(json.dumps(summary, indent=2))
     else:
         typer.echo(format_table(summary))
+
+
+@app.command()
+@one_line_errors
 def video(run: Annotated[Path, typer.Argument(help="A finished run folder (run.json, homographies.npy, "
                                               "panorama.npy).")],
           output: Annotated[Path, typer.Option("--output", "-o", help="The .mp4 file to write (must not exist "
