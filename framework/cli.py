@@ -144,8 +144,8 @@ def _execute(spec, out: Path, force: bool, host, resume: bool = False) -> dict[s
     with _observed(host):
         try:
             return run_pipeline(spec, out, host, force=force, resume=resume).summary
-        except Exception as exc:  # plugin code raising anything: one line naming it
-            if isinstance(exc, PhotonpanoError) or _state["debug"]:
+        except BaseException as exc:  # plugin code raising anything, a BaseException subclass too: one line
+            if _passes_through(exc):
                 raise
             raise _plugin_failure(exc, host, spec) from exc
 
@@ -206,7 +206,17 @@ def pano(input: Annotated[Path, typer.Argument(help="A capture: a .npy photon cu
     _report(_execute(parsed, output, force, host, resume), output)
 
 
-def _plugin_failure(exc: Exception, host, spec=None):
+def _passes_through(exc: BaseException) -> bool:
+    """Whether an exception from plugin code propagates as it is rather than as one line naming the plugin.
+
+    Expected failures (:class:`PhotonpanoError`, already one line), Ctrl-C, ``sys.exit``
+    and generator shutdown do, and everything with ``--debug``; any other exception,
+    a ``BaseException`` subclass that is not an ``Exception`` included, is a plugin's bug.
+    """
+    return _state["debug"] or isinstance(exc, (PhotonpanoError, KeyboardInterrupt, SystemExit, GeneratorExit))
+
+
+def _plugin_failure(exc: BaseException, host, spec=None):
     """One-line :class:`PluginError` for a plugin's bug; the traceback goes to the log (file)."""
     import logging
 
@@ -222,10 +232,8 @@ def _capture_spec(path: Path, host) -> dict[str, Any]:
 
     try:
         return spec_for_capture(path, host)
-    except PhotonpanoError:
-        raise
-    except Exception as exc:  # a plugin's bug: one line naming it
-        if _state["debug"]:
+    except BaseException as exc:  # a plugin's bug: one line naming it
+        if _passes_through(exc):
             raise
         raise _plugin_failure(exc, host) from exc
 
