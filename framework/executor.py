@@ -172,7 +172,8 @@ class DaskExecutor(Executor):
             when ``address`` is given.
         address: a running scheduler, e.g. ``"tcp://10.0.0.5:8786"`` (the spec's
             ``dask_address``); None starts a local cluster on 127.0.0.1.
-        timeout_s: seconds to wait for the scheduler to answer.
+        timeout_s: seconds to wait for the scheduler to accept a connection, and again
+            for its handshake (:func:`photonpano.dask_probe.check_scheduler`).
 
     Attributes:
         client: the ``distributed.Client``.
@@ -181,12 +182,13 @@ class DaskExecutor(Executor):
 
     Raises:
         MissingDependency: dask.distributed is not installed.
-        SpecError: the scheduler at ``address`` cannot be reached (names ``dask_address``).
+        SpecError: the scheduler at ``address`` cannot be reached, or what answers there
+            is not a Dask scheduler (names ``dask_address``).
     """
 
     in_process = False
 
-    def __init__(self, workers: int = 0, address: str | None = None, timeout_s: float = 5.0) -> None:
+    def __init__(self, workers: int = 0, address: str | None = None, timeout_s: float = 10.0) -> None:
         from .errors import MissingDependency, SpecError
 
         try:
@@ -196,6 +198,9 @@ class DaskExecutor(Executor):
         self._cluster = None
         self._warned: set[str] = set()
         if address:
+            from .dask_probe import check_scheduler
+
+            check_scheduler(address, timeout_s)  # a web server or a silent port: one line, not 3 EiB or a hang
             try:
                 self.client = Client(address, timeout=timeout_s, set_as_default=False)
             except (OSError, TimeoutError, ValueError) as exc:
