@@ -9,6 +9,10 @@ Environment controls:
     PHOTONPANO_DISABLE_PLUGINS: comma-separated entry-point names to block.
     PHOTONPANO_DISABLE_PLUGIN_AUTOLOAD: if set, load no entry points (for tests).
     PHOTONPANO_TRACE_PLUGINS: if set, print every hook call to stderr.
+
+A third-party plugin module imports in a daemon thread given
+:data:`PLUGIN_IMPORT_TIMEOUT_S`: one that hangs at import (a network call, a lock, a
+``sleep``) is reported as broken with a warning naming it, and the command goes on.
 """
 
 from __future__ import annotations
@@ -16,6 +20,8 @@ from __future__ import annotations
 import importlib.metadata
 import os
 import sys
+import threading
+import warnings
 from dataclasses import dataclass
 from typing import Any
 
@@ -25,10 +31,19 @@ from . import hookspecs
 from .errors import PluginError
 from .stages import STAGES, StageConfig
 
-__all__ = ["GROUP", "PluginInfo", "PluginHost"]
+__all__ = ["GROUP", "PLUGIN_IMPORT_TIMEOUT_S", "PluginInfo", "PluginHost"]
 
 GROUP = "photonpano.plugins"
 """The entry-point group that names plugin modules."""
+
+PLUGIN_IMPORT_TIMEOUT_S = 10.0
+"""Seconds a third-party plugin module may take to import (``EntryPoint.load``) before it
+is reported as hung and left out; photonpano's own plugins import without a limit. Two
+hung plugins still leave ``photonpano validate`` and ``plugins`` well under 30 s."""
+
+_HUNG: dict[str, str] = {}
+"""Entry-point targets whose import did not finish in this process -> the note reported.
+Never imported again: the thread still inside holds that module's import lock."""
 
 _REGISTER_HOOKS = {
     "source": "photonpano_register_sources",
@@ -86,7 +101,7 @@ class PluginHost:
         self.broken: dict[str, str] = {}
         self.collisions: list[str] = []
         self._dists: dict[str, tuple[str, str]] = {}
-        self._ignored: dict[str, tuple[str, str]] = {}  # entry points not loaded (collisions): their distribution
+        self._ignored: dict[str, tuple[str, str]] = {}  # entry points not loaded (collisions, hangs): their dist
         self._registries: dict[str, dict[str, type[StageConfig]]] | None = None
         for name in filter(None, os.environ.get("PHOTONPANO_DISABLE_PLUGINS", "").split(",")):
             self.pm.set_blocked(name.strip())
@@ -102,7 +117,9 @@ class PluginHost:
         photonpano's own entry points load first and keep their names: a third-party
         entry point of the same name is not loaded and is reported (in ``broken`` and
         ``collisions``). A plugin that raises anything at import, ``SystemExit``
-        included, is recorded as broken (``KeyboardInterrupt`` still interrupts).
+        included, is recorded as broken (``KeyboardInterrupt`` still interrupts), and so
+        is a third-party module whose import takes longer than
+        :data:`PLUGIN_IMPORT_TIMEOUT_S` (with a warning naming it).
         """
         eps = sorted(importlib.metadata.entry_points(group=GROUP), key=lambda ep: not _is_builtin_ep(ep))
         for ep in eps:
@@ -119,7 +136,11 @@ class PluginHost:
                 self.collisions.append(note)
                 continue
             try:
-                self.register(ep.load(), name=ep.name)
+                self.register(ep.load() if _is_builtin_ep(ep) else _load_in_time(ep, dist), name=ep.name)
+            except _Hung as hung:
+                self.broken[ep.name] = str(hung)
+                self._ignored[ep.name] = (dist, version)
+                continue
             except KeyboardInterrupt:
                 raise
             except BaseException as exc:  # a broken plugin (even one calling sys.exit) is reported, not fatal
@@ -220,6 +241,46 @@ class PluginHost:
     def versions(self) -> dict[str, str]:
         """Return distribution name -> version of every loaded plugin distribution."""
         return {dist: version for dist, version in self._dists.values()}
+
+
+class _Hung(Exception):
+    """A plugin module's import did not finish within :data:`PLUGIN_IMPORT_TIMEOUT_S`."""
+
+
+def _load_in_time(ep: importlib.metadata.EntryPoint, dist: str) -> Any:
+    """``ep.load()`` in a daemon thread, waiting at most :data:`PLUGIN_IMPORT_TIMEOUT_S` seconds.
+
+    Returns:
+        The loaded object (a plugin module).
+
+    Raises:
+        _Hung: the import did not finish in time (or hung in an earlier host of this
+            process); a one-line warning naming the entry point is issued once.
+        BaseException: whatever the import raised (``SystemExit`` and
+            ``KeyboardInterrupt`` included), re-raised in the calling thread.
+    """
+    if ep.value in _HUNG:
+        raise _Hung(_HUNG[ep.value])
+    outcome: dict[str, Any] = {}
+
+    def load() -> None:
+        try:
+            outcome["value"] = ep.load()
+        except BaseException as exc:  # handed to the caller, which decides
+            outcome["error"] = exc
+
+    thread = threading.Thread(target=load, name=f"photonpano-import-{ep.name}", daemon=True)
+    thread.start()
+    thread.join(PLUGIN_IMPORT_TIMEOUT_S)
+    if thread.is_alive():
+        note = (f"plugin {ep.name!r} of {dist} ({ep.value}): its import did not finish within "
+                f"{PLUGIN_IMPORT_TIMEOUT_S:g} s (hangs at import?); left out")
+        _HUNG[ep.value] = note
+        warnings.warn(note, stacklevel=3)
+        raise _Hung(note)
+    if "error" in outcome:
+        raise outcome["error"]
+    return outcome["value"]
 
 
 def _is_collision(reason: str) -> bool:

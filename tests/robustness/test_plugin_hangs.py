@@ -1,0 +1,67 @@
+"""A plugin that hangs at import: ``validate`` and ``plugins`` end within 30 s, naming it."""
+
+from __future__ import annotations
+
+import os
+import time
+
+import pytest
+from photonpano.host import PLUGIN_IMPORT_TIMEOUT_S
+from robust import assert_one_line_error, run_subprocess, write_plugin
+
+HANGS = """
+    import time
+
+    while True:  # e.g. waiting for a licence server that never answers
+        time.sleep(1)
+"""
+
+pytestmark = pytest.mark.slow  # each command waits PLUGIN_IMPORT_TIMEOUT_S (10 s) for the import
+
+
+def _env(tmp_path):
+    folder = write_plugin(tmp_path / "site", "hangs", HANGS, dist="stuck-plugins",
+                          entry_points={"hang-locator": "hangs"})
+    return {"PYTHONPATH": os.pathsep.join([str(folder), os.environ.get("PYTHONPATH", "")])}
+
+
+def _timed(*args, env):
+    start = time.perf_counter()
+    result = run_subprocess(*args, env=env, timeout=60)
+    return result, time.perf_counter() - start
+
+
+def _warning(stderr: str) -> str:
+    lines = [line for line in stderr.strip().splitlines() if line.startswith("warning:")]
+    assert len(lines) == 1, stderr[-2000:]
+    return lines[0]
+
+
+def test_plugins_lists_the_hung_plugin_in_time(tmp_path):
+    result, seconds = _timed("plugins", env=_env(tmp_path))
+    assert result.returncode == 0, result.stderr[-2000:]
+    assert PLUGIN_IMPORT_TIMEOUT_S <= seconds < 30
+    assert "Traceback" not in result.stderr
+    line = _warning(result.stderr)
+    assert "'hang-locator' of stuck-plugins (hangs)" in line and "did not finish within 10 s" in line
+    row = next(line for line in result.stdout.splitlines() if "hang-locator " in line)
+    assert "stuck-plugins" in row and "broken: plugin 'hang-locator'" in row
+    assert "opencv-sift" in result.stdout  # the others are listed
+
+
+def test_validate_ends_in_time_and_names_the_plugin(tmp_path):
+    spec = tmp_path / "spec.yaml"
+    spec.write_text("source: simulate\n")
+    result, seconds = _timed("validate", spec, env=_env(tmp_path))
+    assert result.returncode == 0, result.stderr[-2000:]
+    assert seconds < 30 and "hang-locator" in _warning(result.stderr)
+    assert f"{spec}: valid" in result.stdout
+
+
+def test_a_spec_using_the_hung_plugin_fails_in_one_line(tmp_path):
+    spec = tmp_path / "spec.yaml"
+    spec.write_text("source: simulate\nlocator: hang-locator\n")
+    result, seconds = _timed("validate", spec, env=_env(tmp_path))
+    assert_one_line_error(result, spec, "unknown plugin 'hang-locator'", "hang-locator is broken",
+                          "did not finish within 10 s")
+    assert seconds < 30
