@@ -248,6 +248,9 @@ class DaskExecutor(Executor):
                 for future in futures:  # in order: progress is as fresh as the slowest task
                     done(future.result())
             return self.client.gather(futures)
+        except _Carried as carried:  # a plugin's BaseException, raised here (not in Dask's event loop)
+            self.client.cancel(futures)
+            raise carried.original.with_traceback(carried.__traceback__) from None
         except BaseException:
             self.client.cancel(futures)
             raise
@@ -264,9 +267,32 @@ class DaskExecutor(Executor):
             self._cluster = None
 
 
+class _Carried(Exception):
+    """A task's ``BaseException`` that is not an ``Exception``, carried back as one.
+
+    Dask's client re-raises such an exception in its own event-loop thread, and the
+    caller waits forever; :meth:`DaskExecutor.map` raises the original (``original``,
+    with the task's traceback) in the caller instead.
+    """
+
+    def __init__(self, original: BaseException) -> None:
+        super().__init__(f"{type(original).__name__}: {original}")
+        self.original = original
+
+
 def _call(fn: Callable[..., Any], *args: Any) -> Any:
-    """Call a scattered function on a worker (the function arrives as a resolved future)."""
-    return fn(*args)
+    """Call a scattered function on a worker (the function arrives as a resolved future).
+
+    Raises:
+        _Carried: for a ``BaseException`` that is not an ``Exception``, Ctrl-C and
+            ``sys.exit`` excepted (see :class:`_Carried`); other exceptions as raised.
+    """
+    try:
+        return fn(*args)
+    except (Exception, KeyboardInterrupt, SystemExit):
+        raise
+    except BaseException as exc:
+        raise _Carried(exc).with_traceback(exc.__traceback__) from None
 
 
 def _one_thread_opencv() -> Any:

@@ -104,6 +104,21 @@ def test_a_locator_raising_a_base_exception_names_the_locator(monkeypatch, tmp_p
     assert not (tmp_path / "out").exists()
 
 
+@pytest.mark.slow
+def test_a_base_exception_on_a_dask_worker_names_the_locator(tmp_path):
+    """Raised on a worker, Dask's client re-raised it in its event loop and the run waited forever."""
+    pytest.importorskip("distributed")
+    env = _dist_env(tmp_path, "base_boom", BASE_BOOM_LOCATOR, {"base-boom": "base_boom"})
+    start = time.perf_counter()
+    result = run_subprocess("demo", "-o", tmp_path / "out", *TINY, "--set", "mosaic.locator=base-boom", "--set",
+                            "executor=dask", "--set", "workers=2", env=env, timeout=120)
+    assert time.perf_counter() - start < 60 and result.returncode == 1, result.stderr[-2000:]
+    assert "Traceback" not in result.stderr
+    errors = [line for line in result.stderr.splitlines() if line.startswith("error:")]
+    assert len(errors) == 1 and "locator (base-boom)" in errors[0] and "Boom: not an Exception" in errors[0]
+    assert not (tmp_path / "out").exists()
+
+
 @pytest.mark.parametrize("kind,exit_code", [(KeyboardInterrupt, 130), (SystemExit, 7)])
 def test_interrupts_from_a_locator_still_propagate(monkeypatch, tmp_path, kind, exit_code):
     """Ctrl-C (click's exit 130) and sys.exit(7) are not reported as the plugin's bug."""
