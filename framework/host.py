@@ -10,8 +10,8 @@ Environment controls:
     PHOTONPANO_DISABLE_PLUGIN_AUTOLOAD: if set, load no entry points (for tests).
     PHOTONPANO_TRACE_PLUGINS: if set, print every hook call to stderr.
 
-A third-party plugin module imports in a daemon thread given
-:data:`PLUGIN_IMPORT_TIMEOUT_S`: one that hangs at import (a network call, a lock, a
+A third-party plugin module imports, and its registration hooks run, in a daemon thread
+given :data:`PLUGIN_IMPORT_TIMEOUT_S`: one that hangs there (a network call, a lock, a
 ``sleep``) is reported as broken with a warning naming it, and the command goes on.
 """
 
@@ -23,7 +23,7 @@ import sys
 import threading
 import warnings
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Callable
 
 import pluggy
 
@@ -37,9 +37,10 @@ GROUP = "photonpano.plugins"
 """The entry-point group that names plugin modules."""
 
 PLUGIN_IMPORT_TIMEOUT_S = 10.0
-"""Seconds a third-party plugin module may take to import (``EntryPoint.load``) before it
-is reported as hung and left out; photonpano's own plugins import without a limit. Two
-hung plugins still leave ``photonpano validate`` and ``plugins`` well under 30 s."""
+"""Seconds a third-party plugin module may take to import (``EntryPoint.load``), and each
+of its registration hooks to return, before it is reported as hung and left out (its
+other hooks are then skipped); photonpano's own plugins run without a limit. Two hung
+plugins still leave ``photonpano validate`` and ``plugins`` well under 30 s."""
 
 _HUNG: dict[str, str] = {}
 """Entry-point targets whose import did not finish in this process -> the note reported.
@@ -136,7 +137,9 @@ class PluginHost:
                 self.collisions.append(note)
                 continue
             try:
-                self.register(ep.load() if _is_builtin_ep(ep) else _load_in_time(ep, dist), name=ep.name)
+                loaded = ep.load() if _is_builtin_ep(ep) else _in_time(
+                    ep.load, ep.value, f"plugin {ep.name!r} of {dist} ({ep.value}): its import")
+                self.register(loaded, name=ep.name)
             except _Hung as hung:
                 self.broken[ep.name] = str(hung)
                 self._ignored[ep.name] = (dist, version)
@@ -183,7 +186,12 @@ class PluginHost:
             impls = getattr(self.pm.hook, hook_name).get_hookimpls()
             for impl in sorted(impls, key=lambda i: not _is_builtin(i.plugin)):
                 try:
-                    offered = list(impl.function() or [])
+                    offered = list((impl.function() if _is_builtin(impl.plugin) else _in_time(
+                        impl.function, f"hooks of {impl.plugin_name}",
+                        f"plugin {impl.plugin_name!r}: {hook_name}")) or [])
+                except _Hung as hung:
+                    self.broken[impl.plugin_name] = str(hung)
+                    continue
                 except KeyboardInterrupt:
                     raise
                 except BaseException as exc:
@@ -244,38 +252,43 @@ class PluginHost:
 
 
 class _Hung(Exception):
-    """A plugin module's import did not finish within :data:`PLUGIN_IMPORT_TIMEOUT_S`."""
+    """Plugin code (an import, a registration hook) did not finish within :data:`PLUGIN_IMPORT_TIMEOUT_S`."""
 
 
-def _load_in_time(ep: importlib.metadata.EntryPoint, dist: str) -> Any:
-    """``ep.load()`` in a daemon thread, waiting at most :data:`PLUGIN_IMPORT_TIMEOUT_S` seconds.
+def _in_time(call: Callable[[], Any], key: str, what: str) -> Any:
+    """``call()`` in a daemon thread, waiting at most :data:`PLUGIN_IMPORT_TIMEOUT_S` seconds.
+
+    Args:
+        call: the plugin code to run (``ep.load``, a registration hook).
+        key: what hung is remembered by (an entry point's target, a plugin name): it is
+            not called again in this process.
+        what: the code named in the warning, e.g. ``"plugin 'x' of dist (mod): its import"``.
 
     Returns:
-        The loaded object (a plugin module).
+        What ``call`` returned.
 
     Raises:
-        _Hung: the import did not finish in time (or hung in an earlier host of this
-            process); a one-line warning naming the entry point is issued once.
-        BaseException: whatever the import raised (``SystemExit`` and
+        _Hung: ``call`` did not finish in time (or ``key`` hung earlier in this
+            process); a one-line warning naming ``what`` is issued once.
+        BaseException: whatever ``call`` raised (``SystemExit`` and
             ``KeyboardInterrupt`` included), re-raised in the calling thread.
     """
-    if ep.value in _HUNG:
-        raise _Hung(_HUNG[ep.value])
+    if key in _HUNG:
+        raise _Hung(_HUNG[key])
     outcome: dict[str, Any] = {}
 
-    def load() -> None:
+    def run() -> None:
         try:
-            outcome["value"] = ep.load()
+            outcome["value"] = call()
         except BaseException as exc:  # handed to the caller, which decides
             outcome["error"] = exc
 
-    thread = threading.Thread(target=load, name=f"photonpano-import-{ep.name}", daemon=True)
+    thread = threading.Thread(target=run, name="photonpano-plugin-code", daemon=True)
     thread.start()
     thread.join(PLUGIN_IMPORT_TIMEOUT_S)
     if thread.is_alive():
-        note = (f"plugin {ep.name!r} of {dist} ({ep.value}): its import did not finish within "
-                f"{PLUGIN_IMPORT_TIMEOUT_S:g} s (hangs at import?); left out")
-        _HUNG[ep.value] = note
+        note = f"{what} did not finish within {PLUGIN_IMPORT_TIMEOUT_S:g} s (hangs?); left out"
+        _HUNG[key] = note
         warnings.warn(note, stacklevel=3)
         raise _Hung(note)
     if "error" in outcome:

@@ -16,11 +16,29 @@ HANGS = """
         time.sleep(1)
 """
 
+HANGS_IN_A_HOOK = """
+    import time
+
+    from photonpano import hookimpl
+
+
+    @hookimpl
+    def photonpano_register_locators():
+        while True:
+            time.sleep(1)
+
+
+    @hookimpl
+    def photonpano_register_compositors():
+        while True:
+            time.sleep(1)
+"""
+
 pytestmark = pytest.mark.slow  # each command waits PLUGIN_IMPORT_TIMEOUT_S (10 s) for the import
 
 
-def _env(tmp_path):
-    folder = write_plugin(tmp_path / "site", "hangs", HANGS, dist="stuck-plugins",
+def _env(tmp_path, code=HANGS):
+    folder = write_plugin(tmp_path / "site", "hangs", code, dist="stuck-plugins",
                           entry_points={"hang-locator": "hangs"})
     return {"PYTHONPATH": os.pathsep.join([str(folder), os.environ.get("PYTHONPATH", "")])}
 
@@ -65,3 +83,13 @@ def test_a_spec_using_the_hung_plugin_fails_in_one_line(tmp_path):
     assert_one_line_error(result, spec, "unknown plugin 'hang-locator'", "hang-locator is broken",
                           "did not finish within 10 s")
     assert seconds < 30
+
+
+def test_a_registration_hook_that_hangs_is_left_out_in_time(tmp_path):
+    """Its first hook waits the limit; its other hooks are not called."""
+    result, seconds = _timed("plugins", env=_env(tmp_path, HANGS_IN_A_HOOK))
+    assert result.returncode == 0, result.stderr[-2000:]
+    assert PLUGIN_IMPORT_TIMEOUT_S <= seconds < 2 * PLUGIN_IMPORT_TIMEOUT_S
+    line = _warning(result.stderr)
+    assert "plugin 'hang-locator': photonpano_register_" in line and "did not finish within 10 s" in line
+    assert "opencv-sift" in result.stdout
