@@ -9,6 +9,8 @@ Environment controls:
     PHOTONPANO_DISABLE_PLUGINS: comma-separated entry-point names to block.
     PHOTONPANO_DISABLE_PLUGIN_AUTOLOAD: if set, load no entry points (for tests).
     PHOTONPANO_TRACE_PLUGINS: if set, print every hook call to stderr.
+    PHOTONPANO_PLUGIN_TIMEOUT_S: seconds instead of :data:`PLUGIN_IMPORT_TIMEOUT_S`
+        (a positive number; anything else keeps the default).
 
 A third-party plugin module imports, and its registration hooks run, in a daemon thread
 given :data:`PLUGIN_IMPORT_TIMEOUT_S`: one that hangs there (a network call, a lock, a
@@ -255,8 +257,17 @@ class _Hung(Exception):
     """Plugin code (an import, a registration hook) did not finish within :data:`PLUGIN_IMPORT_TIMEOUT_S`."""
 
 
+def _time_limit() -> float:
+    """``PHOTONPANO_PLUGIN_TIMEOUT_S`` if a positive number, else :data:`PLUGIN_IMPORT_TIMEOUT_S`."""
+    try:
+        value = float(os.environ.get("PHOTONPANO_PLUGIN_TIMEOUT_S", ""))
+    except ValueError:
+        return PLUGIN_IMPORT_TIMEOUT_S
+    return value if 0 < value < float("inf") else PLUGIN_IMPORT_TIMEOUT_S
+
+
 def _in_time(call: Callable[[], Any], key: str, what: str) -> Any:
-    """``call()`` in a daemon thread, waiting at most :data:`PLUGIN_IMPORT_TIMEOUT_S` seconds.
+    """``call()`` in a daemon thread, waiting at most :data:`PLUGIN_IMPORT_TIMEOUT_S` seconds (see :func:`_time_limit`).
 
     Args:
         call: the plugin code to run (``ep.load``, a registration hook).
@@ -285,9 +296,10 @@ def _in_time(call: Callable[[], Any], key: str, what: str) -> Any:
 
     thread = threading.Thread(target=run, name="photonpano-plugin-code", daemon=True)
     thread.start()
-    thread.join(PLUGIN_IMPORT_TIMEOUT_S)
+    limit = _time_limit()
+    thread.join(limit)
     if thread.is_alive():
-        note = f"{what} did not finish within {PLUGIN_IMPORT_TIMEOUT_S:g} s (hangs?); left out"
+        note = f"{what} did not finish within {limit:g} s (hangs?); left out"
         _HUNG[key] = note
         warnings.warn(note, stacklevel=3)
         raise _Hung(note)
