@@ -279,6 +279,9 @@ class _Carried(Exception):
         super().__init__(f"{type(original).__name__}: {original}")
         self.original = original
 
+    def __reduce__(self) -> tuple[type, tuple[BaseException]]:
+        return _Carried, (self.original,)  # back to the caller with the original, not its message
+
 
 def _call(fn: Callable[..., Any], *args: Any) -> Any:
     """Call a scattered function on a worker (the function arrives as a resolved future).
