@@ -45,8 +45,9 @@ other hooks are then skipped); photonpano's own plugins run without a limit. Two
 plugins still leave ``photonpano validate`` and ``plugins`` well under 30 s."""
 
 _HUNG: dict[str, str] = {}
-"""Entry-point targets whose import did not finish in this process -> the note reported.
-Never imported again: the thread still inside holds that module's import lock."""
+"""Plugin code that did not finish in this process (an entry point's target, or ``"hooks of
+NAME"``) -> the note reported. Never called again: the thread still inside holds that
+module's import lock (or the plugin's state)."""
 
 _REGISTER_HOOKS = {
     "source": "photonpano_register_sources",
