@@ -247,16 +247,21 @@ class BinnedSource(PhotonSource):
     Args:
         source: the capture.
         factor: block size k in pixels (>= 1).
+        blocks: the block store (see :meth:`__init__`), or None.
+        frame_step: :attr:`frame_step` without a store (the block length the run plans
+            with, so that its sub-batches are the same with and without the store).
 
     Raises:
         ValueError: if ``factor`` is not a positive integer no larger than the frame.
     """
 
-    def __init__(self, source: PhotonSource, factor: int, blocks: BinnedBlocks | None = None) -> None:
+    def __init__(self, source: PhotonSource, factor: int, blocks: BinnedBlocks | None = None,
+                 frame_step: int = 1) -> None:
         """Wrap ``source``; frames are ``H // factor`` x ``W // factor`` pixels.
 
         With ``blocks`` (its photons counted once, :class:`BinnedBlocks`), ranges of whole
-        blocks are read from there and :attr:`frame_step` is the block length.
+        blocks are read from there and :attr:`frame_step` is the block length. The sums
+        are the same either way (integer counts summed exactly in float32, then scaled).
         """
         factor = int(factor)
         if factor < 1 or factor > min(source.height, source.width):
@@ -269,7 +274,7 @@ class BinnedSource(PhotonSource):
         self.name = f"{source.name} (binned {factor}x{factor})"
         self.kind = getattr(source, "kind", "binary")
         self.blocks = blocks
-        self.frame_step = blocks.block if blocks is not None else 1
+        self.frame_step = blocks.block if blocks is not None else max(1, int(frame_step))
 
     def sum_ranges(self, edges: NDArray[np.int64]) -> NDArray[np.float32]:
         """(B, H // k, W // k) float32 mean detections per sensor pixel over frame ranges ``edges``."""
@@ -278,9 +283,12 @@ class BinnedSource(PhotonSource):
             return self.blocks.mean_counts(edges)
         return bin_counts(self.source.sum_ranges(edges), self.factor)
 
-    def __reduce__(self) -> tuple[type, tuple[PhotonSource, int]]:
-        """Pickle as the capture and the binning (the block store is this process's temporary file)."""
-        return type(self), (self.source, self.factor)
+    def __reduce__(self) -> tuple[type, tuple[PhotonSource, int, None, int]]:
+        """Pickle as the capture, the binning and the frame step (the block store is this process's file).
+
+        The frame step travels: tasks in other processes then cut the same sub-batches.
+        """
+        return type(self), (self.source, self.factor, None, self.frame_step)
 
     def describe(self) -> dict[str, Any]:
         """The underlying capture's summary, with the binning."""
@@ -312,10 +320,12 @@ class RegistrationGrid:
         """Count the binned photons once for every level (:class:`BinnedBlocks`), where that pays.
 
         Only with binning (at full resolution, blocks of 25 frames would shrink a
-        packed cube only about three times), binary frames, an executor of this
-        process, and a block grid of at least 4 frames that holds every group boundary
-        (:func:`block_size`); otherwise, or if the temporary file cannot be written,
-        every level counts from the capture.
+        packed cube only about three times), binary frames and a block grid of at least
+        4 frames that holds every group boundary (:func:`block_size`). The store needs
+        an executor of this process; with another (Dask), or if the temporary file
+        cannot be written, every level counts from the capture, on the same block grid
+        (:attr:`BinnedSource.frame_step`), so that the results do not depend on the
+        executor.
 
         Args:
             boundaries: frame indices where the levels' groups start or stop.
@@ -324,11 +334,14 @@ class RegistrationGrid:
         """
         import logging
 
-        if self.factor == 1 or self.source.kind != "binary" or not executor.in_process:
+        if self.factor == 1 or self.source.kind != "binary":
             return
         capture = self.source.source
         block = block_size(np.append(boundaries, capture.n_frames), group_size)
         if block < 4:
+            return
+        self.source = BinnedSource(capture, self.factor, frame_step=block)  # the grid, with or without the store
+        if not executor.in_process:
             return
         try:
             blocks = BinnedBlocks(capture, self.factor, block, executor)

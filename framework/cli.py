@@ -26,12 +26,11 @@ from .cli_base import (
     _capture_spec,
     _host,
     _observed,
+    _passes_through,
     _plugin_failure,
-    _state,
     app,
     one_line_errors,
 )
-from .errors import PhotonpanoError
 
 
 def _execute(spec, out: Path, force: bool, host, resume: bool = False) -> dict[str, Any]:
@@ -44,8 +43,8 @@ def _execute(spec, out: Path, force: bool, host, resume: bool = False) -> dict[s
     with _observed(host):
         try:
             return run_pipeline(spec, out, host, force=force, resume=resume).summary
-        except Exception as exc:  # plugin code raising anything: one line naming it
-            if isinstance(exc, PhotonpanoError) or _state["debug"]:
+        except BaseException as exc:  # plugin code raising anything, a BaseException subclass too: one line
+            if _passes_through(exc):
                 raise
             raise _plugin_failure(exc, host, spec) from exc
 

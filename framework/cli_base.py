@@ -137,7 +137,17 @@ def _observed(host):
             host.unregister(name)
 
 
-def _plugin_failure(exc: Exception, host, spec=None):
+def _passes_through(exc: BaseException) -> bool:
+    """Whether an exception from plugin code propagates as it is rather than as one line naming the plugin.
+
+    Expected failures (:class:`PhotonpanoError`, already one line), Ctrl-C, ``sys.exit``
+    and generator shutdown do, and everything with ``--debug``; any other exception,
+    a ``BaseException`` subclass that is not an ``Exception`` included, is a plugin's bug.
+    """
+    return _state["debug"] or isinstance(exc, (PhotonpanoError, KeyboardInterrupt, SystemExit, GeneratorExit))
+
+
+def _plugin_failure(exc: BaseException, host, spec=None):
     """One-line :class:`PluginError` for a plugin's bug; the traceback goes to the log (file)."""
     import logging
 
@@ -153,9 +163,7 @@ def _capture_spec(path: Path, host) -> dict[str, Any]:
 
     try:
         return spec_for_capture(path, host)
-    except PhotonpanoError:
-        raise
-    except Exception as exc:  # a plugin's bug: one line naming it
-        if _state["debug"]:
+    except BaseException as exc:  # a plugin's bug: one line naming it
+        if _passes_through(exc):
             raise
         raise _plugin_failure(exc, host) from exc

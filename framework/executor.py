@@ -172,7 +172,8 @@ class DaskExecutor(Executor):
             when ``address`` is given.
         address: a running scheduler, e.g. ``"tcp://10.0.0.5:8786"`` (the spec's
             ``dask_address``); None starts a local cluster on 127.0.0.1.
-        timeout_s: seconds to wait for the scheduler to answer.
+        timeout_s: seconds to wait for the scheduler to accept a connection, and again
+            for its handshake (:func:`photonpano.dask_probe.check_scheduler`).
 
     Attributes:
         client: the ``distributed.Client``.
@@ -181,12 +182,13 @@ class DaskExecutor(Executor):
 
     Raises:
         MissingDependency: dask.distributed is not installed.
-        SpecError: the scheduler at ``address`` cannot be reached (names ``dask_address``).
+        SpecError: the scheduler at ``address`` cannot be reached, or what answers there
+            is not a Dask scheduler (names ``dask_address``).
     """
 
     in_process = False
 
-    def __init__(self, workers: int = 0, address: str | None = None, timeout_s: float = 5.0) -> None:
+    def __init__(self, workers: int = 0, address: str | None = None, timeout_s: float = 10.0) -> None:
         from .errors import MissingDependency, SpecError
 
         try:
@@ -196,6 +198,9 @@ class DaskExecutor(Executor):
         self._cluster = None
         self._warned: set[str] = set()
         if address:
+            from .dask_probe import check_scheduler
+
+            check_scheduler(address, timeout_s)  # a web server or a silent port: one line, not 3 EiB or a hang
             try:
                 self.client = Client(address, timeout=timeout_s, set_as_default=False)
             except (OSError, TimeoutError, ValueError) as exc:
@@ -243,6 +248,9 @@ class DaskExecutor(Executor):
                 for future in futures:  # in order: progress is as fresh as the slowest task
                     done(future.result())
             return self.client.gather(futures)
+        except _Carried as carried:  # a plugin's BaseException, raised here (not in Dask's event loop)
+            self.client.cancel(futures)
+            raise carried.original.with_traceback(carried.__traceback__) from None
         except BaseException:
             self.client.cancel(futures)
             raise
@@ -259,9 +267,35 @@ class DaskExecutor(Executor):
             self._cluster = None
 
 
+class _Carried(Exception):
+    """A task's ``BaseException`` that is not an ``Exception``, carried back as one.
+
+    Dask's client re-raises such an exception in its own event-loop thread, and the
+    caller waits forever; :meth:`DaskExecutor.map` raises the original (``original``,
+    with the task's traceback) in the caller instead.
+    """
+
+    def __init__(self, original: BaseException) -> None:
+        super().__init__(f"{type(original).__name__}: {original}")
+        self.original = original
+
+    def __reduce__(self) -> tuple[type, tuple[BaseException]]:
+        return _Carried, (self.original,)  # back to the caller with the original, not its message
+
+
 def _call(fn: Callable[..., Any], *args: Any) -> Any:
-    """Call a scattered function on a worker (the function arrives as a resolved future)."""
-    return fn(*args)
+    """Call a scattered function on a worker (the function arrives as a resolved future).
+
+    Raises:
+        _Carried: for a ``BaseException`` that is not an ``Exception``, Ctrl-C and
+            ``sys.exit`` excepted (see :class:`_Carried`); other exceptions as raised.
+    """
+    try:
+        return fn(*args)
+    except (Exception, KeyboardInterrupt, SystemExit):
+        raise
+    except BaseException as exc:
+        raise _Carried(exc).with_traceback(exc.__traceback__) from None
 
 
 def _one_thread_opencv() -> Any:

@@ -9,6 +9,12 @@ Environment controls:
     PHOTONPANO_DISABLE_PLUGINS: comma-separated entry-point names to block.
     PHOTONPANO_DISABLE_PLUGIN_AUTOLOAD: if set, load no entry points (for tests).
     PHOTONPANO_TRACE_PLUGINS: if set, print every hook call to stderr.
+    PHOTONPANO_PLUGIN_TIMEOUT_S: seconds instead of :data:`PLUGIN_IMPORT_TIMEOUT_S`
+        (a positive number; anything else keeps the default).
+
+A third-party plugin module imports, and its registration hooks run, in a daemon thread
+given :data:`PLUGIN_IMPORT_TIMEOUT_S`: one that hangs there (a network call, a lock, a
+``sleep``) is reported as broken with a warning naming it, and the command goes on.
 """
 
 from __future__ import annotations
@@ -16,8 +22,10 @@ from __future__ import annotations
 import importlib.metadata
 import os
 import sys
+import threading
+import warnings
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Callable
 
 import pluggy
 
@@ -25,10 +33,21 @@ from . import hookspecs
 from .errors import PluginError
 from .stages import STAGES, StageConfig
 
-__all__ = ["GROUP", "PluginInfo", "PluginHost"]
+__all__ = ["GROUP", "PLUGIN_IMPORT_TIMEOUT_S", "PluginInfo", "PluginHost"]
 
 GROUP = "photonpano.plugins"
 """The entry-point group that names plugin modules."""
+
+PLUGIN_IMPORT_TIMEOUT_S = 10.0
+"""Seconds a third-party plugin module may take to import (``EntryPoint.load``), and each
+of its registration hooks to return, before it is reported as hung and left out (its
+other hooks are then skipped); photonpano's own plugins run without a limit. Two hung
+plugins still leave ``photonpano validate`` and ``plugins`` well under 30 s."""
+
+_HUNG: dict[str, str] = {}
+"""Plugin code that did not finish in this process (an entry point's target, or ``"hooks of
+NAME"``) -> the note reported. Never called again: the thread still inside holds that
+module's import lock (or the plugin's state)."""
 
 _REGISTER_HOOKS = {
     "source": "photonpano_register_sources",
@@ -86,7 +105,7 @@ class PluginHost:
         self.broken: dict[str, str] = {}
         self.collisions: list[str] = []
         self._dists: dict[str, tuple[str, str]] = {}
-        self._ignored: dict[str, tuple[str, str]] = {}  # entry points not loaded (collisions): their distribution
+        self._ignored: dict[str, tuple[str, str]] = {}  # entry points not loaded (collisions, hangs): their dist
         self._registries: dict[str, dict[str, type[StageConfig]]] | None = None
         for name in filter(None, os.environ.get("PHOTONPANO_DISABLE_PLUGINS", "").split(",")):
             self.pm.set_blocked(name.strip())
@@ -102,7 +121,9 @@ class PluginHost:
         photonpano's own entry points load first and keep their names: a third-party
         entry point of the same name is not loaded and is reported (in ``broken`` and
         ``collisions``). A plugin that raises anything at import, ``SystemExit``
-        included, is recorded as broken (``KeyboardInterrupt`` still interrupts).
+        included, is recorded as broken (``KeyboardInterrupt`` still interrupts), and so
+        is a third-party module whose import takes longer than
+        :data:`PLUGIN_IMPORT_TIMEOUT_S` (with a warning naming it).
         """
         eps = sorted(importlib.metadata.entry_points(group=GROUP), key=lambda ep: not _is_builtin_ep(ep))
         for ep in eps:
@@ -119,7 +140,13 @@ class PluginHost:
                 self.collisions.append(note)
                 continue
             try:
-                self.register(ep.load(), name=ep.name)
+                loaded = ep.load() if _is_builtin_ep(ep) else _in_time(
+                    ep.load, ep.value, f"plugin {ep.name!r} of {dist} ({ep.value}): its import")
+                self.register(loaded, name=ep.name)
+            except _Hung as hung:
+                self.broken[ep.name] = str(hung)
+                self._ignored[ep.name] = (dist, version)
+                continue
             except KeyboardInterrupt:
                 raise
             except BaseException as exc:  # a broken plugin (even one calling sys.exit) is reported, not fatal
@@ -162,7 +189,12 @@ class PluginHost:
             impls = getattr(self.pm.hook, hook_name).get_hookimpls()
             for impl in sorted(impls, key=lambda i: not _is_builtin(i.plugin)):
                 try:
-                    offered = list(impl.function() or [])
+                    offered = list((impl.function() if _is_builtin(impl.plugin) else _in_time(
+                        impl.function, f"hooks of {impl.plugin_name}",
+                        f"plugin {impl.plugin_name!r}: {hook_name}")) or [])
+                except _Hung as hung:
+                    self.broken[impl.plugin_name] = str(hung)
+                    continue
                 except KeyboardInterrupt:
                     raise
                 except BaseException as exc:
@@ -220,6 +252,61 @@ class PluginHost:
     def versions(self) -> dict[str, str]:
         """Return distribution name -> version of every loaded plugin distribution."""
         return {dist: version for dist, version in self._dists.values()}
+
+
+class _Hung(Exception):
+    """Plugin code (an import, a registration hook) did not finish within :data:`PLUGIN_IMPORT_TIMEOUT_S`."""
+
+
+def _time_limit() -> float:
+    """``PHOTONPANO_PLUGIN_TIMEOUT_S`` if a positive number, else :data:`PLUGIN_IMPORT_TIMEOUT_S`."""
+    try:
+        value = float(os.environ.get("PHOTONPANO_PLUGIN_TIMEOUT_S", ""))
+    except ValueError:
+        return PLUGIN_IMPORT_TIMEOUT_S
+    return value if 0 < value < float("inf") else PLUGIN_IMPORT_TIMEOUT_S
+
+
+def _in_time(call: Callable[[], Any], key: str, what: str) -> Any:
+    """``call()`` in a daemon thread, waiting at most :data:`PLUGIN_IMPORT_TIMEOUT_S` seconds (see :func:`_time_limit`).
+
+    Args:
+        call: the plugin code to run (``ep.load``, a registration hook).
+        key: what hung is remembered by (an entry point's target, a plugin name): it is
+            not called again in this process.
+        what: the code named in the warning, e.g. ``"plugin 'x' of dist (mod): its import"``.
+
+    Returns:
+        What ``call`` returned.
+
+    Raises:
+        _Hung: ``call`` did not finish in time (or ``key`` hung earlier in this
+            process); a one-line warning naming ``what`` is issued once.
+        BaseException: whatever ``call`` raised (``SystemExit`` and
+            ``KeyboardInterrupt`` included), re-raised in the calling thread.
+    """
+    if key in _HUNG:
+        raise _Hung(_HUNG[key])
+    outcome: dict[str, Any] = {}
+
+    def run() -> None:
+        try:
+            outcome["value"] = call()
+        except BaseException as exc:  # handed to the caller, which decides
+            outcome["error"] = exc
+
+    thread = threading.Thread(target=run, name="photonpano-plugin-code", daemon=True)
+    thread.start()
+    limit = _time_limit()
+    thread.join(limit)
+    if thread.is_alive():
+        note = f"{what} did not finish within {limit:g} s (hangs?); left out"
+        _HUNG[key] = note
+        warnings.warn(note, stacklevel=3)
+        raise _Hung(note)
+    if "error" in outcome:
+        raise outcome["error"]
+    return outcome["value"]
 
 
 def _is_collision(reason: str) -> bool:

@@ -55,7 +55,7 @@ from .spec_errors import (
 )
 from .spec_paths import resolve_relative_paths
 from .stages import STAGES
-from .yaml_guard import load_yaml
+from .yaml_guard import control_character, load_yaml
 
 __all__ = ["DEFAULT_PLUGINS", "OutputsConfig", "spec_model", "load_spec", "validate_spec", "resolve_relative_paths",
            "apply_overrides", "dump_spec", "read_spec_file", "capture_instead_of_spec", "check_available",
@@ -330,7 +330,8 @@ def apply_overrides(data: dict[str, Any], overrides: list[str]) -> dict[str, Any
     ``stage=key`` selects a plugin and ``stage.field=value`` sets one field.
 
     Raises:
-        SpecError: for an override that is not ``path=value``.
+        SpecError: for an override that is not ``path=value``, or whose path holds a
+            control character.
     """
     import copy
 
@@ -339,6 +340,8 @@ def apply_overrides(data: dict[str, Any], overrides: list[str]) -> dict[str, Any
         dotted, sep, raw = item.partition("=")
         if not sep or not dotted.strip():
             raise SpecError(f"--set {short_repr(item)}: expected stage.field=value")
+        if control_character(dotted) is not None:
+            raise SpecError(f"--set {short_repr(item)}: the field path holds a control character")
         try:
             value = load_yaml(raw, f"--set {short_repr(item)}")[0] if raw.strip() else ""
         except SpecError as exc:

@@ -90,9 +90,9 @@ class MosaicScheme(LevelScheme):
     def template(self, task: LevelTask) -> Panorama:
         """The panorama the task's merged frames are registered against: every binary frame at its current estimate.
 
-        Composited in this process, in one pass (no forks joined): a sum split over a
-        varying number of workers rounds differently, and the registrations against it
-        would differ by up to 2e-4 px between executors.
+        Composited in this process, not on the run's executor: from binned photons with
+        bilinear warps it is cheap, and a Dask executor would ship the capture to its
+        workers for it.
         """
         return compose(task.source, task.homographies, self.make_compositor(), subbatch_px=self.subbatch_px)
 

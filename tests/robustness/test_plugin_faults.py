@@ -37,6 +37,11 @@ BOOM_LOCATOR = """
         return [BoomLocatorConfig]
 """
 
+BASE_BOOM_LOCATOR = BOOM_LOCATOR.replace("boom-locator", "base-boom").replace(
+    'raise RuntimeError("boom in register_pairs " + "x" * 5000)', 'raise Boom("not an Exception")').replace(
+    "class BoomLocator(Locator):", "class Boom(BaseException):\n        pass\n\n\n    class BoomLocator(Locator):")
+"""A locator raising a BaseException subclass that is not an Exception."""
+
 BOOM_OBSERVER = """
     from photonpano import hookimpl
 
@@ -86,6 +91,42 @@ def test_a_locator_bug_names_the_locator(monkeypatch, tmp_path):
     log = line.split("traceback in ")[1].split(";")[0]
     assert "register_pairs" in open(log).read()
     assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("executor", ["serial", "threads"])
+def test_a_locator_raising_a_base_exception_names_the_locator(monkeypatch, tmp_path, executor):
+    _host_with(monkeypatch, tmp_path, base_boom=BASE_BOOM_LOCATOR)
+    start = time.perf_counter()
+    result = invoke("demo", "-o", tmp_path / "out", *TINY, "--set", "locator=base-boom", "--set",
+                    f"executor={executor}", "--set", "workers=2")
+    assert_one_line_error(result, "locator (base-boom)", "Boom: not an Exception")
+    assert time.perf_counter() - start < 10
+    assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.slow
+def test_a_base_exception_on_a_dask_worker_names_the_locator(tmp_path):
+    """Raised on a worker, Dask's client re-raised it in its event loop and the run waited forever."""
+    pytest.importorskip("distributed")
+    env = _dist_env(tmp_path, "base_boom", BASE_BOOM_LOCATOR, {"base-boom": "base_boom"})
+    start = time.perf_counter()
+    result = run_subprocess("demo", "-o", tmp_path / "out", *TINY, "--set", "mosaic.locator=base-boom", "--set",
+                            "executor=dask", "--set", "workers=2", env=env, timeout=120)
+    assert time.perf_counter() - start < 60 and result.returncode == 1, result.stderr[-2000:]
+    assert "Traceback" not in result.stderr
+    errors = [line for line in result.stderr.splitlines() if line.startswith("error:")]
+    assert len(errors) == 1 and "locator (base-boom)" in errors[0] and "Boom: not an Exception" in errors[0]
+    assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("kind,exit_code", [(KeyboardInterrupt, 130), (SystemExit, 7)])
+def test_interrupts_from_a_locator_still_propagate(monkeypatch, tmp_path, kind, exit_code):
+    """Ctrl-C (click's exit 130) and sys.exit(7) are not reported as the plugin's bug."""
+    code = BOOM_LOCATOR.replace('raise RuntimeError("boom in register_pairs " + "x" * 5000)',
+                                f"raise {kind.__name__}(7)")
+    _host_with(monkeypatch, tmp_path, boom_locator=code)
+    result = invoke("demo", "-o", tmp_path / "out", *TINY, "--set", "locator=boom-locator")
+    assert result.exit_code == exit_code and "plugin code raised" not in result.stderr
 
 
 def test_an_observer_bug_names_the_plugin_and_hook(monkeypatch, tmp_path):
