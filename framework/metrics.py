@@ -12,8 +12,7 @@ from numpy.typing import NDArray
 from . import geometry
 
 __all__ = ["TrajectoryError", "trajectory_error", "source_trajectory_error", "psnr", "chroma_edge_error",
-           "scene_on_canvas",
-           "ground_truth_report", "plot_trajectory", "trajectory_figure", "TRAJECTORY_MIN_SPAN_PX"]
+           "scene_on_canvas", "ground_truth_report", "plot_trajectory", "trajectory_figure", "TRAJECTORY_MIN_SPAN_PX"]
 
 
 @dataclass(frozen=True)
