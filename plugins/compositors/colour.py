@@ -38,9 +38,10 @@ from typing import Any, Callable
 
 import numpy as np
 from numpy.typing import NDArray
-from photonpano.stages import Compositor
+from photonpano.stages import Compositor, SourceConfig
+from pydantic import model_validator
 
-__all__ = ["CfaChannels", "FrameDemosaic", "ColourPanorama", "cfa_corrector"]
+__all__ = ["CfaChannels", "FrameDemosaic", "ColourPanorama", "ColourSourceConfig", "cfa_corrector"]
 
 CHANNELS = ("R", "G", "B")
 
@@ -257,14 +258,26 @@ class ColourPanorama(Compositor):
         return dataclasses.replace(self._flux.finish(), colour=self._colour.finish().flux)
 
 
-def panorama_compositor(config: Any, build: Callable[[], Compositor]) -> Compositor:
-    """The panorama stage's compositor of a source config with ``colour_panorama``.
+class ColourSourceConfig(SourceConfig):
+    """A source config whose sensor may carry colour filters: the colour panorama option's rules in one place.
 
-    Args:
-        config: a source config with a ``colour_panorama`` field.
-        build: builds the spec's compositor.
+    Subclasses define ``cfa`` (the colour-filter-array layout, None without filters) and
+    ``colour_panorama`` (bool: also composite the colour planes).
 
-    Returns:
-        :class:`ColourPanorama` of ``build`` when ``config.colour_panorama``, else ``build()``.
+    Raises:
+        ValueError: (pydantic validation) ``colour_panorama`` without ``cfa``.
     """
-    return ColourPanorama(build) if getattr(config, "colour_panorama", False) else build()
+
+    @model_validator(mode="after")
+    def _colour_needs_cfa(self):
+        if self.colour_panorama and self.cfa is None:
+            raise ValueError("colour_panorama needs cfa (the colour filter array layout)")
+        return self
+
+    def panorama_compositor(self, build: Callable[[], Compositor]) -> Compositor:
+        """The panorama stage's compositor (see :meth:`SourceConfig.panorama_compositor`).
+
+        With ``colour_panorama`` the panorama and its colour planes in one pass
+        (:class:`ColourPanorama` of ``build``); else ``build()``.
+        """
+        return ColourPanorama(build) if self.colour_panorama else build()

@@ -26,8 +26,7 @@ from typing import Literal
 import numpy as np
 from numpy.typing import NDArray
 from photonpano.errors import SourceError
-from photonpano.stages import SourceConfig
-from pydantic import model_validator
+from photonpano.plugins.compositors.colour import ColourSourceConfig
 
 from ._swissspad_readout import Transform
 
@@ -57,7 +56,7 @@ def bundled_sensor_file(kind: Literal["inpaint_mask", "cfa"]) -> Path:
     return Path(str(resources.files("photonpano.plugins") / "data" / _BUNDLED[kind]))
 
 
-class SwissSpadCorrections(SourceConfig):
+class SwissSpadCorrections(ColourSourceConfig):
     """Sensor corrections shared by the SwissSPAD sources (``npy-cube``, ``swissspad-bin``).
 
     Not a plugin by itself: the sources' config classes inherit these fields.
@@ -84,21 +83,6 @@ class SwissSpadCorrections(SourceConfig):
     """Also write ``panorama_rgb.npy`` / ``.tif`` / ``.png``: each colour channel merged
     from the pixels behind that filter only (needs ``cfa``)."""
 
-    @model_validator(mode="after")
-    def _colour_needs_cfa(self):
-        if self.colour_panorama and self.cfa is None:
-            raise ValueError("colour_panorama needs cfa (the colour filter array layout)")
-        return self
-
-    def panorama_compositor(self, build):
-        """The panorama stage's compositor (see :meth:`SourceConfig.panorama_compositor`).
-
-        With ``colour_panorama`` the panorama and its colour planes in one pass
-        (:class:`~photonpano.plugins.compositors.colour.ColourPanorama`); else ``build()``.
-        """
-        from photonpano.plugins.compositors.colour import panorama_compositor
-
-        return panorama_compositor(self, build)
 
 
 def _resolve(path: Path | str | None, kind: Literal["inpaint_mask", "cfa"]) -> Path | None:

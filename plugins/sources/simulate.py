@@ -32,8 +32,9 @@ from numpy.typing import NDArray
 from photonpano import hookimpl
 from photonpano.errors import SourceError
 from photonpano.outputs import atomic_path
+from photonpano.plugins.compositors.colour import ColourSourceConfig
 from photonpano.stages import PhotonSource, SourceConfig
-from pydantic import Field, model_validator
+from pydantic import Field
 
 BUNDLED_PHOTO = "office_equirect.jpg"
 LAMP_RAMP_PX = 20.0
@@ -45,7 +46,7 @@ def bundled_photo() -> Path:
     return Path(str(resources.files("photonpano.plugins") / "data" / BUNDLED_PHOTO))
 
 
-class SimulateConfig(SourceConfig):
+class SimulateConfig(ColourSourceConfig):
     """Simulate binary frames of a camera moving across a real photograph."""
 
     plugin: Literal["simulate"] = "simulate"
@@ -150,21 +151,6 @@ class SimulateConfig(SourceConfig):
     """Also write ``panorama_rgb.npy`` / ``.tif`` / ``.png`` (needs ``cfa``), as the
     SwissSPAD sources do."""
 
-    @model_validator(mode="after")
-    def _colour_needs_cfa(self):
-        if self.colour_panorama and self.cfa is None:
-            raise ValueError("colour_panorama needs cfa (the colour filter array layout)")
-        return self
-
-    def panorama_compositor(self, build):
-        """The panorama stage's compositor (see :meth:`SourceConfig.panorama_compositor`).
-
-        With ``colour_panorama`` the panorama and its colour planes in one pass
-        (:class:`~photonpano.plugins.compositors.colour.ColourPanorama`); else ``build()``.
-        """
-        from photonpano.plugins.compositors.colour import panorama_compositor
-
-        return panorama_compositor(self, build)
 
     def build(self) -> SimulatedCapture:
         """Simulate the capture (takes about 0.5 ms per binary frame)."""
