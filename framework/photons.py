@@ -16,6 +16,7 @@ from numpy.typing import NDArray
 from .jit import cached_njit
 
 __all__ = [
+    "check_frame_edges",
     "sum_packed_ranges",
     "sum_unpacked_ranges",
     "simulate_packed_frames",
@@ -114,12 +115,30 @@ sum_packed_ranges.adds_into_out = True  # type: ignore[attr-defined]
 sum_unpacked_ranges.adds_into_out = True  # type: ignore[attr-defined]
 
 
-def _check_edges(edges, n_frames: int) -> NDArray[np.int64]:
+def check_frame_edges(edges, n_frames: int) -> NDArray[np.int64]:
+    """Frame-range edges as int64, checked against a capture of ``n_frames`` binary frames.
+
+    Args:
+        edges: (B + 1,) frame indices; range b covers frames ``edges[b]:edges[b+1]``.
+        n_frames: frames in the capture.
+
+    Returns:
+        (B + 1,) int64 edges.
+
+    Raises:
+        ValueError: if the edges are not a strictly increasing 1-D sequence or leave
+            ``[0, n_frames]``.
+    """
     edges = np.asarray(edges, dtype=np.int64)
     if edges.ndim != 1 or np.any(np.diff(edges) <= 0):
         raise ValueError(f"frame range edges must be strictly increasing, got {edges}")
     if len(edges) and (edges[0] < 0 or edges[-1] > n_frames):
         raise ValueError(f"frame ranges {edges[0]}:{edges[-1]} leave the capture of {n_frames} frames")
+    return edges
+
+
+def _check_edges(edges, n_frames: int) -> NDArray[np.int64]:
+    edges = check_frame_edges(edges, n_frames)
     if len(edges) > 1 and np.max(np.diff(edges)) > 65535:
         raise ValueError("a frame range longer than 65535 frames would overflow uint16 counts")
     return edges

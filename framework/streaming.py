@@ -277,11 +277,9 @@ def sum_ranges_by_blocks(edges: NDArray[np.int64], n_frames: int,
     Raises:
         ValueError: if the edges are not increasing or leave the frames.
     """
-    edges = np.asarray(edges, dtype=np.int64)
-    if edges.ndim != 1 or np.any(np.diff(edges) <= 0):
-        raise ValueError(f"frame range edges must be strictly increasing, got {edges}")
-    if len(edges) and (edges[0] < 0 or edges[-1] > n_frames):
-        raise ValueError(f"frame ranges {edges[0]}:{edges[-1]} leave the capture of {n_frames} frames")
+    from .photons import check_frame_edges
+
+    edges = check_frame_edges(edges, n_frames)
     out = np.zeros((max(len(edges) - 1, 0),) + tuple(out_shape), dtype=out_dtype)
     if len(edges) < 2:
         return out

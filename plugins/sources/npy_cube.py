@@ -126,9 +126,9 @@ class NpyCube(ReopenOnPickle, PhotonSource):
 
     def sum_ranges(self, edges: NDArray[np.int64]) -> NDArray[np.uint16]:
         """Count detections over frame ranges, corrected (see :meth:`PhotonSource.sum_ranges`)."""
-        edges = np.asarray(edges, dtype=np.int64)
-        if len(edges) and (edges[0] < 0 or edges[-1] > self.n_frames):
-            raise ValueError(f"frame ranges {edges[0]}:{edges[-1]} leave the capture of {self.n_frames} frames")
+        from photonpano.photons import check_frame_edges
+
+        edges = check_frame_edges(edges, self.n_frames)
         return self.corrector.apply(self.raw_sums(edges), edges)
 
     def raw_sums(self, edges: NDArray[np.int64]) -> NDArray[np.uint16]:

@@ -211,11 +211,9 @@ class Spad512(ReopenOnPickle, PhotonSource):
         Raises:
             ValueError: if the edges are not increasing or leave the capture.
         """
-        from photonpano.photons import sum_packed_ranges
+        from photonpano.photons import check_frame_edges, sum_packed_ranges
 
-        edges = np.asarray(edges, dtype=np.int64)
-        if len(edges) and (edges[0] < 0 or edges[-1] > self.n_frames):
-            raise ValueError(f"frame ranges {edges[0]}:{edges[-1]} leave the capture of {self.n_frames} frames")
+        edges = check_frame_edges(edges, self.n_frames)
         h, w = self.config.height, self.config.width
         counts = self.frames.sum_ranges(edges + self.offset, sum_packed_ranges, (h, w))
         if self.config.bit_order == "lsb":  # stored bit k of byte j is pixel 8 j + k

@@ -196,11 +196,9 @@ class SpcChallenge(ReopenOnPickle, PhotonSource):
         Raises:
             ValueError: if the edges are not increasing or leave the capture.
         """
-        from photonpano.photons import sum_packed_ranges
+        from photonpano.photons import check_frame_edges, sum_packed_ranges
 
-        edges = np.asarray(edges, dtype=np.int64)
-        if len(edges) and (edges[0] < 0 or edges[-1] > self.n_frames):
-            raise ValueError(f"frame ranges {edges[0]}:{edges[-1]} leave the capture of {self.n_frames} frames")
+        edges = check_frame_edges(edges, self.n_frames)
         channels = self.config.channels
 
         def count(block: NDArray[np.uint8], local: NDArray[np.int64], out: NDArray | None = None) -> NDArray:

@@ -166,12 +166,10 @@ class SwissSpadBin(ReopenOnPickle, PhotonSource):
         Returns:
             (B, H_raw, W_raw) uint16 counts.
         """
-        from photonpano.photons import sum_packed_ranges
+        from photonpano.photons import check_frame_edges, sum_packed_ranges
         from photonpano.plugins.sources._swissspad_readout import record_counts_to_frame
 
-        edges = np.asarray(edges, dtype=np.int64)
-        if len(edges) and (edges[0] < 0 or edges[-1] > self.n_frames):
-            raise ValueError(f"frame ranges {edges[0]}:{edges[-1]} leave the capture of {self.n_frames} frames")
+        edges = check_frame_edges(edges, self.n_frames)
         rows, nbytes = self.layout.record_shape
         counts = self.frames.sum_ranges(edges + self.offset, sum_packed_ranges, (rows, nbytes * 8))
         return record_counts_to_frame(counts, self.layout)
