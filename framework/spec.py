@@ -214,8 +214,9 @@ def _mosaic_model(host: PluginHost) -> type[BaseModel]:
             description="Locator registering each merged frame against the panorama view at its pose.")],
             Field(default_factory=lambda: default_locator(**default_locator.template_defaults))),
         template=(Annotated[_tagged(list(compositors.values())), BeforeValidator(compositor), Field(
-            description="Compositor of the panorama registered against (when the previous level did not "
-            "leave one).")], Field(default_factory=compositors[MOSAIC_PLUGINS["template"]])),
+            description="Compositor of the panorama registered against, made afresh at each mosaic level "
+            "from the photons with that level's starting estimate.")],
+            Field(default_factory=compositors[MOSAIC_PLUGINS["template"]])),
         subbatch_px=(Annotated[float, Field(gt=0, le=2, description="Sub-batch tolerance of that panorama, "
                                             "in canvas pixels.")], 0.5),
         reject_movers=(Annotated[Union[Annotated[float, Field(gt=0)], None], Field(  # noqa: UP007
