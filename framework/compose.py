@@ -112,7 +112,7 @@ def compose(source: PhotonSource, homographies: NDArray[np.float64], compositor:
         for c in run:
             executor.raise_if_cancelled()  # Ctrl-C: stop within a chunk
             chunk = edges[starts[c]:starts[c] + chunk_batches + 1]
-            part.feed(part.read(source, chunk), np.diff(chunk), to_canvas[(chunk[:-1] + chunk[1:]) // 2])
+            part.feed_ranges(chunk, part.read(source, chunk), to_canvas[(chunk[:-1] + chunk[1:]) // 2])
             if progress is not None:
                 progress(int(chunk[-1] - chunk[0]))
         return part
@@ -145,11 +145,16 @@ class BilinearCompositor(Compositor):
 
     Args:
         scale: super-resolution scale (canvas pixels per frame pixel).
+        exposures: virtual exposures kept apart for the robust merge
+            (:func:`~photonpano.robust_merge.robust_combine`; fed through
+            :meth:`feed_ranges`, a plain :meth:`feed` goes to the first); None or 1:
+            every photon merged.
     """
 
-    def __init__(self, scale: float = 1.0) -> None:
+    def __init__(self, scale: float = 1.0, exposures: int | None = None) -> None:
         """Create an unprepared compositor at ``scale``."""
         self.scale = scale
+        self.exposures = max(1, int(exposures or 1))
         self._source: PhotonSource | None = None
 
     def prepare(self, canvas: Canvas, source: PhotonSource) -> None:
@@ -157,29 +162,52 @@ class BilinearCompositor(Compositor):
         from .warping import WarpAccumulator
 
         self._canvas, self._source = canvas, source
-        self._acc = WarpAccumulator(canvas.height, canvas.width)
+        self._accs = [WarpAccumulator(canvas.height, canvas.width) for _ in range(self.exposures)]
+        self._acc = self._accs[0]
 
     def feed(self, counts: NDArray, n_frames: NDArray[np.int64], homographies: NDArray[np.float64],
              weights: NDArray[np.float32] | None = None) -> None:
         """Warp and add a sub-batch (see :meth:`Compositor.feed`)."""
         self._acc.add_many(counts, n_frames, homographies, weights=weights)
 
+    def feed_ranges(self, edges: NDArray[np.int64], counts: NDArray, homographies: NDArray[np.float64]) -> None:
+        """Warp and add a sub-batch into its virtual exposures (see :meth:`Compositor.feed_ranges`)."""
+        if self.exposures == 1:
+            return super().feed_ranges(edges, counts, homographies)
+        from .robust_merge import exposure_index
+
+        edges = np.asarray(edges, np.int64)
+        which = exposure_index(edges, len(self._canvas.homographies), self.exposures)
+        for k in np.unique(which):
+            pick = which == k
+            self._accs[k].add_many(counts[pick], np.diff(edges)[pick], homographies[pick])
+
     def fork(self) -> BilinearCompositor:
         """An empty copy on the same canvas (see :meth:`Compositor.fork`)."""
-        other = BilinearCompositor(self.scale)
+        other = BilinearCompositor(self.scale, self.exposures)
         other.prepare(self._canvas, self._source)
         return other
 
     def join(self, other: Compositor) -> None:
         """Add a fork's sums (see :meth:`Compositor.join`)."""
-        self._acc.merge(other._acc)
+        for mine, theirs in zip(self._accs, other._accs):
+            mine.merge(theirs)
 
     def finish(self) -> Panorama:
-        """The flux MLE per canvas pixel (see :meth:`Compositor.finish`)."""
+        """The flux MLE per canvas pixel (see :meth:`Compositor.finish`); robust: the exposures that agree."""
         from .intensity import estimate_radiance
 
-        flux = estimate_radiance(self._source, self._acc.counts, self._acc.frames)
-        return Panorama(flux=flux, frames=self._acc.frames, homographies=self._canvas.homographies)
+        moving = None
+        if self.exposures > 1:
+            from .robust_merge import robust_combine
+
+            sums, frames, moving = robust_combine(
+                np.stack([a.counts for a in self._accs]), np.stack([a.frames for a in self._accs]),
+                binary=getattr(self._source, "kind", "binary") == "binary", scale=self.scale)
+        else:
+            sums, frames = self._acc.counts, self._acc.frames
+        flux = estimate_radiance(self._source, sums, frames)
+        return Panorama(flux=flux, frames=frames, homographies=self._canvas.homographies, moving=moving)
 
 
 def assemble_panorama(source: PhotonSource, homographies: NDArray[np.float64], *, scale: float = 1.0,

@@ -180,12 +180,16 @@ class Panorama:
             colour-filtered sensor, composited in the same pass as ``flux`` (see
             :meth:`~photonpano.stages.SourceConfig.panorama_compositor`); NaN where a
             channel saw nothing; None without colour.
+        moving: (Hc, Wc) bool canvas pixels where a robust compositor left out the
+            observations of some virtual exposures (a moving object; see
+            :mod:`photonpano.robust_merge`); None from a compositor that merges every photon.
     """
 
     flux: NDArray[np.float32]
     frames: NDArray[np.float32]
     homographies: NDArray[np.float64]
     colour: NDArray[np.float32] | None = None
+    moving: NDArray[np.bool_] | None = None
 
 
 @dataclass(frozen=True)

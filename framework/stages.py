@@ -355,6 +355,21 @@ class Compositor(abc.ABC):
                 pixel out, e.g. pixels behind another colour filter); None: all 1.
         """
 
+    def feed_ranges(self, edges: NDArray[np.int64], counts: NDArray, homographies: NDArray[np.float64]) -> None:
+        """Add a sub-batch of summed frames, knowing which frames they are.
+
+        What :func:`~photonpano.compose.compose` calls; the default forgets the frame
+        indices and calls :meth:`feed`. A compositor that merges by time (the robust merge
+        of :mod:`photonpano.robust_merge` keeps virtual exposures apart) overrides it.
+
+        Args:
+            edges: (B + 1,) int64 frame-range edges: count image b is the sum of frames
+                ``edges[b]:edges[b + 1]``.
+            counts: (B, H, W) summed frames, as :meth:`feed`'s.
+            homographies: (B, 3, 3) float64 frame-to-canvas homographies, as :meth:`feed`'s.
+        """
+        self.feed(counts, np.diff(np.asarray(edges, np.int64)), homographies)
+
     def fork(self) -> Compositor | None:
         """Return an empty compositor on the same canvas to feed from another thread.
 

@@ -34,6 +34,7 @@ import numpy as np
 from numpy.typing import NDArray
 from photonpano import hookimpl
 from photonpano.compose import Canvas, Panorama
+from photonpano.robust_merge import DEFAULT_EXPOSURES, exposure_index, robust_combine
 from photonpano.stages import Compositor, CompositorConfig, PhotonSource
 from pydantic import Field
 
@@ -58,11 +59,18 @@ class DrizzleConfig(CompositorConfig):
     wide_px: Annotated[float, Field(gt=0, le=8)] = 2.0
     """Half-width in frame pixels of the tent that makes the wide estimate of
     ``noise_adaptive``."""
+    robust: bool = False
+    """Robust merge: keep ``robust_exposures`` runs of frames apart and leave out those that
+    disagree with the static scene at a canvas pixel (a moving object; see
+    ``photonpano.robust_merge``); the left-out regions go to ``moving.png``."""
+    robust_exposures: Annotated[int, Field(ge=3, le=64)] = DEFAULT_EXPOSURES
+    """Virtual exposures the robust merge compares (memory: that many canvases)."""
 
     def build(self) -> Drizzle:
         """Return the compositor."""
         return Drizzle(self.scale, self.kernel, self.pixfrac or 1.0 / self.scale,
-                       wide_px=self.wide_px if self.noise_adaptive else None)
+                       wide_px=self.wide_px if self.noise_adaptive else None,
+                       exposures=self.robust_exposures if self.robust else None)
 
 
 class Drizzle(Compositor):
@@ -74,21 +82,27 @@ class Drizzle(Compositor):
         pixfrac: drop size in frame pixels (square side or Gaussian FWHM).
         wide_px: half-width in frame pixels of the wide estimate that noise-adaptive
             drizzle blends in (:func:`._adaptive.blend_sums`); None: plain drizzle.
+        exposures: virtual exposures kept apart for the robust merge
+            (:func:`photonpano.robust_merge.robust_combine`, fed through :meth:`feed_ranges`;
+            a plain :meth:`feed` goes to the first); None or 1: every photon merged.
     """
 
     def __init__(self, scale: float = 1.0, kernel: str = "square", pixfrac: float = 1.0,
-                 wide_px: float | None = None) -> None:
+                 wide_px: float | None = None, exposures: int | None = None) -> None:
         """Create an unprepared compositor."""
         from . import _splat
 
         self.scale, self.kernel, self.pixfrac, self.wide_px = scale, kernel, pixfrac, wide_px
+        self.exposures = max(1, int(exposures or 1))
         self._splat = {"point": _splat.splat_point, "square": _splat.splat_square,
                        "gaussian": _splat.splat_gaussian}[kernel]
 
     def prepare(self, canvas: Canvas, source: PhotonSource) -> None:
         """Start empty sums on ``canvas`` (see :meth:`Compositor.prepare`)."""
         self._canvas, self._source = canvas, source
-        self._acc = np.zeros((*canvas.shape, 2), np.float32)  # sums and frames, interleaved
+        # sums and frames, interleaved; one pair per virtual exposure of the robust merge
+        self._accs = [np.zeros((*canvas.shape, 2), np.float32) for _ in range(self.exposures)]
+        self._acc = self._accs[0]
 
     def feed(self, counts: NDArray, n_frames: NDArray[np.int64], homographies: NDArray[np.float64],
              weights: NDArray[np.float32] | None = None) -> None:
@@ -106,28 +120,50 @@ class Drizzle(Compositor):
                 np.ascontiguousarray(weights, np.float32), self._acc)
         self._splat(*args) if self.kernel == "point" else self._splat(*args, float(self.pixfrac))
 
+    def feed_ranges(self, edges: NDArray[np.int64], counts: NDArray, homographies: NDArray[np.float64]) -> None:
+        """Splat a sub-batch into its virtual exposures (see :meth:`Compositor.feed_ranges`)."""
+        if self.exposures == 1:
+            return super().feed_ranges(edges, counts, homographies)
+        edges = np.asarray(edges, np.int64)
+        which = exposure_index(edges, len(self._canvas.homographies), self.exposures)
+        try:
+            for k in np.unique(which):
+                pick = which == k
+                self._acc = self._accs[k]
+                self.feed(counts[pick], np.diff(edges)[pick], homographies[pick])
+        finally:
+            self._acc = self._accs[0]
+
     def fork(self) -> Drizzle:
         """An empty copy on the same canvas (see :meth:`Compositor.fork`)."""
-        other = Drizzle(self.scale, self.kernel, self.pixfrac, self.wide_px)
+        other = Drizzle(self.scale, self.kernel, self.pixfrac, self.wide_px, self.exposures)
         other.prepare(self._canvas, self._source)
         return other
 
     def join(self, other: Compositor) -> None:
         """Add a fork's sums (see :meth:`Compositor.join`)."""
-        self._acc += other._acc
+        for mine, theirs in zip(self._accs, other._accs):
+            mine += theirs
 
     def finish(self) -> Panorama:
-        """The flux MLE per canvas pixel (see :meth:`Compositor.finish`)."""
+        """The flux MLE per canvas pixel (see :meth:`Compositor.finish`); robust: the exposures that agree."""
         from photonpano.intensity import estimate_radiance
 
-        sums, frames = np.ascontiguousarray(self._acc[..., 0]), np.ascontiguousarray(self._acc[..., 1])
+        moving = None
+        if self.exposures > 1:
+            stacked = np.stack(self._accs)
+            sums, frames, moving = robust_combine(
+                stacked[..., 0], stacked[..., 1], binary=getattr(self._source, "kind", "binary") == "binary",
+                scale=self.scale)
+        else:
+            sums, frames = np.ascontiguousarray(self._acc[..., 0]), np.ascontiguousarray(self._acc[..., 1])
         if self.wide_px is not None and getattr(self._source, "kind", "binary") == "binary":
             from ._adaptive import blend_sums, drop_sharpness
 
             sharpness = drop_sharpness(self.kernel, self.pixfrac * self.scale)
             sums = blend_sums(sums, frames, self.scale, self.wide_px, sharpness)
         flux = estimate_radiance(self._source, sums, frames)
-        return Panorama(flux=flux, frames=frames, homographies=self._canvas.homographies)
+        return Panorama(flux=flux, frames=frames, homographies=self._canvas.homographies, moving=moving)
 
 
 @hookimpl

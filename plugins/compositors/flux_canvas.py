@@ -9,11 +9,13 @@ sharper one; ``drizzle`` is the compositor that resolves sub-pixel detail.
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import Annotated, Literal
 
 from photonpano import hookimpl
 from photonpano.compose import BilinearCompositor
+from photonpano.robust_merge import DEFAULT_EXPOSURES
 from photonpano.stages import CompositorConfig
+from pydantic import Field
 
 __all__ = ["FluxCanvasConfig"]
 
@@ -22,10 +24,16 @@ class FluxCanvasConfig(CompositorConfig):
     """Bilinear warps of sub-batches of frames onto the canvas, flux MLE per canvas pixel."""
 
     plugin: Literal["flux-canvas"] = "flux-canvas"
+    robust: bool = False
+    """Robust merge: keep ``robust_exposures`` runs of frames apart and leave out those that
+    disagree with the static scene at a canvas pixel (a moving object; see
+    ``photonpano.robust_merge``); the left-out regions go to ``moving.png``."""
+    robust_exposures: Annotated[int, Field(ge=3, le=64)] = DEFAULT_EXPOSURES
+    """Virtual exposures the robust merge compares (memory: that many canvases)."""
 
     def build(self) -> BilinearCompositor:
         """Return the compositor at this config's ``scale``."""
-        return BilinearCompositor(self.scale)
+        return BilinearCompositor(self.scale, self.robust_exposures if self.robust else None)
 
 
 @hookimpl
