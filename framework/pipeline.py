@@ -12,6 +12,8 @@ Outputs (the contract other tools read, see ``docs/outputs.md``):
 - ``spec.yaml``: the resolved spec (defaults filled in).
 - ``report.html``: a self-contained page of the run (status, warnings, panorama,
   trajectory, levels, spec, versions; :mod:`photonpano.report`).
+- ``moving.png``: with a robust compositor, the canvas pixels where it left out a moving
+  object's observations (255), 8-bit grey.
 - optional: ``level_<k>/`` merged frames, ``trajectory.png``, ``video.mp4``.
 """
 
@@ -153,7 +155,7 @@ def _resume_state(folder, spec_text: str):
 
 def _run_into(spec: BaseModel, folder, host: PluginHost) -> RunResult:
     """Run ``spec``, writing into ``folder`` (a :class:`~photonpano.outputs.RunFolder`) unless it is None."""
-    from .png import write_panorama_png
+    from .png import write_mask_png, write_panorama_png
 
     out_dir = folder.root if folder is not None else None
     progress = start_task
@@ -189,6 +191,8 @@ def _run_into(spec: BaseModel, folder, host: PluginHost) -> RunResult:
         folder.write_with("panorama.tif", lambda path: write_flux_tiff(path, pano.flux))
         if spec.outputs.panorama_png:
             folder.write_with("panorama.png", lambda path: write_panorama_png(path, pano.flux))
+        if pano.moving is not None:
+            folder.write_with("moving.png", lambda path: write_mask_png(path, pano.moving))
     host.hook.photonpano_panorama_finished(panorama=pano, spec=spec, source=source, out_dir=out_dir)
     if folder is not None:
         folder.adopt_new_files()  # what observers wrote
@@ -197,7 +201,8 @@ def _run_into(spec: BaseModel, folder, host: PluginHost) -> RunResult:
         **run_header(spec, host, source),
         **confidence,
         "panorama": {"height": int(pano.flux.shape[0]), "width": int(pano.flux.shape[1]),
-                     "observed_fraction": float(np.isfinite(pano.flux).mean())},
+                     "observed_fraction": float(np.isfinite(pano.flux).mean()),
+                     **({} if pano.moving is None else {"moving_fraction": float(pano.moving.mean())})},
         "levels": stats,
         "timings_s": timings,
     }
@@ -245,6 +250,20 @@ def _write_video(folder, source: PhotonSource, pano: Panorama, summary: dict[str
                                                        advance=advance))
 
 
+def _template(mosaic: BaseModel) -> BaseModel:
+    """The mosaic scheme's template compositor config: robust when ``reject_movers`` is on.
+
+    A mover that enters the template (its faint ghost along its path) is not caught by
+    the disagreement test and pulls the registrations; the robust merge
+    (:mod:`photonpano.robust_merge`) keeps it out. Compositors without a ``robust`` field
+    are used as configured.
+    """
+    template = mosaic.template
+    if mosaic.reject_movers is not None and "robust" in type(template).model_fields:
+        template = template.model_copy(update={"robust": True})
+    return template
+
+
 class Stages:
     """The stages of a spec, built once for one opened capture; used by run, compare and the API.
 
@@ -284,7 +303,7 @@ class Stages:
         self.interpolator = spec.interpolator.build()
         built = {"pairwise": PairwiseScheme(self.locator, tuple(spec.pair_offsets)),
                  "mosaic": MosaicScheme(in_merged_pixels(spec.mosaic.locator, self.binning).build,
-                                        spec.mosaic.template.build,
+                                        _template(spec.mosaic).build,
                                         subbatch_px=spec.mosaic.subbatch_px,
                                         reject_movers=spec.mosaic.reject_movers)}
         self.schemes = [built[name] for name in level_schemes(spec)]

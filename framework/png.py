@@ -1,4 +1,4 @@
-"""16-bit PNG files with transparency where nothing was observed (``panorama.png``)."""
+"""PNG outputs: the panorama in 16 bits, transparent where nothing was observed (``panorama.png``), and masks."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ from numpy.typing import NDArray
 from .errors import PhotonpanoError
 from .photons import tone_map
 
-__all__ = ["write_panorama_png"]
+__all__ = ["write_panorama_png", "write_mask_png"]
 
 
 def write_panorama_png(path: Path, flux: NDArray[np.floating]) -> None:
@@ -37,6 +37,30 @@ def write_panorama_png(path: Path, flux: NDArray[np.floating]) -> None:
     alpha = np.where(np.isfinite(flux), np.uint16(65535), np.uint16(0))
     try:
         ok = cv2.imwrite(str(path), np.dstack([grey, grey, grey, alpha]), [cv2.IMWRITE_PNG_COMPRESSION, 1])
+    except cv2.error as exc:
+        raise PhotonpanoError(f"cannot write {path}: {exc}") from None
+    if not ok:
+        raise PhotonpanoError(f"cannot write {path}")
+
+
+def write_mask_png(path: Path, mask: NDArray[np.bool_]) -> None:
+    """Write a canvas mask as an 8-bit grey PNG: 255 where ``mask`` is True, 0 elsewhere (``moving.png``).
+
+    Args:
+        path: the ``.png`` file to write.
+        mask: (Hc, Wc) bool, e.g. the canvas pixels a robust compositor left observations out of.
+
+    Raises:
+        ValueError: if ``mask`` is not a non-empty 2-D array.
+        PhotonpanoError: if the file cannot be written.
+    """
+    import cv2
+
+    mask = np.asarray(mask)
+    if mask.ndim != 2 or mask.size == 0:
+        raise ValueError(f"write_mask_png: expected a non-empty (H, W) mask, got shape {mask.shape}")
+    try:
+        ok = cv2.imwrite(str(path), np.where(mask, np.uint8(255), np.uint8(0)), [cv2.IMWRITE_PNG_COMPRESSION, 9])
     except cv2.error as exc:
         raise PhotonpanoError(f"cannot write {path}: {exc}") from None
     if not ok:
