@@ -162,8 +162,9 @@ class BilinearCompositor(Compositor):
         from .warping import WarpAccumulator
 
         self._canvas, self._source = canvas, source
-        self._accs = [WarpAccumulator(canvas.height, canvas.width) for _ in range(self.exposures)]
-        self._acc = self._accs[0]
+        self._acc = WarpAccumulator(canvas.height, canvas.width)  # plain feeds; the first exposure
+        # the robust merge's other exposures, made when first fed (a fork holds the few its run spans)
+        self._accs: list[WarpAccumulator | None] = [self._acc] + [None] * (self.exposures - 1)
 
     def feed(self, counts: NDArray, n_frames: NDArray[np.int64], homographies: NDArray[np.float64],
              weights: NDArray[np.float32] | None = None) -> None:
@@ -175,10 +176,13 @@ class BilinearCompositor(Compositor):
         if self.exposures == 1:
             return super().feed_ranges(edges, counts, homographies)
         from .robust_merge import exposure_index
+        from .warping import WarpAccumulator
 
         edges = np.asarray(edges, np.int64)
         which = exposure_index(edges, len(self._canvas.homographies), self.exposures)
         for k in np.unique(which):
+            if self._accs[k] is None:
+                self._accs[k] = WarpAccumulator(self._canvas.height, self._canvas.width)
             pick = which == k
             self._accs[k].add_many(counts[pick], np.diff(edges)[pick], homographies[pick])
 
@@ -190,8 +194,12 @@ class BilinearCompositor(Compositor):
 
     def join(self, other: Compositor) -> None:
         """Add a fork's sums (see :meth:`Compositor.join`)."""
-        for mine, theirs in zip(self._accs, other._accs):
-            mine.merge(theirs)
+        for k, theirs in enumerate(other._accs):
+            if theirs is not None and self._accs[k] is None:
+                self._accs[k] = theirs
+            elif theirs is not None:
+                self._accs[k].merge(theirs)
+        self._acc = self._accs[0]
 
     def finish(self) -> Panorama:
         """The flux MLE per canvas pixel (see :meth:`Compositor.finish`); robust: the exposures that agree."""
@@ -201,8 +209,9 @@ class BilinearCompositor(Compositor):
         if self.exposures > 1:
             from .robust_merge import robust_combine
 
+            fed = [a for a in self._accs if a is not None]
             sums, frames, moving = robust_combine(
-                np.stack([a.counts for a in self._accs]), np.stack([a.frames for a in self._accs]),
+                np.stack([a.counts for a in fed]), np.stack([a.frames for a in fed]),
                 binary=getattr(self._source, "kind", "binary") == "binary", scale=self.scale)
         else:
             sums, frames = self._acc.counts, self._acc.frames

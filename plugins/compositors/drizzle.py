@@ -100,9 +100,10 @@ class Drizzle(Compositor):
     def prepare(self, canvas: Canvas, source: PhotonSource) -> None:
         """Start empty sums on ``canvas`` (see :meth:`Compositor.prepare`)."""
         self._canvas, self._source = canvas, source
-        # sums and frames, interleaved; one pair per virtual exposure of the robust merge
-        self._accs = [np.zeros((*canvas.shape, 2), np.float32) for _ in range(self.exposures)]
-        self._acc = self._accs[0]
+        self._acc = np.zeros((*canvas.shape, 2), np.float32)  # sums and frames, interleaved
+        # the robust merge's virtual exposures (the first is ``_acc``), made when first fed:
+        # a fork holds the few its run of frames spans
+        self._accs: list[NDArray[np.float32] | None] = [self._acc] + [None] * (self.exposures - 1)
 
     def feed(self, counts: NDArray, n_frames: NDArray[np.int64], homographies: NDArray[np.float64],
              weights: NDArray[np.float32] | None = None) -> None:
@@ -129,6 +130,8 @@ class Drizzle(Compositor):
         try:
             for k in np.unique(which):
                 pick = which == k
+                if self._accs[k] is None:
+                    self._accs[k] = np.zeros_like(self._accs[0])
                 self._acc = self._accs[k]
                 self.feed(counts[pick], np.diff(edges)[pick], homographies[pick])
         finally:
@@ -142,8 +145,12 @@ class Drizzle(Compositor):
 
     def join(self, other: Compositor) -> None:
         """Add a fork's sums (see :meth:`Compositor.join`)."""
-        for mine, theirs in zip(self._accs, other._accs):
-            mine += theirs
+        for k, theirs in enumerate(other._accs):
+            if theirs is not None and self._accs[k] is None:
+                self._accs[k] = theirs
+            elif theirs is not None:
+                self._accs[k] += theirs
+        self._acc = self._accs[0]
 
     def finish(self) -> Panorama:
         """The flux MLE per canvas pixel (see :meth:`Compositor.finish`); robust: the exposures that agree."""
@@ -151,7 +158,7 @@ class Drizzle(Compositor):
 
         moving = None
         if self.exposures > 1:
-            stacked = np.stack(self._accs)
+            stacked = np.stack([a for a in self._accs if a is not None])
             sums, frames, moving = robust_combine(
                 stacked[..., 0], stacked[..., 1], binary=getattr(self._source, "kind", "binary") == "binary",
                 scale=self.scale)
