@@ -100,7 +100,7 @@ def compose(source: PhotonSource, homographies: NDArray[np.float64], compositor:
         to_canvas, (ch, cw) = geometry.normalize(homographies), canvas_shape
     compositor.prepare(Canvas(ch, cw, to_canvas), source)
     edges = subbatch_edges(to_canvas, source.width, source.height, subbatch_px,
-                           frame_step=source.frame_step)
+                           compositor.frame_breaks(len(to_canvas), source.frame_step), frame_step=source.frame_step)
     executor = executor or SerialExecutor()
     starts = list(range(0, len(edges) - 1, chunk_batches))
 
@@ -170,6 +170,14 @@ class BilinearCompositor(Compositor):
              weights: NDArray[np.float32] | None = None) -> None:
         """Warp and add a sub-batch (see :meth:`Compositor.feed`)."""
         self._acc.add_many(counts, n_frames, homographies, weights=weights)
+
+    def frame_breaks(self, n_frames: int, frame_step: int = 1) -> NDArray[np.int64] | None:
+        """The virtual exposures' boundaries (see :meth:`Compositor.frame_breaks`); None without the robust merge."""
+        if self.exposures == 1:
+            return None
+        from .robust_merge import exposure_breaks
+
+        return exposure_breaks(n_frames, self.exposures, frame_step)
 
     def feed_ranges(self, edges: NDArray[np.int64], counts: NDArray, homographies: NDArray[np.float64]) -> None:
         """Warp and add a sub-batch into its virtual exposures (see :meth:`Compositor.feed_ranges`)."""

@@ -23,9 +23,10 @@ reference by more than the noise explains). The test, per exposure k and canvas 
   spread of the exposures, 1.4826 x their weighted median absolute deviation, whichever is
   larger) *and* ``tolerance`` times ``phi`` (a lamp over part of the scene, averaged over
   exposures that do not span whole periods, is no mover);
-- a morphological opening by a disc ``min_width_px`` wide drops thin disagreements (a
-  slightly misregistered edge) and points, and a dilation by ``margin_px`` takes the
-  object's blurred rim.
+- a morphological opening by a disc ``min_width_px`` wide of the pixels where any exposure
+  disagrees drops thin disagreements (a slightly misregistered edge) and points, and a
+  dilation by ``margin_px`` takes the object's blurred rim; each exposure is left out
+  where it disagrees (dilated alike) inside what the opening keeps.
 
 The panorama is then the flux of the sums over the exposures left, and the canvas
 pixels where any exposure was left out are the moving-object mask (``moving.png``).
@@ -37,7 +38,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
-__all__ = ["DEFAULT_EXPOSURES", "exposure_index", "robust_combine"]
+__all__ = ["DEFAULT_EXPOSURES", "exposure_breaks", "exposure_index", "robust_combine"]
 
 DEFAULT_EXPOSURES = 16
 """Virtual exposures a robust compositor keeps apart (20 000 frames: 1 250 frames each;
@@ -59,6 +60,24 @@ def exposure_index(edges: NDArray[np.int64], total_frames: int, exposures: int) 
     edges = np.asarray(edges, np.int64)
     middle = (edges[:-1] + edges[1:] - 1) // 2
     return np.clip(middle * exposures // max(int(total_frames), 1), 0, exposures - 1)
+
+
+def exposure_breaks(total_frames: int, exposures: int, frame_step: int = 1) -> NDArray[np.int64]:
+    """Frame indices where one virtual exposure ends and the next begins (sub-batches must break there).
+
+    Args:
+        total_frames: frames T of the capture.
+        exposures: number of virtual exposures (>= 1).
+        frame_step: breaks are rounded up to multiples of this (sources counted in blocks).
+
+    Returns:
+        (E,) int64 sorted unique breaks in ``(0, T)``: ``ceil(k T / exposures)`` for k = 1 .. exposures - 1.
+    """
+    step = max(1, int(frame_step))
+    k = np.arange(1, max(1, int(exposures)), dtype=np.int64)
+    at = -(-(k * int(total_frames)) // int(exposures))
+    at = -(-at // step) * step
+    return np.unique(at[(at > 0) & (at < total_frames)])
 
 
 def _weighted_median(values: NDArray[np.float32], weights: NDArray[np.float32]) -> NDArray[np.float32]:
@@ -142,10 +161,13 @@ def robust_combine(sums: NDArray[np.float32], frames: NDArray[np.float32], *, bi
     opening = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (width, width))
     margin = max(0, int(round(margin_px * scale)))
     grow = np.ones((2 * margin + 1, 2 * margin + 1), np.uint8)
+    # the width test on the union over the exposures: a slow mover disagrees in each exposure only in a thin
+    # crescent (its leading and trailing edges), which an opening per exposure would drop
+    wide = cv2.dilate(cv2.morphologyEx(out.max(axis=0), cv2.MORPH_OPEN, opening), grow) > 0
     rejected = np.zeros(sums.shape, bool)
     for k in range(len(out)):
         if out[k].any():
-            rejected[k] = cv2.dilate(cv2.morphologyEx(out[k], cv2.MORPH_OPEN, opening), grow) > 0
+            rejected[k] = (cv2.dilate(out[k], grow) > 0) & wide
     kept_s = np.where(rejected, 0, sums).sum(0)
     kept_n = np.where(rejected, 0, frames).sum(0)
     empty = (kept_n <= 0) & (frames.sum(0) > 0)  # every exposure left out: keep them all

@@ -355,6 +355,18 @@ class Compositor(abc.ABC):
                 pixel out, e.g. pixels behind another colour filter); None: all 1.
         """
 
+    def frame_breaks(self, n_frames: int, frame_step: int = 1) -> NDArray[np.int64] | None:
+        """Frame indices where the sub-batches fed to :meth:`feed_ranges` must end (None: anywhere).
+
+        Args:
+            n_frames: frames T of the capture.
+            frame_step: the source counts frames in blocks of this many (breaks fall on multiples).
+
+        Returns:
+            (E,) int64 sorted frame indices in ``(0, T)``, or None.
+        """
+        return None
+
     def feed_ranges(self, edges: NDArray[np.int64], counts: NDArray, homographies: NDArray[np.float64]) -> None:
         """Add a sub-batch of summed frames, knowing which frames they are.
 

@@ -34,7 +34,7 @@ import numpy as np
 from numpy.typing import NDArray
 from photonpano import hookimpl
 from photonpano.compose import Canvas, Panorama
-from photonpano.robust_merge import DEFAULT_EXPOSURES, exposure_index, robust_combine
+from photonpano.robust_merge import DEFAULT_EXPOSURES, exposure_breaks, exposure_index, robust_combine
 from photonpano.stages import Compositor, CompositorConfig, PhotonSource
 from pydantic import Field
 
@@ -120,6 +120,10 @@ class Drizzle(Compositor):
         args = (counts, np.asarray(n_frames, np.int64), np.ascontiguousarray(homographies, np.float64),
                 np.ascontiguousarray(weights, np.float32), self._acc)
         self._splat(*args) if self.kernel == "point" else self._splat(*args, float(self.pixfrac))
+
+    def frame_breaks(self, n_frames: int, frame_step: int = 1) -> NDArray[np.int64] | None:
+        """The virtual exposures' boundaries (see :meth:`Compositor.frame_breaks`); None without the robust merge."""
+        return exposure_breaks(n_frames, self.exposures, frame_step) if self.exposures > 1 else None
 
     def feed_ranges(self, edges: NDArray[np.int64], counts: NDArray, homographies: NDArray[np.float64]) -> None:
         """Splat a sub-batch into its virtual exposures (see :meth:`Compositor.feed_ranges`)."""
