@@ -100,7 +100,10 @@ def compose(source: PhotonSource, homographies: NDArray[np.float64], compositor:
         to_canvas, (ch, cw) = geometry.normalize(homographies), canvas_shape
     compositor.prepare(Canvas(ch, cw, to_canvas), source)
     edges = subbatch_edges(to_canvas, source.width, source.height, subbatch_px,
-                           compositor.frame_breaks(len(to_canvas), source.frame_step), frame_step=source.frame_step)
+                           frame_step=source.frame_step)
+    breaks = compositor.frame_breaks(len(to_canvas), source.frame_step)
+    if breaks is not None:  # split the sub-batches across them, the others as they were
+        edges = np.union1d(edges, np.asarray(breaks, np.int64))
     executor = executor or SerialExecutor()
     starts = list(range(0, len(edges) - 1, chunk_batches))
 
