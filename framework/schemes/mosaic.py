@@ -168,11 +168,12 @@ def mask_disagreement(merged: MergedFrames, views: MergedFrames, sigmas: float =
     For each frame, the difference ``flux - gain * view`` (gain: ratio of the medians over
     pixels both trust) is smoothed by a Gaussian of ``smooth_px``; pixels whose smoothed
     difference exceeds ``sigmas`` times its robust standard deviation (1.4826 x median
-    absolute value, per quantile bin of the view's flux: the flux estimate's noise grows
-    with the flux, and one spread for the frame untrusted the bright regions of static
-    high-contrast scenes) are candidates; a morphological opening by a disc ``min_width_px``
+    absolute value) are candidates; a morphological opening by a disc ``min_width_px``
     wide drops thin ones (a misregistered edge) and points (a misregistered star), and
-    what is left is untrusted with a margin of ``margin_px``.
+    what is left is untrusted with a margin of ``margin_px``. The test assumes the
+    difference's spread is the same everywhere, which the flux estimate's noise is not
+    (it grows with the flux): on static high-contrast scenes it untrusts bright regions
+    too, which is why the scheme leaves it off by default.
 
     Args:
         merged: G merged frames (flux in photons/s, NaN where unobserved).
@@ -205,42 +206,9 @@ def mask_disagreement(merged: MergedFrames, views: MergedFrames, sigmas: float =
             continue
         gain = float(np.median(a[both])) / max(float(np.median(b[both])), 1e-30)
         difference = cv2.GaussianBlur(np.where(both, a - gain * b, 0).astype(np.float32), (0, 0), smooth_px)
-        spread = _spread_by_level(difference, cv2.GaussianBlur(np.where(both, b, 0).astype(np.float32),
-                                                               (0, 0), smooth_px), both)
+        spread = 1.4826 * float(np.median(np.abs(difference[both]))) + 1e-30
         outliers = (np.abs(difference) > sigmas * spread).astype(np.uint8)
         outliers = cv2.morphologyEx(outliers, cv2.MORPH_OPEN, opening)  # thin edges and points go
         outliers = cv2.dilate(outliers, kernel)
         masks[i] &= outliers == 0
     return MergedFrames(merged.flux, merged.frames, merged.images, masks, merged.ids)
-
-
-def _spread_by_level(difference: NDArray[np.float32], level: NDArray[np.float32], both: NDArray[np.bool_],
-                     bins: int = 8, min_pixels: int = 200) -> NDArray[np.float32]:
-    """Robust standard deviation of ``difference`` per pixel, as a function of the view's ``level``.
-
-    The flux estimate's noise grows with the flux, so one spread for the whole frame
-    untrusts bright regions of static scenes: the pixels both trust are split into
-    ``bins`` quantile bins of ``level`` and each bin gets 1.4826 x the median absolute
-    difference of its pixels (a mover covers a small part of each bin). Bins of fewer than
-    ``min_pixels`` pixels take the frame-wide value.
-
-    Args:
-        difference: (H, W) float32 smoothed difference of a merged frame and its view.
-        level: (H, W) float32 the view's smoothed flux.
-        both: (H, W) bool pixels both trust.
-        bins: number of quantile bins of ``level``.
-        min_pixels: smallest bin given its own spread.
-
-    Returns:
-        (H, W) float32 spread per pixel (> 0).
-    """
-    values, levels = np.abs(difference[both]), level[both]
-    overall = 1.4826 * float(np.median(values)) + 1e-30
-    edges = np.quantile(levels, np.linspace(0, 1, bins + 1)[1:-1])
-    which = np.searchsorted(edges, levels)
-    table = np.full(bins, overall, np.float32)
-    for j in range(bins):
-        chosen = values[which == j]
-        if len(chosen) >= min_pixels:
-            table[j] = max(1.4826 * float(np.median(chosen)), 1e-30)
-    return table[np.searchsorted(edges, level)]
