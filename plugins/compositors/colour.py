@@ -96,6 +96,13 @@ class _PerChannel(Compositor):
         """(B, H, W) uint16 raw counts: sensor geometry fixed, filtered pixels kept."""
         return self._corrector.geometry(source.raw_sums(edges))
 
+    def frame_breaks(self, n_frames: int, frame_step: int = 1) -> NDArray[np.int64] | None:
+        """The channel compositors' (see :meth:`Compositor.frame_breaks`): the same sub-batches as the panorama's.
+
+        The channels themselves are fed without frame indices (no robust merge).
+        """
+        return self._parts[0].frame_breaks(n_frames, frame_step)
+
     def fork(self) -> _PerChannel | None:
         """An empty copy on the same canvas, if the channel compositors fork."""
         parts = [part.fork() for part in self._parts]
@@ -236,6 +243,19 @@ class ColourPanorama(Compositor):
         """Feed the corrected counts to the panorama and the raw ones to the colour planes."""
         self._flux.feed(counts[0], n_frames, homographies, weights)
         self._colour.feed(counts[1], n_frames, homographies, weights)
+
+    def frame_breaks(self, n_frames: int, frame_step: int = 1) -> NDArray[np.int64] | None:
+        """The panorama compositor's (see :meth:`Compositor.frame_breaks`)."""
+        return self._flux.frame_breaks(n_frames, frame_step)
+
+    def feed_ranges(self, edges: NDArray[np.int64], counts: NDArray, homographies: NDArray[np.float64]) -> None:
+        """The corrected counts to the panorama with their frames (its robust merge), the raw ones to the colour planes.
+
+        The colour planes are merged without the robust merge (their compositors are fed
+        without frame indices).
+        """
+        self._flux.feed_ranges(edges, counts[0], homographies)
+        self._colour.feed(counts[1], np.diff(np.asarray(edges, np.int64)), homographies)
 
     def fork(self) -> ColourPanorama | None:
         """An empty copy on the same canvas, if both compositors fork."""
