@@ -2,7 +2,7 @@
 
 import numpy as np
 import pytest
-from photonpano.robust_merge import exposure_index, robust_combine
+from photonpano.robust_merge import exposure_breaks, exposure_index, robust_combine
 
 
 def _exposures(rng, k=16, shape=(80, 120), frames=600, disc_in=(3, 4)):
@@ -48,6 +48,37 @@ def test_shapes_and_exposure_indices():
     assert s.shape == (5, 6) and not moving.any() and float(n.sum()) == 60
     edges = np.array([0, 10, 990, 1000, 2500, 4000])
     np.testing.assert_array_equal(exposure_index(edges, 4000, 4), [0, 0, 0, 1, 3])
+    np.testing.assert_array_equal(exposure_breaks(4000, 4), [1000, 2000, 3000])
+    np.testing.assert_array_equal(exposure_breaks(15, 16), np.arange(1, 15))  # a frame each, at most
+    np.testing.assert_array_equal(exposure_breaks(4000, 3, frame_step=64), [1344, 2688])  # ceil to blocks
+
+
+def test_compose_breaks_sub_batches_only_at_the_exposures():
+    """A static camera makes one sub-batch of the whole capture; the robust merge needs one per exposure."""
+    from photonpano.compose import BilinearCompositor, compose
+    from photonpano.stages import Compositor
+
+    class Recorder(BilinearCompositor):
+        def feed_ranges(self, edges, counts, homographies):
+            seen.extend(np.asarray(edges).tolist())
+            super().feed_ranges(edges, counts, homographies)
+
+        def fork(self):
+            return None
+
+    class Source:
+        kind, exposure_s, frame_step, width, height, n_frames = "intensity", 1e-5, 1, 8, 6, 12
+
+        def sum_ranges(self, edges):
+            return np.ones((len(edges) - 1, 6, 8), np.float32) * np.diff(edges)[:, None, None]
+
+    still = np.repeat(np.eye(3)[None], 12, axis=0)
+    for exposures, want in ((None, {0, 12}), (4, {0, 3, 6, 9, 12})):
+        seen = []
+        pano = compose(Source(), still, Recorder(exposures=exposures), canvas_shape=(6, 8))
+        assert set(seen) == want, (exposures, seen)
+        np.testing.assert_allclose(pano.flux, 1.0)
+    assert Compositor.frame_breaks(Recorder(), 12) is None  # the base: anywhere
 
 
 def test_the_compositors_merge_a_mover_out_and_leave_a_static_capture_alone():
