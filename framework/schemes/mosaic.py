@@ -22,8 +22,9 @@ locator and returns what it found), so the windows can run on threads or process
 A scene is rarely static: with ``reject_movers`` (spec ``mosaic.reject_movers``, off by
 default), pixels of a merged frame that disagree with the panorama view by more than that
 many robust standard deviations (a passing object, or the ghost of one that the previous
-estimate's panorama still holds) are left out of its registration, its held-out
-cross-check and the next template (:func:`mask_disagreement`;
+estimate's panorama still holds) are left out of its registration and its held-out
+cross-check, and the pipeline makes the template's compositor robust
+(:mod:`photonpano.robust_merge`), so a mover never enters the template (:func:`mask_disagreement`;
 the robustness term of burst merging: Hasinoff et al., "Burst photography for high dynamic
 range and low-light imaging on mobile cameras", SIGGRAPH Asia 2016, Sec. 5, and Wronski et
 al., "Handheld multi-frame super-resolution", SIGGRAPH 2019, Sec. 5).
