@@ -248,9 +248,11 @@ def _write_video(folder, source: PhotonSource, pano: Panorama, summary: dict[str
 class Stages:
     """The stages of a spec, built once for one opened capture; used by run, compare and the API.
 
-    Holds the group-size plan, the built resampler, merger, locator (wrapped in the
-    binned-frame check when ``group_size: auto``), interpolator and the scheme of each
-    level, and runs the levels (:meth:`estimate_motion`) and the panorama (:meth:`compose`).
+    Holds the capture's photon budget (:attr:`budget`, :class:`~photonpano.budget.Budget`),
+    the built resampler, merger, locator, interpolator and the scheme of each level (the
+    pairwise scheme with the budget's binned check when ``group_size: auto``), and runs
+    the levels (:meth:`estimate_motion`, on the capture binned by the budget's
+    registration binning) and the panorama (:meth:`compose`).
 
     Args:
         spec: a validated ``PipelineSpec``.
@@ -266,33 +268,29 @@ class Stages:
 
     def __init__(self, spec: BaseModel, source: PhotonSource) -> None:
         """Build every stage of ``spec`` for ``source``."""
-        from .adaptive import plan_group_size
-        from .binning import in_merged_pixels, registration_binning
-        from .coarse import CascadeLocator
-        from .schemes import MosaicScheme, PairwiseScheme
+        from .budget import Budget
+        from .budget.grid import in_merged_pixels
+        from .schemes import MosaicScheme, PairCheck, PairwiseScheme
         from .spec import level_schemes
 
         self.spec, self.source = spec, source
-        self.plan = plan_group_size(spec.group_size, source)
-        self.binning = registration_binning(spec, source)
-        self.locator = in_merged_pixels(spec.locator, self.binning).build()
-        if self.plan.auto:  # explicit group sizes keep the plain locator
-            # the check bins sensor pixels in blocks of at least 2, counted in merged-frame pixels
-            blocks = max(2, self.plan.binning) / self.binning
-            self.locator = CascadeLocator(self.locator, max(1, round(blocks)))
+        self.budget = budget = Budget.for_capture(spec, source)
+        self.locator = in_merged_pixels(spec.locator, budget.register_binning).build()
+        check = PairCheck(budget.check_binning) if budget.check_binning is not None else None
         self.resampler, self.merger = spec.resampler.build(), spec.merger.build()
         self.interpolator = spec.interpolator.build()
-        built = {"pairwise": PairwiseScheme(self.locator, tuple(spec.pair_offsets)),
-                 "mosaic": MosaicScheme(in_merged_pixels(spec.mosaic.locator, self.binning).build,
+        built = {"pairwise": PairwiseScheme(self.locator, tuple(spec.pair_offsets), check),
+                 "mosaic": MosaicScheme(in_merged_pixels(spec.mosaic.locator, budget.register_binning).build,
                                         spec.mosaic.template.build,
                                         subbatch_px=spec.mosaic.subbatch_px,
                                         reject_movers=spec.mosaic.reject_movers)}
         self.schemes = [built[name] for name in level_schemes(spec)]
         self.notes: list[str] = []
-        if self.plan.extra_levels:
-            self.schemes += [self.schemes[-1]] * self.plan.extra_levels
-            self.notes.append(f"groups span whole flicker periods ({self.plan.group_size} frames): "
-                              f"{self.plan.extra_levels} more level(s) keep the last level's keyframes as dense")
+        plan = budget.plan
+        if plan.extra_levels:
+            self.schemes += [self.schemes[-1]] * plan.extra_levels
+            self.notes.append(f"groups span whole flicker periods ({plan.group_size} frames): "
+                              f"{plan.extra_levels} more level(s) keep the last level's keyframes as dense")
         self._fit_levels()
 
     def _fit_levels(self) -> None:
@@ -306,7 +304,7 @@ class Stages:
             StageError: if the resampler cannot build level 1 (e.g. a capture of fewer
                 than 4 frames: too short to register anything).
         """
-        n, m = self.source.n_frames, self.plan.group_size
+        n, m = self.source.n_frames, self.budget.group_size
         for level in range(1, len(self.schemes) + 1):
             try:
                 self.resampler.groups(n, m, level)
@@ -323,6 +321,9 @@ class Stages:
                         progress: Any = None, resume: Any = None) -> NDArray[np.float64]:
         """Run the levels (:func:`photonpano.levels.estimate_motion`).
 
+        With a registration binning k > 1 every scheme runs on the capture binned k x k
+        (:class:`~photonpano.schemes.Binned`, one grid per call).
+
         Args:
             executor: where independent work runs.
             on_level: called with each level's frozen :class:`~photonpano.records.LevelResult`.
@@ -332,14 +333,20 @@ class Stages:
         Returns:
             (T, 3, 3) float64 frame-to-panorama homographies (middle-frame pixels).
         """
+        from .budget.grid import RegistrationGrid
         from .levels import estimate_motion
+        from .schemes import Binned
 
         start = {} if resume is None else {
             "start_level": resume.level + 1, "initial": resume.homographies}
-        return estimate_motion(self.source, self.resampler, self.merger, self.interpolator, self.schemes,
-                               group_size=self.plan.group_size, executor=executor,
+        schemes = self.schemes
+        if self.budget.register_binning > 1:
+            grid, wrapped = RegistrationGrid(self.source, self.budget.register_binning), {}
+            schemes = [wrapped.setdefault(id(scheme), Binned(scheme, grid)) for scheme in schemes]
+        return estimate_motion(self.source, self.resampler, self.merger, self.interpolator, schemes,
+                               group_size=self.budget.group_size, executor=executor,
                                keep_merged=self.spec.outputs.merged_frames, on_level=on_level, progress=progress,
-                               binning=self.binning, crosscheck=self.spec.uncertainty, **start)
+                               crosscheck=self.spec.uncertainty, **start)
 
     def compose(self, homographies: NDArray[np.float64], executor: Executor,
                 progress: Callable[[int], None] | None = None) -> Panorama:
@@ -355,16 +362,15 @@ class Stages:
         Its statistics, feature-cache use, ground-truth-free quality figures, the
         binned-frame check's counts and, with ground truth, the RMSE.
         """
-        from .coarse import CascadeLocator
         from .metrics import source_trajectory_error
         from .quality import level_figures
 
         row = result.statistics()
         if result.located.locator_cache is not None:
             row["locator_cache"] = result.located.locator_cache
-        row["quality"] = level_figures(result, self.plan, self.source.width, self.source.height)
-        if isinstance(self.locator, CascadeLocator) and result.scheme == "pairwise":
-            row["registration_check"] = self.locator.take_statistics()
+        row["quality"] = level_figures(result, self.budget.plan, self.source.width, self.source.height)
+        if result.located.check is not None:
+            row["registration_check"] = result.located.check
         if self.source.ground_truth is not None:
             row["trajectory_rmse_px"] = source_trajectory_error(result.homographies, self.source).rmse_px
         return row
@@ -386,7 +392,8 @@ def reconstruct(spec: BaseModel, source: PhotonSource, *, on_level: Callable[[Le
         report: filled, if given, with the confidence report of ``run.json``:
             ``status``, ``warnings``, ``notes`` (one line per adjustment the capture
             needed, e.g. fewer levels for a short clip), ``group_size`` (the plan: chosen m and why, see
-            :class:`~photonpano.adaptive.GroupPlan`), ``panorama_agreement``
+            :class:`~photonpano.budget.GroupPlan`), ``budget`` (:meth:`~photonpano.budget.Budget.record`:
+            the group size and the three binnings, each with why), ``panorama_agreement``
             (:func:`~photonpano.quality.panorama_agreement`), ``uncertainty`` (the
             summary of the per-frame uncertainty, None if there was no evidence) and
             ``frame_uncertainty`` (the :class:`~photonpano.uncertainty.FrameUncertainty`
@@ -403,7 +410,7 @@ def reconstruct(spec: BaseModel, source: PhotonSource, *, on_level: Callable[[Le
     """
     from .executor import make_executor
     from .outputs import Checkpoint
-    from .quality import agreement_binning, assess, panorama_agreement
+    from .quality import assess, panorama_agreement
     from .uncertainty import frame_uncertainty
 
     stats: list[dict[str, Any]] = list(resume.statistics) if resume is not None else []
@@ -429,13 +436,15 @@ def reconstruct(spec: BaseModel, source: PhotonSource, *, on_level: Callable[[Le
         timings["panorama"] = time.perf_counter() - t0
     if report is not None:
         t0 = time.perf_counter()
-        plan = stages.plan
+        budget = stages.budget
+        plan = budget.plan
         agreement = panorama_agreement(source, stages.merger, homographies, pano, plan.group_size,
-                                       agreement_binning(plan))
+                                       budget.agreement_binning)
         uncertainty = frame_uncertainty(last, source.width, source.height) if last is not None else None
         summary = uncertainty.summary(source.frame_rate_hz) if uncertainty is not None else None
         status, warnings = assess(plan, stats, agreement, summary)
         report.update(status=status, warnings=warnings, notes=list(stages.notes), group_size=plan.record(),
+                      budget=budget.record(),
                       panorama_agreement=agreement, uncertainty=summary, frame_uncertainty=uncertainty,
                       flicker=plan.flicker.record() if plan.flicker is not None else None)
         timings["confidence"] = time.perf_counter() - t0
