@@ -157,7 +157,7 @@ def spec_model(host: PluginHost) -> type[BaseModel]:
         group_size=(Annotated[Union[Literal["auto"], Annotated[int, Field(ge=2)]],  # noqa: UP007
                               BeforeValidator(_group_size), Field(
             description="Binary frames per group m (virtual exposure length, in frames); auto: "
-            "chosen from the capture's photon rate and apparent speed (photonpano.adaptive).")], "auto"),
+            "chosen from the capture's photon rate and apparent speed (photonpano.budget).")], "auto"),
         pair_offsets=(Annotated[list[Annotated[int, Field(ge=1)]], Field(
             min_length=1, description="Register merged frames g and g+k for each k; [1] is the "
             "paper's chain, more offsets are solved jointly against chaining drift.")], [1, 2, 4, 8, 16, 32, 64]),
@@ -166,7 +166,7 @@ def spec_model(host: PluginHost) -> type[BaseModel]:
             "(the photons of k x k sensor pixels summed): 2 gives the locators the half-resolution images they "
             "register anyway for a quarter of the merging work; 1 merges at full resolution (e.g. with "
             "`locator.image_scale: 0.5` for SIFT's former default). auto: 2 where the binned frames keep at "
-            "least 100 pixels on their short side, else 1 (photonpano.binning.auto_binning). The panorama is "
+            "least 100 pixels on their short side, else 1 (photonpano.budget.grid.auto_binning). The panorama is "
             "always composited from the full-resolution photons.")], "auto"),
         panorama_subbatch_px=(Annotated[float, Field(gt=0, le=2, description="Frames whose canvas "
                               "warps differ by less than this (canvas pixels) are warped together.")], 0.5),

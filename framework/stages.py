@@ -96,7 +96,7 @@ class PhotonSource(abc.ABC):
             float32 sums of linear intensity. Mergers that only handle one kind check it.
         frame_step: :meth:`sum_ranges` is cheapest for ranges whose edges are multiples
             of this many frames (1: any range; a capture whose photons were counted in
-            blocks, see :class:`photonpano.binning.BinnedBlocks`); callers that choose
+            blocks, see :class:`photonpano.budget.grid.BinnedBlocks`); callers that choose
             their ranges freely (sub-batches) put their edges there.
     """
 
@@ -197,7 +197,7 @@ class LocatorConfig(StageConfig):
 
     A field whose name ends in ``_px`` is a length in sensor pixels, whatever resolution
     the merged frames are registered at: the framework builds the locator from a copy
-    in merged-frame pixels (:func:`photonpano.binning.in_merged_pixels`).
+    in merged-frame pixels (:func:`photonpano.budget.grid.in_merged_pixels`).
     """
 
     stage: ClassVar[str] = "locator"
