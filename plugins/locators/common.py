@@ -24,12 +24,12 @@ from typing import Annotated, Any, Literal
 
 import numpy as np
 from numpy.typing import NDArray
-from photonpano.stages import Locator, LocatorConfig, MergedFrames, PairRegistrations
+from photonpano.stages import Locator, LocatorConfig, LocatorContext, MergedFrames, PairRegistrations
 from pydantic import Field
 
 __all__ = ["Features", "PairResult", "FrameCache", "CachingLocator", "FeatureLocator", "PolishConfig",
            "frame_key", "to_registrations", "keypoint_mask", "ecc_image", "ecc_polish", "corner_change",
-           "check_pairs", "MotionModel", "MOTION_PARAMETERS", "robust_method", "robust_motion", "gric",
+           "MotionModel", "MOTION_PARAMETERS", "robust_method", "robust_motion", "gric",
            "ratio_test_motion", "ratio_matches", "IntegralL2Matcher", "DirectLocator"]
 
 
@@ -126,9 +126,10 @@ class FrameCache:
 class CachingLocator(Locator):
     """A locator with a content-keyed per-frame cache and its statistics.
 
-    At the start of each ``register_pairs`` call a subclass calls :meth:`begin` with the
-    frames it will use (this evicts data of frames that are gone), then :meth:`frame_data`
-    to get per-frame data, computed once per distinct frame content.
+    At the start of each call a subclass calls :meth:`begin` with the frames it will use
+    and the call's :class:`~photonpano.locator.LocatorContext` (this evicts data of frames
+    that are gone), then :meth:`frame_data` to get per-frame data, computed once per
+    distinct frame content (or every time, when the context says no frame comes back).
     :meth:`cache_stats` is what the pipeline reports per level.
     """
 
@@ -136,12 +137,14 @@ class CachingLocator(Locator):
         self._caches: dict[str, FrameCache] = {}
         self._merged: MergedFrames | None = None
         self._keys: dict[tuple[int, bool], tuple[bytes, ...]] = {}
+        self._reuse = True
 
-    def begin(self, merged: MergedFrames, indices: NDArray[np.int64]) -> None:
+    def begin(self, merged: MergedFrames, indices: NDArray[np.int64], context: LocatorContext) -> None:
         """Start a batch on ``merged``: key its frames ``indices`` and evict other frames' data."""
         self._merged = merged
         self._keys = {}
-        if not self.reuses_frames:  # every frame is used in this call only: no cache, no keys
+        self._reuse = context.reuses_frames
+        if not self._reuse:  # every frame is used in this call only: no cache, no keys
             return
         keys = set()
         for i in np.unique(np.asarray(indices, dtype=np.int64)):
@@ -167,7 +170,7 @@ class CachingLocator(Locator):
         if self._merged is None:
             raise RuntimeError("CachingLocator.frame_data called before begin()")
         cache = self._caches.setdefault(kind, FrameCache())
-        if not self.reuses_frames:
+        if not self._reuse:
             cache.misses += 1
             return compute()
         return cache.get(self._key(index, flux), compute)
@@ -225,7 +228,7 @@ class FeatureLocator(CachingLocator):
     """Feature-based locator: per-frame features (cached), per-pair match and estimate.
 
     Subclasses implement :meth:`describe` and :meth:`match`; frames are described and
-    pairs matched on the framework's executor (:attr:`Locator.executor`) unless the
+    pairs matched on the call's executor (:class:`~photonpano.locator.LocatorContext`) unless the
     subclass sets ``thread_safe = False``. If the config has a ``refine``
     field equal to ``"ecc"``, successful pairs are polished by :func:`ecc_polish` with the
     config's ``ecc_iterations``, ``ecc_blur`` and ``ecc_max_change_px``.
@@ -263,23 +266,23 @@ class FeatureLocator(CachingLocator):
         Failures are returned as ``PairResult(ok=False)``, never raised.
         """
 
-    def register_pairs(self, merged: MergedFrames, pairs: NDArray[np.int64],
-                       initial: NDArray[np.float64]) -> PairRegistrations:
+    def _register_pairs(self, merged: MergedFrames, pairs: NDArray[np.int64], initial: NDArray[np.float64],
+                        context: LocatorContext) -> PairRegistrations:
         """Register each pair (see :meth:`Locator.register_pairs`); ``initial`` is unused.
 
         Each frame is described once per distinct content, whichever call needs it.
         """
-        pairs = check_pairs(merged, pairs, initial)
-        self.begin(merged, pairs)
+        self.begin(merged, pairs, context)
         try:
-            return self._register(merged, pairs)
+            return self._matched(merged, pairs, context)
         finally:
             self.finish()
 
-    def _register(self, merged: MergedFrames, pairs: NDArray[np.int64]) -> PairRegistrations:
+    def _matched(self, merged: MergedFrames, pairs: NDArray[np.int64], context: LocatorContext
+                 ) -> PairRegistrations:
         from photonpano.executor import SerialExecutor
 
-        executor = (self.executor if self.thread_safe else None) or SerialExecutor()
+        executor = (context.executor if self.thread_safe else None) or SerialExecutor()
         frames = [int(i) for i in np.unique(pairs)]
 
         def describe(i: int) -> Features:
@@ -325,11 +328,10 @@ class DirectLocator(CachingLocator):
     def register(self, prepared_a: Any, prepared_b: Any, initial: NDArray[np.float64]) -> PairResult:
         """Register one pair: frame a (moving) and b (template) as prepared, (3, 3) float64 start b to a."""
 
-    def register_pairs(self, merged: MergedFrames, pairs: NDArray[np.int64],
-                       initial: NDArray[np.float64]) -> PairRegistrations:
+    def _register_pairs(self, merged: MergedFrames, pairs: NDArray[np.int64], initial: NDArray[np.float64],
+                        context: LocatorContext) -> PairRegistrations:
         """Register each pair starting from ``initial`` (see :meth:`Locator.register_pairs`)."""
-        pairs = check_pairs(merged, pairs, initial)
-        self.begin(merged, pairs)
+        self.begin(merged, pairs, context)
         try:
             def frame(i: int) -> Any:
                 return self.frame_data(self.prepared_kind, i, lambda: self.prepare(merged.flux[i], merged.masks[i]),
@@ -349,22 +351,6 @@ def to_registrations(results: list[PairResult]) -> PairRegistrations:
         inliers=np.array([r.inliers for r in results], dtype=np.int64),
         ok=np.array([r.ok for r in results], dtype=bool),
     )
-
-
-def check_pairs(merged: MergedFrames, pairs: NDArray[np.int64],
-                initial: NDArray[np.float64]) -> NDArray[np.int64]:
-    """Validate the arguments of ``register_pairs``; return ``pairs`` as (P, 2) int64.
-
-    Raises:
-        ValueError: wrong shapes, or indices outside ``merged`` (programming errors).
-    """
-    from photonpano.types import check_shape
-
-    pairs = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
-    check_shape(np.asarray(initial), "P 3 3", name="initial", P=len(pairs))
-    if len(pairs) and (pairs.min() < 0 or pairs.max() >= len(merged)):
-        raise ValueError(f"pairs index merged frames 0..{len(merged) - 1}, got {pairs.min()}..{pairs.max()}")
-    return pairs
 
 
 def keypoint_mask(mask: NDArray[np.bool_], margin_px: int = 4) -> NDArray[np.uint8]:

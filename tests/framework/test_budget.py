@@ -70,7 +70,7 @@ class _Fixed(Locator):
     def __init__(self, homography, ok):
         self.homography, self.ok = homography, ok
 
-    def register_pairs(self, merged, pairs, initial):
+    def _register_pairs(self, merged, pairs, initial, context):
         n = len(pairs)
         return PairRegistrations(np.repeat(self.homography[None], n, 0), np.zeros(n, np.int64),
                                  np.full(n, 50, np.int64), np.full(n, self.ok))
