@@ -83,8 +83,8 @@ def _compare_one(item: str, base: dict[str, Any], host: PluginHost, out_dir: Pat
     """Run one locator (see :func:`compare_locators`); append its row; return the source."""
     from .executor import make_executor
     from .metrics import source_trajectory_error
-    from .reconstruction import Stages
     from .progress import start_task
+    from .reconstruction import Stages
     from .spec import apply_overrides, validate_spec
 
     key, *options = item.split(":")

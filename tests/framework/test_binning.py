@@ -75,8 +75,8 @@ def test_locator_lengths_are_sensor_pixels_whatever_the_binning(host):
 
 def test_a_binning_that_leaves_no_frame_is_a_one_line_error(host):
     from photonpano.errors import StageError
-    from photonpano.reconstruction import Stages
     from photonpano.plugins.sources.simulate import SimulateConfig
+    from photonpano.reconstruction import Stages
     from photonpano.spec import validate_spec
 
     spec = validate_spec({"source": "simulate", "registration_binning": 8, "group_size": 200}, host)
@@ -89,8 +89,8 @@ def test_binned_registration_is_as_accurate_as_full_resolution(host):
     """Levels registered on 2x2-binned merged frames track the true motion about as well (another path and size)."""
     from photonpano.executor import SerialExecutor
     from photonpano.metrics import trajectory_error
-    from photonpano.reconstruction import Stages
     from photonpano.plugins.sources.simulate import SimulateConfig
+    from photonpano.reconstruction import Stages
     from photonpano.spec import validate_spec
 
     source = SimulateConfig(frames=12000, height=220, width=360, flux=0.3, speed_px_per_frame=0.015,
@@ -108,9 +108,9 @@ def test_binned_registration_is_as_accurate_as_full_resolution(host):
 def test_binned_levels_report_registrations_in_sensor_pixels(host):
     """What observers and run.json get is in sensor pixels: the pairs agree with the solved keyframes."""
     from photonpano.executor import SerialExecutor
-    from photonpano.reconstruction import Stages
     from photonpano.plugins.sources.simulate import SimulateConfig
     from photonpano.quality import level_figures
+    from photonpano.reconstruction import Stages
     from photonpano.spec import validate_spec
 
     source = SimulateConfig(frames=3000, height=200, width=320, flux=0.5, vibration_px=2.0).build()
