@@ -229,6 +229,9 @@ class LocateResult:
             if the level was asked for them, else None.
         crosscheck_index: (C, 2) int64 merged-frame indices ``(a, b)`` of each
             held-out registration (``b = a + 1``), or None.
+        check: the figures of the binned check of the scheme's registrations
+            (:meth:`~photonpano.schemes.check.LevelCheck.figures`; ``run.json``'s
+            ``registration_check``), or None where none ran.
     """
 
     keyframes: NDArray[np.float64]
@@ -239,6 +242,7 @@ class LocateResult:
     locator_cache: dict[str, int] | None = None
     crosscheck: PairRegistrations | None = None
     crosscheck_index: NDArray[np.int64] | None = None
+    check: dict[str, Any] | None = None
 
     @property
     def primary(self) -> NDArray[np.bool_]:
