@@ -296,6 +296,7 @@ def _pose_into(spec: Any, folder: Any, work: Path | None, host: Any, intrinsics:
         folder.begin()  # the spec is valid and the source open: the folder gets its first files
         folder.write_text("spec.yaml", dump_spec(spec))
         work = inside(folder.root, "work", folder=True)
+    assert work is not None  # a temporary folder when there is no run folder
     t0 = time.perf_counter()
     try:
         result = stages.estimate(intrinsics, work)

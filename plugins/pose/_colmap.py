@@ -48,6 +48,7 @@ def colmap_log(name: str = "photonpano.colmap") -> Iterator[None]:
     glog = re.compile(rb"^([IWEF])\d{8} [0-9:.]+ +\d+ ([^\]]+)\] ?(.*)$")
     severity = {b"I": logging.DEBUG, b"W": logging.DEBUG, b"E": logging.INFO, b"F": logging.INFO}
     logger = logging.getLogger(name)
+    pycolmap: Any
     try:
         import pycolmap
     except ImportError:
