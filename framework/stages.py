@@ -271,7 +271,7 @@ class Compositor(abc.ABC):
                 read the source their own way use it in :meth:`read`).
         """
 
-    def read(self, source: PhotonSource, edges: NDArray[np.int64]) -> NDArray:
+    def read(self, source: PhotonSource, edges: NDArray[np.int64]) -> NDArray[Any]:
         """Return the (B, H, W) sums of frame ranges ``edges`` that :meth:`feed` takes.
 
         The default is ``source.sum_ranges(edges)``; a compositor that needs other
@@ -280,7 +280,7 @@ class Compositor(abc.ABC):
         return source.sum_ranges(edges)
 
     @abc.abstractmethod
-    def feed(self, counts: NDArray, n_frames: NDArray[np.int64], homographies: NDArray[np.float64],
+    def feed(self, counts: NDArray[Any], n_frames: NDArray[np.int64], homographies: NDArray[np.float64],
              weights: NDArray[np.float32] | None = None) -> None:
         """Add a sub-batch of summed frames.
 

@@ -90,7 +90,6 @@ def write_and_match(
     database.unlink(missing_ok=True)
     verification = pycolmap.TwoViewGeometryOptions()
     verification.ransac.random_seed = seed
-    pycolmap.logging.minloglevel = 2
     pycolmap.set_random_seed(seed)
     reader = pycolmap.ImageReaderOptions()
     reader.camera_model = camera_model

@@ -37,6 +37,7 @@ from ._colmap import (
     refine_tracks,
     write_and_match,
 )
+from ._colmap_log import colmap_log
 
 
 class PycolmapSfMConfig(PoseEstimatorConfig):
@@ -125,10 +126,16 @@ class PycolmapSfM(PoseEstimator):
     def estimate(self, source: PhotonSource, intrinsics: Any, work_dir: Path, progress: Any = None) -> Any:
         """Estimate poses level by level (see :meth:`PoseEstimator.estimate`).
 
+        COLMAP's log goes to the logger ``photonpano.colmap`` (:func:`colmap_log`), not to stderr.
+
         Raises:
             StageError: capture too short (fewer than 3 m frames) or too dark, or too few
                 exposures registered at level 1.
         """
+        with colmap_log():
+            return self._estimate(source, intrinsics, work_dir, progress)
+
+    def _estimate(self, source: PhotonSource, intrinsics: Any, work_dir: Path, progress: Any) -> Any:
         from photonpano.executor import make_executor
         from photonpano.plugins.mergers.flux_mle import FluxMLEConfig
         from photonpano.plugins.resamplers.midpoint import MidpointConfig
@@ -169,7 +176,7 @@ class PycolmapSfM(PoseEstimator):
                 poses, inliers = localise(
                     cfg, merged.images, groups.reference, current, landmarks, progress, level
                 )
-                if cfg.bundle_adjust:
+                if cfg.bundle_adjust and np.isfinite(poses[:, 0, 0]).sum() >= 3:  # else kept below
                     poses, refined, tracks = self._refine(
                         merged.images,
                         groups.reference,
