@@ -17,6 +17,7 @@ from numpy.typing import NDArray
 
 from ..errors import OutputError
 from .checkpoint import CHECKPOINTS, Checkpoint
+from .disk import lock_is_stale, read_manifest, read_text_lenient, walk_files
 from .files import PARTIAL, atomic_path, inside, oserror, refuse_symlink, regular_file_inside, sha256_file, write_text
 
 __all__ = ["MANIFEST", "LOCK", "RUN_JSON", "RunFolder"]
@@ -105,11 +106,11 @@ class RunFolder:
             try:
                 fd = os.open(lock, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
             except FileExistsError:
-                if _lock_is_stale(lock):
+                if lock_is_stale(lock):
                     with contextlib.suppress(OSError):
                         lock.unlink()
                     continue
-                holder = _read(lock).split()[:1] or ["?"]
+                holder = read_text_lenient(lock).split()[:1] or ["?"]
                 raise OutputError(f"output folder {self.root} is in use by another run (pid {holder[0]}, "
                                   f"lock {lock}); wait for it or choose another folder") from None
             except OSError as exc:
@@ -128,7 +129,7 @@ class RunFolder:
 
     def _inspect(self) -> None:
         present = {p.name for p in self.root.iterdir()} - {LOCK}
-        manifest, hashes = _read_manifest(self.root / MANIFEST)
+        manifest, hashes = read_manifest(self.root / MANIFEST)
         if self.resume:
             if manifest is None:
                 raise OutputError(f"--resume: {self.root} holds no interrupted run (no {MANIFEST})")
@@ -231,7 +232,7 @@ class RunFolder:
     def _new_files(self) -> list[str]:
         """Regular files below the folder, reached without links, that no one has listed yet."""
         known = set(self.files) | self._existing | {MANIFEST, LOCK}
-        names = [n for n in _walk_files(self.root) if n not in known and n.split("/")[0] not in self._existing]
+        names = [n for n in walk_files(self.root) if n not in known and n.split("/")[0] not in self._existing]
         return [n for n in names if not Path(n).name.startswith(PARTIAL)]
 
     # -- checkpoints -----------------------------------------------------------------
@@ -346,7 +347,7 @@ class RunFolder:
             return False
 
     def _remove_partials(self) -> None:
-        for name in _walk_files(self.root, links=True):
+        for name in walk_files(self.root, links=True):
             if Path(name).name.startswith(PARTIAL):
                 with contextlib.suppress(OSError):
                     (self.root / name).unlink()  # a link is removed, never followed
@@ -355,80 +356,3 @@ class RunFolder:
         hashes = {n: self.hashes[n] for n in self.files if n in self.hashes}
         write_text(self.root / MANIFEST, json.dumps({"files": self.files, "sha256": hashes, "complete": complete},
                                                     indent=1))
-
-
-def _read(path: Path) -> str:
-    try:
-        return path.read_text(errors="replace")
-    except OSError:
-        return ""
-
-
-def _read_manifest(path: Path) -> tuple[list[str] | None, dict[str, str] | None]:
-    """Return the file names and sha256 hashes of a manifest.
-
-    Returns ``(None, None)`` without a manifest (or a manifest that is a link); a
-    damaged one lists nothing. Hashes are None for a manifest that records none (written
-    before hashes were recorded): its files then get the path checks only.
-    """
-    if path.is_symlink() or not path.is_file():
-        return None, None
-    try:
-        data = json.loads(_read(path))
-    except ValueError:
-        return [], {}
-    if not isinstance(data, dict):
-        return [], {}
-    files = data.get("files", [])
-    files = [f for f in files if isinstance(f, str) and f and ".." not in Path(f).parts
-             and not Path(f).is_absolute()] if isinstance(files, list) else []
-    hashes = data.get("sha256")
-    if hashes is None:
-        return files, None
-    if not isinstance(hashes, dict):
-        return files, {}
-    return files, {k: v for k, v in hashes.items() if isinstance(k, str) and isinstance(v, str)}
-
-
-def _walk_files(root: Path, links: bool = False) -> list[str]:
-    """Names (relative, ``/``-separated, sorted) of the regular files below ``root``, never following a link.
-
-    With ``links``, symbolic links (to anything) are listed too.
-    """
-    names = []
-    for folder, dirs, files in os.walk(root, followlinks=False):
-        base = Path(folder)
-        entries = files + [d for d in dirs if (base / d).is_symlink()] if links else files
-        for entry in entries:
-            path = base / entry
-            if path.is_symlink() and not links:
-                continue
-            if links or path.is_file():
-                names.append(path.relative_to(root).as_posix())
-    return sorted(names)
-
-
-def _lock_is_stale(lock: Path) -> bool:
-    """A lock is stale when its process (on this host) no longer runs."""
-    fields = _read(lock).split()
-    if len(fields) < 2 or not fields[0].isdigit():
-        return True
-    if fields[1] != socket.gethostname():
-        return False
-    pid = int(fields[0])
-    if pid == os.getpid():
-        return False
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return True
-    except PermissionError:
-        return False
-    return _is_zombie(pid)
-
-
-def _is_zombie(pid: int) -> bool:
-    with contextlib.suppress(OSError, IndexError):
-        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] == "Z"
-    return False
-
