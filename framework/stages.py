@@ -306,7 +306,8 @@ class Compositor(abc.ABC):
         """
         return None
 
-    def feed_ranges(self, edges: NDArray[np.int64], counts: NDArray, homographies: NDArray[np.float64]) -> None:
+    def feed_ranges(self, edges: NDArray[np.int64], counts: NDArray[Any],
+                    homographies: NDArray[np.float64]) -> None:
         """Add a sub-batch of summed frames, knowing which frames they are.
 
         What :func:`~photonpano.compose.compose` calls; the default forgets the frame
@@ -319,7 +320,8 @@ class Compositor(abc.ABC):
             counts: (B, H, W) summed frames, as :meth:`feed`'s.
             homographies: (B, 3, 3) float64 frame-to-canvas homographies, as :meth:`feed`'s.
         """
-        self.feed(counts, np.diff(np.asarray(edges, np.int64)), homographies)
+        n_frames: NDArray[np.int64] = np.diff(np.asarray(edges, np.int64)).astype(np.int64)
+        self.feed(counts, n_frames, homographies)
 
     def fork(self) -> Compositor | None:
         """Return an empty compositor on the same canvas to feed from another thread.
