@@ -38,6 +38,8 @@ from photonpano.robust_merge import DEFAULT_EXPOSURES, exposure_breaks, exposure
 from photonpano.stages import Compositor, CompositorConfig, PhotonSource
 from pydantic import Field
 
+from ._adaptive import DETAIL_GAIN
+
 __all__ = ["DrizzleConfig", "Drizzle"]
 
 
@@ -67,11 +69,14 @@ class DrizzleConfig(CompositorConfig):
     applied inside the colour compositors."""
     robust_exposures: Annotated[int, Field(ge=3, le=64)] = DEFAULT_EXPOSURES
     """Virtual exposures the robust merge compares (memory: that many canvases)."""
+    detail_gain: Annotated[float, Field(gt=0, le=100)] = DETAIL_GAIN
+    """Factor on the local detail variance in the weight of ``noise_adaptive`` (1: Lee's
+    local Wiener weight; larger keeps more of the fine drops at edges)."""
 
     def build(self) -> Drizzle:
         """Return the compositor."""
         return Drizzle(self.scale, self.kernel, self.pixfrac or 1.0 / self.scale,
-                       wide_px=self.wide_px if self.noise_adaptive else None,
+                       wide_px=self.wide_px if self.noise_adaptive else None, detail_gain=self.detail_gain,
                        exposures=self.robust_exposures if self.robust else None)
 
 
@@ -84,17 +89,19 @@ class Drizzle(Compositor):
         pixfrac: drop size in frame pixels (square side or Gaussian FWHM).
         wide_px: half-width in frame pixels of the wide estimate that noise-adaptive
             drizzle blends in (:func:`._adaptive.blend_sums`); None: plain drizzle.
+        detail_gain: factor on the detail variance in that blend's weight.
         exposures: virtual exposures kept apart for the robust merge
             (:func:`photonpano.robust_merge.robust_combine`, fed through :meth:`feed_ranges`;
             a plain :meth:`feed` goes to the first); None or 1: every photon merged.
     """
 
     def __init__(self, scale: float = 1.0, kernel: str = "square", pixfrac: float = 1.0,
-                 wide_px: float | None = None, exposures: int | None = None) -> None:
+                 wide_px: float | None = None, detail_gain: float = 1.0, exposures: int | None = None) -> None:
         """Create an unprepared compositor."""
         from . import _splat
 
         self.scale, self.kernel, self.pixfrac, self.wide_px = scale, kernel, pixfrac, wide_px
+        self.detail_gain = detail_gain
         self.exposures = max(1, int(exposures or 1))
         self._splat = {"point": _splat.splat_point, "square": _splat.splat_square,
                        "gaussian": _splat.splat_gaussian}[kernel]
@@ -145,7 +152,7 @@ class Drizzle(Compositor):
 
     def fork(self) -> Drizzle:
         """An empty copy on the same canvas (see :meth:`Compositor.fork`)."""
-        other = Drizzle(self.scale, self.kernel, self.pixfrac, self.wide_px, self.exposures)
+        other = Drizzle(self.scale, self.kernel, self.pixfrac, self.wide_px, self.detail_gain, self.exposures)
         other.prepare(self._canvas, self._source)
         return other
 
@@ -174,7 +181,7 @@ class Drizzle(Compositor):
             from ._adaptive import blend_sums, drop_sharpness
 
             sharpness = drop_sharpness(self.kernel, self.pixfrac * self.scale)
-            sums = blend_sums(sums, frames, self.scale, self.wide_px, sharpness)
+            sums = blend_sums(sums, frames, self.scale, self.wide_px, sharpness, self.detail_gain)
         flux = estimate_radiance(self._source, sums, frames)
         return Panorama(flux=flux, frames=frames, homographies=self._canvas.homographies, moving=moving)
 
