@@ -35,9 +35,9 @@ from numpy.typing import NDArray
 from photonpano import hookimpl
 from photonpano.compose import Canvas, Panorama
 from photonpano.stages import Compositor, CompositorConfig, PhotonSource
+from pydantic import Field
 
 from ._adaptive import DETAIL_GAIN
-from pydantic import Field
 
 __all__ = ["DrizzleConfig", "Drizzle"]
 
