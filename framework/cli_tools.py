@@ -155,13 +155,17 @@ def compare(input: Annotated[str, typer.Argument(help="A spec (.yaml), a capture
             refine: Annotated[bool, typer.Option(
                 "--refine", help="Keep the spec's level_schemes (compare whole pipelines as `run` executes "
                                  "them); default: each locator registers pairs at every level.")
-            ] = False) -> None:
+            ] = False,
+            resume: Annotated[bool, typer.Option(
+                "--resume", help="Continue the interrupted comparison in the output folder: locators that "
+                                 "finished are reused, the others run (same command).")] = False) -> None:
     """Run the same pipeline with each locator; write a table and a plot of error and time.
 
-    Writes compare.md, compare.json, compare.png and <locator>/homographies.npy into OUTPUT.
+    Writes compare.md, compare.png, <locator>/homographies.npy and, last, compare.json into
+    OUTPUT (atomically, with a manifest: see docs/locators.md).
     """
-    from .compare import compare_locators, markdown_table, write_comparison
-    from .pipeline import prepare_output
+    from .compare import COMPARE_JSON, compare_locators, markdown_table, write_comparison
+    from .outputs import RunFolder
     from .spec import apply_overrides
 
     host = _host()
@@ -180,14 +184,14 @@ def compare(input: Annotated[str, typer.Argument(help="A spec (.yaml), a capture
     keys = [k.strip() for k in locators.split(",") if k.strip()]
     if not keys:
         raise PhotonpanoError("--locators: give at least one locator key")
-    from .outputs.files import refuse_symlink
-
-    refuse_symlink(output, "output folder")  # never written through, --force or not
-    prepare_output(output, force)
-    with _observed(host) as bars:
-        log = bars.bars.console.print if bars is not None else typer.echo  # above the bars, not glued to them
-        rows = compare_locators(data, keys, host, output, origin=input, log=log,
-                                on_row=lambda done: write_comparison(done, output, data), refine=refine)
+    if force and resume:
+        raise PhotonpanoError("compare: --force and --resume exclude each other")
+    inputs = [path] if input != "simulate" and path.exists() else []
+    with RunFolder(output, force=force, resume=resume, inputs=inputs, final=COMPARE_JSON) as folder:
+        with _observed(host) as bars:
+            log = bars.bars.console.print if bars is not None else typer.echo  # above the bars, not glued to them
+            rows = compare_locators(data, keys, host, folder, origin=input, log=log, refine=refine)
+        write_comparison(rows, folder, data)
     typer.echo(markdown_table(rows))
     if not any(row["status"] == "ok" for row in rows):
         _fail("no locator completed (see the table)")
