@@ -75,13 +75,17 @@ def convert(inputs: Annotated[list[Path], typer.Argument(help="A folder of Swiss
                                                  "cube to write (must not exist).")],
             layout: Annotated[str, typer.Option(help="Readout layout: half (512 frames of 256x512 per file) or "
                                                 "full (256 frames of 512x512).")] = "half",
-            check_layout: Annotated[bool, typer.Option(help="Refuse a layout the data does not fit.")] = True) -> None:
+            check_layout: Annotated[bool, typer.Option(help="Refuse a layout the data does not fit.")] = True,
+            resume: Annotated[bool, typer.Option(
+                "--resume", help="Restart a conversion that was interrupted (killed): the <output>.part it "
+                                 "left is removed and the conversion runs again from the start.")] = False) -> None:
     """Convert SwissSPAD2 raw readouts to a bit-packed .npy photon cube, or a cube between .npy and .zarr, streaming.
 
     From readouts the cube holds the raw frames, (T, 256, 64) or (T, 512, 64) uint8 packed
     MSB first; read it with `photonpano pano cube.npy --set source.fix=colorspad` (or
     grayspad). A .npy cube converts to a chunked, compressed zarr array (source
-    zarr-cube) and back, keeping its shape and dtype.
+    zarr-cube) and back, keeping its shape and dtype. The output appears only when complete
+    (it is written as <output>.part and renamed).
     """
     for path in inputs:
         if not path.exists():
@@ -109,12 +113,12 @@ def convert(inputs: Annotated[list[Path], typer.Argument(help="A folder of Swiss
 
                 to_zarr = kinds[1] == ".zarr"
                 frames = (convert_npy_to_zarr if to_zarr else convert_zarr_to_npy)(inputs[0], output,
-                                                                                    progress=progress)
+                                                                                    progress=progress, restart=resume)
             else:
                 from photonpano.plugins.sources.swissspad import convert_bin_to_npy
 
                 frames, notes = convert_bin_to_npy(inputs, output, layout, check_layout=check_layout,
-                                                   progress=progress)
+                                                   progress=progress, restart=resume)
         except OSError as exc:  # reading an input failed (writes fail as OutputError naming the output)
             raise PhotonpanoError(f"convert: cannot read {exc.filename or 'an input'}: "
                                   f"{exc.strerror or exc}") from None
@@ -129,7 +133,10 @@ def batch(inputs: Annotated[list[str], typer.Argument(
               help="Captures (anything `pano` reads), spec files (.yaml) or source keys such as 'simulate'.")],
           output: Annotated[Path, typer.Option("--output", "-o", help="Folder receiving one output folder per "
                                                "input, named after the input's stem.")],
-          set_: SetOption = None, force: ForceOption = False) -> None:
+          set_: SetOption = None, force: ForceOption = False,
+          resume: Annotated[bool, typer.Option(
+              "--resume", help="Continue an interrupted batch: finished captures are reused, interrupted ones "
+                               "continue from their last finished level, the others run.")] = False) -> None:
     """Reconstruct several captures concurrently (processes, or Dask with --set executor=dask).
 
     Prints one progress bar over the captures and a summary table; exits 1 if any capture
@@ -138,7 +145,7 @@ def batch(inputs: Annotated[list[str], typer.Argument(
     from .batch import main as batch_main
     from .cli_base import _state
 
-    code = batch_main(inputs, output, set_ or [], force, _state["quiet"], _host())
+    code = batch_main(inputs, output, set_ or [], force, _state["quiet"], _host(), resume=resume)
     if code:
         raise typer.Exit(code)
 

@@ -259,7 +259,7 @@ class RunFolder:
 
     # -- finishing -------------------------------------------------------------------
     def commit(self, summary_text: str) -> None:
-        """Record every output, write ``summary_text`` as the final file (``run.json``) last, then drop the checkpoints."""
+        """Record every output, write ``summary_text`` as the final file (``run.json``) last, drop the checkpoints."""
         self.adopt_new_files()
         self._hash_unrecorded()
         if self.final not in self.files:
