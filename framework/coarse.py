@@ -28,6 +28,7 @@ from numpy.typing import NDArray
 from . import geometry
 from .adaptive import binned_image, normalised_correlation
 from .stages import Locator, MergedFrames, PairRegistrations
+from .watchdog import watched
 
 __all__ = ["CascadeLocator", "register_binned", "binned_frame"]
 
@@ -192,7 +193,8 @@ class CascadeLocator(Locator):
         """
         from .executor import SerialExecutor
 
-        found = self.primary.register_pairs(merged, pairs, initial)
+        with watched("locator", self.primary, "register_pairs"):
+            found = self.primary.register_pairs(merged, pairs, initial)
         executor = self.executor if getattr(self.executor, "in_process", False) else SerialExecutor()
         frames = [int(i) for i in np.unique(pairs)]
         # a binned frame reads the flux and the mask: key both (one id when the frames carry ids)

@@ -159,6 +159,7 @@ def _compare_one(item: str, base: dict[str, Any], host: PluginHost, origin: str,
     from .pipeline import Stages
     from .progress import start_task
     from .spec import apply_overrides, validate_spec
+    from .watchdog import guarding
 
     key, *options = item.split(":")
     label = item
@@ -191,7 +192,7 @@ def _compare_one(item: str, base: dict[str, Any], host: PluginHost, origin: str,
                 log(f"{label}: level {stats['level']}: locate {stats['timings_s'].get('locate', 0):.1f} s, "
                     f"{stats['failed_pairs']} failed pairs" + _rmse_text(stats.get("trajectory_rmse_px")))
 
-        with make_executor(spec.executor, spec.workers, spec.dask_address) as executor:
+        with guarding(host), make_executor(spec.executor, spec.workers, spec.dask_address) as executor:
             homographies = stages.estimate_motion(executor, on_level=on_level,
                                                   progress=lambda task, total: start_task(f"{label}: {task}", total))
     except PhotonpanoError as exc:

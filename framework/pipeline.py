@@ -38,6 +38,7 @@ from .provenance import run_header
 from .records import LevelResult, Panorama
 from .spec import dump_spec
 from .stages import PhotonSource
+from .watchdog import guarding, watched
 
 __all__ = ["RunResult", "Stages", "prepare_output", "run_pipeline", "reconstruct"]
 
@@ -119,6 +120,8 @@ def run_pipeline(spec: BaseModel, out_dir: Path | None, host: PluginHost, *, for
 
     Raises:
         PhotonpanoError: bad output folder, unreadable source, failed stage.
+        PluginHung: a plugin stage call did not return within the limit
+            (:mod:`photonpano.watchdog`); the folder is left as after Ctrl-C.
     """
     from .outputs import RunFolder
     from .spec import check_available
@@ -128,7 +131,7 @@ def run_pipeline(spec: BaseModel, out_dir: Path | None, host: PluginHost, *, for
         from .video_encode import require_av
 
         require_av()  # before the run, not after it
-    with reporting(host):
+    with guarding(host), reporting(host):  # a hung plugin call: PluginHung, outside the folder (kept as on Ctrl-C)
         if out_dir is None:
             return _run_into(spec, None, host)
         with RunFolder(out_dir, force=force, resume=resume, inputs=_input_paths(spec)) as folder:
@@ -309,7 +312,8 @@ class Stages:
         n, m = self.source.n_frames, self.plan.group_size
         for level in range(1, len(self.schemes) + 1):
             try:
-                self.resampler.groups(n, m, level)
+                with watched("resampler", self.resampler, "groups"):
+                    self.resampler.groups(n, m, level)
             except ValueError as exc:
                 if level == 1:
                     raise StageError("resampler", type(self.resampler).__name__, str(exc)) from None

@@ -45,6 +45,7 @@ from ..executor import pure_task
 from ..guards import bridge, plausible
 from ..records import LocateResult, MergedFrames, PairRegistrations, Panorama
 from ..stages import Compositor, Locator
+from ..watchdog import watched
 from .base import LevelScheme, LevelTask
 
 __all__ = ["MosaicScheme", "mask_disagreement"]
@@ -115,20 +116,23 @@ class MosaicScheme(LevelScheme):
             start = time.perf_counter()
             locator = self.make_locator()
             locator.reuses_frames = False  # each frame is registered once, by this locator
-            merged = task.merger.merge(source, task.homographies, groups.select(index))
+            with watched("merger", task.merger, "merge"):
+                merged = task.merger.merge(source, task.homographies, groups.select(index))
             merge_s = time.perf_counter() - start
             views = panorama_views(template, to_canvas[index], source.height, source.width, task.group_size)
             if self.reject_movers is not None:
                 merged = mask_disagreement(merged, views, self.reject_movers)
             n = len(index)
             pairs = np.stack([np.arange(n), np.arange(n, 2 * n)], axis=1)
-            found = locator.register_pairs(MergedFrames.concat(views, merged), pairs,
-                                           np.repeat(np.eye(3)[None], n, axis=0))
+            with watched("locator", locator, "register_pairs"):
+                found = locator.register_pairs(MergedFrames.concat(views, merged), pairs,
+                                               np.repeat(np.eye(3)[None], n, axis=0))
             cross = None
             if task.crosscheck and n > 1:  # held out: consecutive merged frames against each other
                 local = np.stack([np.arange(n - 1), np.arange(1, n)], axis=1)
-                cross = locator.register_pairs(merged, local, geometry.normalize(
-                    np.linalg.inv(current[index[:-1]]) @ current[index[1:]]))
+                with watched("locator", locator, "register_pairs"):
+                    cross = locator.register_pairs(merged, local, geometry.normalize(
+                        np.linalg.inv(current[index[:-1]]) @ current[index[1:]]))
             return _WindowResult(found, locator.cache_stats(), merge_s, time.perf_counter() - start,
                                  merged if task.keep_merged else None, cross)
 

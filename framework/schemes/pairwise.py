@@ -22,6 +22,7 @@ from ..guards import plausible
 from ..posegraph import chain_keyframes, corner_disagreement, pairs_at_offsets, refine_keyframes
 from ..records import LocateResult, MergedFrames, PairRegistrations
 from ..stages import Locator
+from ..watchdog import watched
 from .base import LevelScheme, LevelTask
 
 __all__ = ["PairwiseScheme", "locate_keyframes"]
@@ -52,7 +53,8 @@ class _MergedRing:
     def register(self, locator: Locator, pairs: NDArray[np.int64], initial: NDArray[np.float64],
                  width: int, height: int) -> PairRegistrations:
         """Register group pairs held in the ring; implausible results count as failed."""
-        found = locator.register_pairs(self.frames, pairs % self.capacity, initial)
+        with watched("locator", locator, "register_pairs"):
+            found = locator.register_pairs(self.frames, pairs % self.capacity, initial)
         return found.with_ok(found.ok & plausible(found.homographies, width, height))
 
 
@@ -227,8 +229,9 @@ class PairwiseScheme(LevelScheme):
         def merge(index: NDArray[np.int64]) -> MergedFrames:
             nonlocal merge_s
             start = time.perf_counter()
-            part = task.merger.merge(task.source, task.homographies, task.groups.select(index),
-                                     progress=task.progress, executor=task.executor)
+            with watched("merger", task.merger, "merge"):
+                part = task.merger.merge(task.source, task.homographies, task.groups.select(index),
+                                         progress=task.progress, executor=task.executor)
             merge_s += time.perf_counter() - start
             if task.keep_merged:
                 kept.append(part)
