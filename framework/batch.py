@@ -20,8 +20,8 @@ Each capture writes through its own :class:`~photonpano.outputs.RunFolder` (atom
 ``run.json`` last), so a batch killed at any moment leaves no complete-looking partial
 run. ``--resume`` then skips the captures whose run finished (reported as reused),
 continues the interrupted ones from their last finished level and runs the others: the
-outputs equal those of an uninterrupted batch. Worker processes end with the batch
-process (they watch it), so none keeps writing after a kill.
+outputs equal those of an uninterrupted batch. The process pool's workers end with the
+batch process (they watch it), so none keeps writing after a kill.
 """
 
 from __future__ import annotations
