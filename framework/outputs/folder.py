@@ -18,6 +18,10 @@ from numpy.typing import NDArray
 from ..errors import OutputError
 from .checkpoint import CHECKPOINTS, Checkpoint
 from .files import PARTIAL, atomic_path, inside, oserror, refuse_symlink, regular_file_inside, sha256_file, write_text
+from .state import lock_is_stale as _lock_is_stale
+from .state import read_manifest as _read_manifest
+from .state import read_quietly as _read
+from .state import walk_files as _walk_files
 
 __all__ = ["MANIFEST", "LOCK", "RUN_JSON", "RunFolder"]
 
@@ -358,80 +362,3 @@ class RunFolder:
         hashes = {n: self.hashes[n] for n in self.files if n in self.hashes}
         write_text(self.root / MANIFEST, json.dumps({"files": self.files, "sha256": hashes, "complete": complete},
                                                     indent=1))
-
-
-def _read(path: Path) -> str:
-    try:
-        return path.read_text(errors="replace")
-    except OSError:
-        return ""
-
-
-def _read_manifest(path: Path) -> tuple[list[str] | None, dict[str, str] | None]:
-    """Return the file names and sha256 hashes of a manifest.
-
-    Returns ``(None, None)`` without a manifest (or a manifest that is a link); a
-    damaged one lists nothing. Hashes are None for a manifest that records none (written
-    before hashes were recorded): its files then get the path checks only.
-    """
-    if path.is_symlink() or not path.is_file():
-        return None, None
-    try:
-        data = json.loads(_read(path))
-    except ValueError:
-        return [], {}
-    if not isinstance(data, dict):
-        return [], {}
-    files = data.get("files", [])
-    files = [f for f in files if isinstance(f, str) and f and ".." not in Path(f).parts
-             and not Path(f).is_absolute()] if isinstance(files, list) else []
-    hashes = data.get("sha256")
-    if hashes is None:
-        return files, None
-    if not isinstance(hashes, dict):
-        return files, {}
-    return files, {k: v for k, v in hashes.items() if isinstance(k, str) and isinstance(v, str)}
-
-
-def _walk_files(root: Path, links: bool = False) -> list[str]:
-    """Names (relative, ``/``-separated, sorted) of the regular files below ``root``, never following a link.
-
-    With ``links``, symbolic links (to anything) are listed too.
-    """
-    names = []
-    for folder, dirs, files in os.walk(root, followlinks=False):
-        base = Path(folder)
-        entries = files + [d for d in dirs if (base / d).is_symlink()] if links else files
-        for entry in entries:
-            path = base / entry
-            if path.is_symlink() and not links:
-                continue
-            if links or path.is_file():
-                names.append(path.relative_to(root).as_posix())
-    return sorted(names)
-
-
-def _lock_is_stale(lock: Path) -> bool:
-    """A lock is stale when its process (on this host) no longer runs."""
-    fields = _read(lock).split()
-    if len(fields) < 2 or not fields[0].isdigit():
-        return True
-    if fields[1] != socket.gethostname():
-        return False
-    pid = int(fields[0])
-    if pid == os.getpid():
-        return False
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return True
-    except PermissionError:
-        return False
-    return _is_zombie(pid)
-
-
-def _is_zombie(pid: int) -> bool:
-    with contextlib.suppress(OSError, IndexError):
-        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] == "Z"
-    return False
-

@@ -63,7 +63,8 @@ def claim_partial(output: Path, restart: bool = False) -> Path:
             without ``restart``), another conversion holds it, or it cannot be created;
             one line naming the path.
     """
-    from .folder import _lock_is_stale, _read
+    from .state import lock_is_stale as _lock_is_stale
+    from .state import read_quietly as _read
 
     partial, owner = _names(output)
     if restart:
@@ -106,7 +107,7 @@ def claim_partial(output: Path, restart: bool = False) -> Path:
 
 def release_partial(output: Path) -> None:
     """Remove this conversion's owner record of ``<output>.part`` (call once the ``.part`` is renamed or removed)."""
-    from .folder import _read
+    from .state import read_quietly as _read
 
     _, owner = _names(output)
     with contextlib.suppress(OSError):
@@ -116,7 +117,8 @@ def release_partial(output: Path) -> None:
 
 def _remove_interrupted(partial: Path, owner: Path) -> None:
     """Remove the ``.part`` (file or folder, never a link's target) and owner record of a dead conversion."""
-    from .folder import _lock_is_stale, _read
+    from .state import lock_is_stale as _lock_is_stale
+    from .state import read_quietly as _read
 
     try:
         mode = os.lstat(owner).st_mode

@@ -166,7 +166,7 @@ outputs: {{trajectory_plot: false, report: false}}
 
 
 def _process_ended(pid: int, timeout_s: float) -> bool:
-    from photonpano.outputs.folder import _is_zombie
+    from photonpano.outputs.state import is_zombie
 
     end = time.perf_counter() + timeout_s
     while time.perf_counter() < end:
@@ -174,7 +174,7 @@ def _process_ended(pid: int, timeout_s: float) -> bool:
             os.kill(pid, 0)
         except ProcessLookupError:
             return True
-        if _is_zombie(pid):
+        if is_zombie(pid):
             return True
         time.sleep(0.05)
     return False
