@@ -71,8 +71,8 @@ def compare_locators(base: dict[str, Any], locators: list[str], host: PluginHost
         log: optional callable receiving one progress line per finished level and run.
             Inside :func:`photonpano.progress.reporting`, each locator's levels also
             report progress as tasks ``"<locator>: level k: merge + locate"``.
-        on_row: optional callable receiving the rows so far after each locator (to
-            write partial results of a long comparison).
+        on_row: optional callable receiving the rows so far after each locator (e.g.
+            to show partial results of a long comparison).
         refine: keep the spec's ``level_schemes`` (False: every level registers pairs
             with the compared locator).
 
