@@ -56,7 +56,8 @@ class PluginHung(PluginError):
 
 
 _lock = threading.Lock()
-_calls: dict[int, tuple[float, str, Any, str, int]] = {}  # token -> (deadline, stage, plugin object, method, thread)
+# calls in progress: token -> (deadline, stage, plugin object, method, thread id, limit in seconds)
+_calls: dict[int, tuple[float, str, Any, str, int, float]] = {}
 _tokens = itertools.count()
 _state: dict[str, Any] = {"armed": 0, "pid": None, "host": None, "message": None, "thread": None,
                           "hard_exit": False}
@@ -102,7 +103,7 @@ def watched(stage: str, plugin: Any, method: str) -> Iterator[None]:
     token = next(_tokens)
     if limit is not None:
         with _lock:
-            _calls[token] = (start + limit, stage, plugin, method, threading.get_ident())
+            _calls[token] = (start + limit, stage, plugin, method, threading.get_ident(), limit)
         _start_thread()
     try:
         yield
@@ -197,7 +198,7 @@ def _watch() -> None:
                 _stuck.add(token)
         if not overdue or _state["message"] is not None or not _state["armed"]:
             continue
-        _, stage, plugin, method, thread = overdue[-1][1]
+        _, stage, plugin, method, thread, limit = overdue[-1][1]
         message = (f"{stage} ({_plugin_name(plugin, thread)}) in {method} did not return within {limit:g} s "
                    f"(hangs?); {ENV} sets the limit")
         _state["message"] = message
