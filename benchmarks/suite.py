@@ -40,6 +40,7 @@ import argparse
 import json
 import sys
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -112,8 +113,11 @@ def captures(folder: Path | None = None) -> list[Capture]:
     return out
 
 
-def run_capture(capture: Capture, dump: Path | None = None) -> dict:
+def run_capture(capture: Capture, dump: Path | None = None, overrides: Sequence[str] = ()) -> dict:
     """Simulate and reconstruct one capture with the default settings; return its row.
+
+    ``overrides`` are ``--set``-style spec changes (``"level_schemes=[pairwise]"``), for
+    judging a candidate default on the whole suite against the current one.
 
     With ``dump``, the per-frame actual error and predicted sigma go to
     ``dump/<photo>--<variant>.npz`` (``error``, ``sigma``, ``unverified`` per frame, the
@@ -124,12 +128,13 @@ def run_capture(capture: Capture, dump: Path | None = None) -> dict:
     from photonpano.metrics import ground_truth_report, source_trajectory_error
     from photonpano.pipeline import reconstruct
     from photonpano.plugins.compositors.flux_canvas import FluxCanvasConfig
-    from photonpano.spec import validate_spec
+    from photonpano.spec import apply_overrides, validate_spec
     from photonpano.uncertainty import held_out_residuals
 
     row: dict = {"capture": capture.name, "frames": capture.source_spec()["frames"]}
     try:
-        spec = validate_spec({"source": capture.source_spec()}, PluginHost(), origin=capture.name)
+        data = apply_overrides({"source": capture.source_spec()}, list(overrides))
+        spec = validate_spec(data, PluginHost(), origin=capture.name)
         source = spec.source.build()
     except Exception as exc:  # noqa: BLE001 - a capture the simulator refuses is a row too
         return {**row, "failed": f"simulate: {str(exc).splitlines()[0]}"}
@@ -137,7 +142,7 @@ def run_capture(capture: Capture, dump: Path | None = None) -> dict:
     levels: list = []
     t0 = time.perf_counter()
     try:
-        homographies, _, pano, timings = reconstruct(spec, source, report=report, on_level=levels.append)
+        homographies, stats, pano, timings = reconstruct(spec, source, report=report, on_level=levels.append)
     except Exception as exc:  # noqa: BLE001 - a failed run is a row too (it must fail with a reason)
         return {**row, "failed": str(exc).splitlines()[0], "seconds": time.perf_counter() - t0}
     seconds = time.perf_counter() - t0
@@ -158,7 +163,10 @@ def run_capture(capture: Capture, dump: Path | None = None) -> dict:
             "over_flux_canvas_true": gt["psnr_db"] - gt["psnr_true_homographies_by"]["flux-canvas"],
             "status": report["status"], "warnings": report["warnings"],
             "sigma_median": float(np.median(sigma)), "within_2_sigma": float(np.mean(error <= 2 * sigma)),
-            "seconds": seconds, "confidence_s": timings.get("confidence", 0.0)}
+            "seconds": seconds, "confidence_s": timings.get("confidence", 0.0),
+            "levels": [{"scheme": st["scheme"], "rmse": st.get("trajectory_rmse_px"),
+                        "failed_fraction": st.get("quality", {}).get("failed_fraction"),
+                        "residual_px": st.get("quality", {}).get("pose_graph_residual_px")} for st in stats]}
 
 
 def aggregate(rows: list[dict]) -> dict:
@@ -237,6 +245,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--list", action="store_true", help="list the captures and exit")
     parser.add_argument("--json", type=Path, help="also write the rows and aggregate to this JSON file")
     parser.add_argument("--dump", type=Path, help="save each capture's per-frame error and sigma here (.npz)")
+    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                        help="a spec override for every capture, as `photonpano run --set` (repeatable)")
     parser.add_argument("--write", type=Path, help="put the table into this Markdown file between "
                         "<!-- suite-table:start --> and <!-- suite-table:end -->")
     args = parser.parse_args(argv)
@@ -252,7 +262,7 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     rows = []
     for capture in chosen:
-        row = run_capture(capture, args.dump)
+        row = run_capture(capture, args.dump, args.set)
         rows.append(row)
         if "failed" in row:
             print(f"{row['capture']:40s} failed: {row['failed']}", flush=True)

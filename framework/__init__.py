@@ -28,7 +28,12 @@ and an entry point in the ``photonpano.plugins`` group naming that module. See
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING, Any
+
 import pluggy
+
+if TYPE_CHECKING:  # type checkers see the API's signatures; at run time it is imported on first use
+    from .api import load, run
 
 __version__ = "0.1.0"
 
@@ -41,7 +46,7 @@ hookspec = pluggy.HookspecMarker("photonpano")
 __all__ = ["__version__", "hookimpl", "hookspec", "run", "load"]
 
 
-def __getattr__(name: str):
+def __getattr__(name: str) -> Any:
     """Import the Python API on first use, so ``import photonpano`` stays cheap."""
     if name in ("run", "load"):
         from . import api

@@ -32,6 +32,8 @@ def _report_pose(summary: dict[str, Any], out: Path) -> None:
                f"written to {out} (level {last['level']}: {last['registered']}/{last['exposures']} "
                "virtual exposures "
                f"registered, {summary['timings_s']['estimate']:.1f} s)")
+    for warning in summary.get("warnings", []):
+        typer.secho(f"warning: {warning}", fg=typer.colors.YELLOW, err=True)
     gt = summary.get("ground_truth")
     if gt and "rpe" in gt:
         typer.echo(f"vs ground truth: ATE {1e3 * gt['ate_m']:.2f} mm, RPE over {gt['rpe_gap_frames']} frames "

@@ -25,7 +25,7 @@ against the panorama with its own locator, is not used), so the table compares t
 backends themselves. With ``refine=True`` the spec's ``level_schemes`` are kept: the table
 then compares whole pipelines as ``photonpano run`` would execute them (each backend at
 the pairwise levels, the mosaic locator after). The stages are built by the same
-:class:`~photonpano.pipeline.Stages` as ``photonpano run``. Runs use the spec's executor.
+:class:`~photonpano.reconstruction.Stages` as ``photonpano run``. Runs use the spec's executor.
 The panorama is not assembled (it does not depend on the locator beyond the
 homographies); run ``photonpano run`` with the chosen locator for it.
 """
@@ -156,8 +156,8 @@ def _compare_one(item: str, base: dict[str, Any], host: PluginHost, origin: str,
     """Run one locator (see :func:`compare_locators`); append its row; return the source and homographies."""
     from .executor import make_executor
     from .metrics import source_trajectory_error
-    from .pipeline import Stages
     from .progress import start_task
+    from .reconstruction import Stages
     from .spec import apply_overrides, validate_spec
     from .watchdog import guarding
 

@@ -16,7 +16,6 @@ import numpy as np
 from numpy.typing import NDArray
 
 from . import geometry
-from .binning import RegistrationGrid
 from .errors import StageError
 from .executor import Executor, SerialExecutor
 from .guards import guard_keyframes, plausible
@@ -32,8 +31,7 @@ def estimate_motion(source: PhotonSource, resampler: Resampler, merger: Merger, 
                     schemes: Sequence[LevelScheme], *, group_size: int, executor: Executor | None = None,
                     keep_merged: bool = False, on_level: Callable[[LevelResult], None] | None = None,
                     progress: Callable[[str, int], Callable[[int], None]] | None = None, start_level: int = 1,
-                    initial: NDArray[np.float64] | None = None, binning: int = 1,
-                    crosscheck: bool = True) -> NDArray[np.float64]:
+                    initial: NDArray[np.float64] | None = None, crosscheck: bool = True) -> NDArray[np.float64]:
     """Estimate a homography for every binary frame by stratified re-sampling.
 
     One level per scheme. Each level re-samples groups, has its scheme merge them with
@@ -50,6 +48,9 @@ def estimate_motion(source: PhotonSource, resampler: Resampler, merger: Merger, 
         interpolator: the built interpolator (homographies for every binary frame).
         schemes: the scheme of each level (its length is the number of levels); the
             first must not need an estimate (``pairwise``).
+            Each distinct scheme is prepared once with the groups of every level to
+            run (:meth:`~photonpano.schemes.LevelScheme.prepare`, timed with the first
+            level's ``merge``) and closed at the end.
         group_size: binary frames per group m.
         executor: runs independent work (None: serially).
         keep_merged: keep each level's merged frames in its result (for dumps).
@@ -58,13 +59,6 @@ def estimate_motion(source: PhotonSource, resampler: Resampler, merger: Merger, 
         start_level: resume with this level (the result equals that of an uninterrupted run).
         initial: (T, 3, 3) float64 homographies after level ``start_level - 1`` (that
             :class:`~photonpano.records.LevelResult`'s); None: identities.
-        binning: the schemes merge and register frames binned ``binning`` x
-            ``binning`` (:mod:`photonpano.binning`); homographies and keyframes
-            cross into sensor pixels here, so every level's result is in
-            sensor pixels (only its merged frames, if kept, are binned images). With
-            binning and two or more levels to run, the binned photons are counted once
-            for all of them (:meth:`~photonpano.binning.RegistrationGrid.count_once`;
-            its time is part of the first level's ``merge``).
         crosscheck: have the last level's scheme also register its consecutive merged
             frames against each other, held out of the fit (the evidence of
             :mod:`photonpano.uncertainty`).
@@ -83,7 +77,7 @@ def estimate_motion(source: PhotonSource, resampler: Resampler, merger: Merger, 
     executor = executor or SerialExecutor()
     if start_level == 1 and schemes and schemes[0].needs_template:
         raise ValueError(f"level 1 cannot use the {schemes[0].name} scheme: it refines an existing estimate")
-    grid = RegistrationGrid(source, binning)
+    distinct = list({id(scheme): scheme for scheme in schemes[start_level - 1:]}.values())
     try:
         resampled = {}  # each level's groups and the time it took to re-sample them
         for level in range(start_level, len(schemes) + 1):
@@ -92,32 +86,32 @@ def estimate_motion(source: PhotonSource, resampler: Resampler, merger: Merger, 
         # the interpolator's first call may import libraries (scipy.interpolate: 0.17 s): load
         # them while the photons are counted (compiled, GIL-free) and level 1 runs
         threading.Thread(target=_warm_up, args=(interpolator,), name="photonpano-warm-up", daemon=True).start()
-        t_count = time.perf_counter()
-        if len(schemes) > start_level:  # two or more passes over the photons: count them once
-            boundaries = np.concatenate([np.r_[g.start, g.stop] for g, _ in resampled.values()])
-            grid.count_once(boundaries, group_size, executor)
-        count_s = time.perf_counter() - t_count  # merge work: reported with the first level's merge
+        t_prepare = time.perf_counter()
+        for scheme in distinct:
+            scheme.prepare([groups for groups, _ in resampled.values()], group_size, executor)
+        prepare_s = time.perf_counter() - t_prepare  # merge work: reported with the first level's merge
         for level in range(start_level, len(schemes) + 1):
             scheme, (groups, resample_s) = schemes[level - 1], resampled[level]
             t1 = time.perf_counter()
-            task = LevelTask(level, grid.source, merger, groups, grid.inward(homographies), group_size, executor,
-                             keep_merged, crosscheck=crosscheck and level == len(schemes),
+            task = LevelTask(level, source, merger, groups, homographies, group_size, executor, keep_merged,
+                             crosscheck=crosscheck and level == len(schemes),
                              progress=progress(f"level {level}: merge + locate", len(groups)) if progress else None)
-            located = grid.located_outward(scheme.locate(task))
+            located = scheme.locate(task)
             t2 = time.perf_counter()
             current = homographies[groups.reference]
             keyframes, rejected = guard_keyframes(current, located.keyframes, source.width, source.height)
             updated = _interpolate(interpolator, groups, current, keyframes, homographies, source, level)
             homographies = _gauge(updated)
             t3 = time.perf_counter()
-            first = count_s if level == start_level else 0.0
+            first = prepare_s if level == start_level else 0.0
             timings = {"resample": resample_s, "merge": located.merge_s + first, "locate": t2 - t1 - located.merge_s,
                        "interpolate": t3 - t2}
             if on_level is not None:
                 on_level(LevelResult(level, scheme.name, groups, located, homographies, timings, rejected))
         return homographies
     finally:
-        grid.close()
+        for scheme in distinct:
+            scheme.close()
 
 
 def _warm_up(interpolator: Interpolator) -> None:

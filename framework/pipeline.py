@@ -21,26 +21,26 @@ import json
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 from pydantic import BaseModel
 
-from .errors import PhotonpanoError, StageError
-from .executor import Executor
+from .errors import PhotonpanoError
 from .hdr import write_flux_tiff
 from .host import PluginHost
 from .metrics import ground_truth_report, plot_trajectory, source_trajectory_error
 from .outputs import json_default
 from .progress import reporting, start_task
 from .provenance import run_header
-from .records import LevelResult, Panorama
+from .reconstruction import reconstruct
+from .records import Panorama
 from .spec import dump_spec
 from .stages import PhotonSource
-from .watchdog import guarding, watched
+from .watchdog import guarding
 
-__all__ = ["RunResult", "Stages", "prepare_output", "run_pipeline", "reconstruct"]
+__all__ = ["RunResult", "prepare_output", "run_pipeline", "reconstruct"]
 
 
 def prepare_output(out_dir: Path, force: bool) -> None:
@@ -246,201 +246,3 @@ def _write_video(folder, source: PhotonSource, pano: Panorama, summary: dict[str
     advance = progress("video", count)
     folder.write_with("video.mp4", lambda path: encode(path, frames, count, fps=30.0, white=white_point(pano.flux),
                                                        advance=advance))
-
-
-class Stages:
-    """The stages of a spec, built once for one opened capture; used by run, compare and the API.
-
-    Holds the group-size plan, the built resampler, merger, locator (wrapped in the
-    binned-frame check when ``group_size: auto``), interpolator and the scheme of each
-    level, and runs the levels (:meth:`estimate_motion`) and the panorama (:meth:`compose`).
-
-    Args:
-        spec: a validated ``PipelineSpec``.
-        source: the opened capture.
-
-    Levels the capture has no room for are dropped with a note (:attr:`notes`), see
-    :meth:`_fit_levels`.
-
-    Raises:
-        StageError: if the group-size pre-pass cannot read the capture, or the capture is
-            too short for even one level.
-    """
-
-    def __init__(self, spec: BaseModel, source: PhotonSource) -> None:
-        """Build every stage of ``spec`` for ``source``."""
-        from .adaptive import plan_group_size
-        from .binning import in_merged_pixels, registration_binning
-        from .coarse import CascadeLocator
-        from .schemes import MosaicScheme, PairwiseScheme
-        from .spec import level_schemes
-
-        self.spec, self.source = spec, source
-        self.plan = plan_group_size(spec.group_size, source)
-        self.binning = registration_binning(spec, source)
-        self.locator = in_merged_pixels(spec.locator, self.binning).build()
-        if self.plan.auto:  # explicit group sizes keep the plain locator
-            # the check bins sensor pixels in blocks of at least 2, counted in merged-frame pixels
-            blocks = max(2, self.plan.binning) / self.binning
-            self.locator = CascadeLocator(self.locator, max(1, round(blocks)))
-        self.resampler, self.merger = spec.resampler.build(), spec.merger.build()
-        self.interpolator = spec.interpolator.build()
-        built = {"pairwise": PairwiseScheme(self.locator, tuple(spec.pair_offsets)),
-                 "mosaic": MosaicScheme(in_merged_pixels(spec.mosaic.locator, self.binning).build,
-                                        spec.mosaic.template.build,
-                                        subbatch_px=spec.mosaic.subbatch_px,
-                                        reject_movers=spec.mosaic.reject_movers)}
-        self.schemes = [built[name] for name in level_schemes(spec)]
-        self.notes: list[str] = []
-        if self.plan.extra_levels:
-            self.schemes += [self.schemes[-1]] * self.plan.extra_levels
-            self.notes.append(f"groups span whole flicker periods ({self.plan.group_size} frames): "
-                              f"{self.plan.extra_levels} more level(s) keep the last level's keyframes as dense")
-        self._fit_levels()
-
-    def _fit_levels(self) -> None:
-        """Keep the levels the capture has room for, noting any dropped; none at all is an error.
-
-        A resampler that cannot build level k >= 2 for this capture and group size (a
-        short clip: the ``midpoint`` groups would be centred less than a frame apart)
-        leaves levels 1 .. k-1 to run, with a one-line note in :attr:`notes`.
-
-        Raises:
-            StageError: if the resampler cannot build level 1 (e.g. a capture of fewer
-                than 4 frames: too short to register anything).
-        """
-        n, m = self.source.n_frames, self.plan.group_size
-        for level in range(1, len(self.schemes) + 1):
-            try:
-                with watched("resampler", self.resampler, "groups"):
-                    self.resampler.groups(n, m, level)
-            except ValueError as exc:
-                if level == 1:
-                    raise StageError("resampler", type(self.resampler).__name__, str(exc)) from None
-                planned = len(self.schemes)
-                self.schemes = self.schemes[:level - 1]
-                self.notes.append(f"a capture of {n} frames in groups of {m} has room for {level - 1} of the "
-                                  f"{planned} levels; running {level - 1} ({exc})")
-                return
-
-    def estimate_motion(self, executor: Executor, *, on_level: Callable[[LevelResult], None] | None = None,
-                        progress: Any = None, resume: Any = None) -> NDArray[np.float64]:
-        """Run the levels (:func:`photonpano.levels.estimate_motion`).
-
-        Args:
-            executor: where independent work runs.
-            on_level: called with each level's frozen :class:`~photonpano.records.LevelResult`.
-            progress: ``progress(task, total)`` returning an ``advance(n)`` callable.
-            resume: a :class:`~photonpano.outputs.Checkpoint` to continue from (None: level 1).
-
-        Returns:
-            (T, 3, 3) float64 frame-to-panorama homographies (middle-frame pixels).
-        """
-        from .levels import estimate_motion
-
-        start = {} if resume is None else {
-            "start_level": resume.level + 1, "initial": resume.homographies}
-        return estimate_motion(self.source, self.resampler, self.merger, self.interpolator, self.schemes,
-                               group_size=self.plan.group_size, executor=executor,
-                               keep_merged=self.spec.outputs.merged_frames, on_level=on_level, progress=progress,
-                               binning=self.binning, crosscheck=self.spec.uncertainty, **start)
-
-    def compose(self, homographies: NDArray[np.float64], executor: Executor,
-                progress: Callable[[int], None] | None = None) -> Panorama:
-        """The panorama of every binary frame by the spec's compositor (:func:`photonpano.compose.compose`)."""
-        from .compose import compose
-
-        return compose(self.source, homographies, self.spec.source.panorama_compositor(self.spec.compositor.build),
-                       subbatch_px=self.spec.panorama_subbatch_px, progress=progress, executor=executor)
-
-    def level_statistics(self, result: LevelResult) -> dict[str, Any]:
-        """One level's ``run.json`` row.
-
-        Its statistics, feature-cache use, ground-truth-free quality figures, the
-        binned-frame check's counts and, with ground truth, the RMSE.
-        """
-        from .coarse import CascadeLocator
-        from .metrics import source_trajectory_error
-        from .quality import level_figures
-
-        row = result.statistics()
-        if result.located.locator_cache is not None:
-            row["locator_cache"] = result.located.locator_cache
-        row["quality"] = level_figures(result, self.plan, self.source.width, self.source.height)
-        if isinstance(self.locator, CascadeLocator) and result.scheme == "pairwise":
-            row["registration_check"] = self.locator.take_statistics()
-        if self.source.ground_truth is not None:
-            row["trajectory_rmse_px"] = source_trajectory_error(result.homographies, self.source).rmse_px
-        return row
-
-
-def reconstruct(spec: BaseModel, source: PhotonSource, *, on_level: Callable[[LevelResult], None] | None = None,
-                progress: Any = None, checkpoint: Callable[[Any], None] | None = None, resume: Any = None,
-                report: dict[str, Any] | None = None
-                ) -> tuple[NDArray[np.float64], list[dict[str, Any]], Panorama, dict[str, float]]:
-    """Estimate the motion of ``source`` and composite its panorama as ``spec`` says.
-
-    Args:
-        spec: a validated ``PipelineSpec`` (its ``source`` section is not used).
-        source: the opened capture.
-        on_level: called with each :class:`~photonpano.records.LevelResult`.
-        progress: ``progress(task, total)`` returning an ``advance(n)`` callable.
-        checkpoint: called with a :class:`~photonpano.outputs.Checkpoint` after each level.
-        resume: a :class:`~photonpano.outputs.Checkpoint` to continue from (None: level 1).
-        report: filled, if given, with the confidence report of ``run.json``:
-            ``status``, ``warnings``, ``notes`` (one line per adjustment the capture
-            needed, e.g. fewer levels for a short clip), ``group_size`` (the plan: chosen m and why, see
-            :class:`~photonpano.adaptive.GroupPlan`), ``panorama_agreement``
-            (:func:`~photonpano.quality.panorama_agreement`), ``uncertainty`` (the
-            summary of the per-frame uncertainty, None if there was no evidence) and
-            ``frame_uncertainty`` (the :class:`~photonpano.uncertainty.FrameUncertainty`
-            itself, or None; not JSON: a caller writing ``run.json`` takes it out) and
-            ``flicker`` (:meth:`~photonpano.flicker.Flicker.record` of the flickering
-            light found in the photon counts, or None).
-
-    Returns:
-        ``(homographies, level_statistics, panorama, timings_s)``: (T, 3, 3) float64
-        frame-to-panorama homographies (middle-frame pixels), one statistics dict per
-        level (with the trajectory RMSE when the source has ground truth), the
-        :class:`~photonpano.records.Panorama` (from the spec's compositor; its
-        ``homographies`` map frames to canvas pixels) and wall times in seconds.
-    """
-    from .executor import make_executor
-    from .outputs import Checkpoint
-    from .quality import agreement_binning, assess, panorama_agreement
-    from .uncertainty import frame_uncertainty
-
-    stats: list[dict[str, Any]] = list(resume.statistics) if resume is not None else []
-    stages = Stages(spec, source)
-    last: LevelResult | None = None
-
-    def level_done(result: LevelResult) -> None:
-        nonlocal last
-        last = result
-        if on_level is not None:
-            on_level(result)
-        stats.append(stages.level_statistics(result))
-        if checkpoint is not None:
-            checkpoint(Checkpoint(result.level, result.homographies, list(stats)))
-
-    timings: dict[str, float] = {}
-    with make_executor(spec.executor, spec.workers, spec.dask_address) as executor:
-        t0 = time.perf_counter()
-        homographies = stages.estimate_motion(executor, on_level=level_done, progress=progress, resume=resume)
-        timings["levels"] = time.perf_counter() - t0
-        t0 = time.perf_counter()
-        pano = stages.compose(homographies, executor, progress("panorama", source.n_frames) if progress else None)
-        timings["panorama"] = time.perf_counter() - t0
-    if report is not None:
-        t0 = time.perf_counter()
-        plan = stages.plan
-        agreement = panorama_agreement(source, stages.merger, homographies, pano, plan.group_size,
-                                       agreement_binning(plan))
-        uncertainty = frame_uncertainty(last, source.width, source.height) if last is not None else None
-        summary = uncertainty.summary(source.frame_rate_hz) if uncertainty is not None else None
-        status, warnings = assess(plan, stats, agreement, summary)
-        report.update(status=status, warnings=warnings, notes=list(stages.notes), group_size=plan.record(),
-                      panorama_agreement=agreement, uncertainty=summary, frame_uncertainty=uncertainty,
-                      flicker=plan.flicker.record() if plan.flicker is not None else None)
-        timings["confidence"] = time.perf_counter() - t0
-    return homographies, stats, pano, timings

@@ -11,7 +11,7 @@ or fewer that are each already a good exposure, rather than 100 000 binary frame
   registration against the panorama follows (a falling ball dragged a static camera's
   estimate by 52 px), while pairwise feature registration with the per-pair motion
   model choice (GRIC, ``motion: auto``) keeps to the static background;
-- the group size m is ``auto`` as for every capture (:mod:`photonpano.adaptive`): from
+- the group size m is ``auto`` as for every capture (:mod:`photonpano.budget`): from
   the frames' light and apparent speed, capped so that level 1 has at least 5 groups and
   at most 16 frames per group for intensity frames (3 for the 15-frame Photron clip).
 """

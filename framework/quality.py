@@ -13,14 +13,14 @@ if the trajectory is right. :func:`assess` turns the figures into ``status``
 
 from __future__ import annotations
 
-import math
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
 from . import geometry
-from .adaptive import GroupPlan, normalised_correlation
+from .budget.probe import GroupPlan
+from .imaging import binned_frame, normalised_correlation
 from .stages import Groups
 from .watchdog import watched
 
@@ -40,7 +40,7 @@ def level_figures(result, plan: GroupPlan, width: int, height: int) -> dict[str,
 
     Args:
         result: the :class:`~photonpano.records.LevelResult`.
-        plan: the capture's :class:`~photonpano.adaptive.GroupPlan`.
+        plan: the capture's :class:`~photonpano.budget.probe.GroupPlan`.
         width: frame width in pixels.
         height: frame height in pixels.
 
@@ -79,7 +79,7 @@ def panorama_agreement(source, merger, homographies: NDArray[np.float64], panora
     ``samples`` groups of ``group_size`` frames spread over the capture are merged with
     the final homographies, the panorama is resampled into each reference frame's grid
     (:func:`~photonpano.compose.panorama_views`), and both are binned by ``factor``
-    (square-root flux, see :func:`~photonpano.coarse.binned_frame`) and correlated.
+    (square-root flux, see :func:`~photonpano.imaging.binned_frame`) and correlated.
 
     Args:
         source: the capture.
@@ -94,7 +94,6 @@ def panorama_agreement(source, merger, homographies: NDArray[np.float64], panora
         ``{"median", "min", "binning"}``: correlations (1 = identical up to gain and
         offset, about 0 for photon noise).
     """
-    from .coarse import binned_frame
     from .compose import panorama_views
 
     n = source.n_frames
@@ -113,14 +112,6 @@ def panorama_agreement(source, merger, homographies: NDArray[np.float64], panora
     return {"median": float(np.median(values)), "min": float(np.min(values)), "binning": factor}
 
 
-def agreement_binning(plan: GroupPlan, photons: float = 20.0) -> int:
-    """Binning giving a level-1 merged frame about ``photons`` detections per pixel (2 to 8)."""
-    per_group = plan.photons_per_pixel_per_group
-    if per_group is None:
-        return 2
-    return int(min(8, max(2, math.ceil(math.sqrt(photons / max(per_group, 1e-12))))))
-
-
 def assess(plan: GroupPlan, levels: list[dict[str, Any]],
            agreement: dict[str, Any] | None, uncertainty: dict[str, Any] | None = None) -> tuple[str, list[str]]:
     """Decide ``status`` and the warnings of a run from its figures.
@@ -128,7 +119,7 @@ def assess(plan: GroupPlan, levels: list[dict[str, Any]],
     Args:
         plan: the group-size plan (its probe's findings are checked too, and its
             ``flicker``: flicker over part of the field is warned about unless the groups
-            span whole periods (:func:`~photonpano.adaptive.whole_flicker_periods`): it
+            span whole periods (:func:`~photonpano.budget.probe.whole_flicker_periods`): it
             biases every registration alike, which no held-out pair can see (measured on
             simulated half-lit captures: 0.4-5 px where steady light gives 0.1 px).
         levels: per-level statistics rows, each with a ``"quality"`` entry from

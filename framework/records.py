@@ -85,7 +85,8 @@ class MergedFrames:
         """Return the merged frames of ``parts`` one after another (with ids if every part has them)."""
         fields = ("flux", "frames", "images", "masks")
         ids = np.concatenate([p.ids for p in parts]) if all(p.ids is not None for p in parts) else None
-        return MergedFrames(*(np.concatenate([getattr(p, f) for p in parts]) for f in fields), ids=ids)
+        flux, frames, images, masks = (np.concatenate([getattr(p, f) for p in parts]) for f in fields)
+        return MergedFrames(flux, frames, images, masks, ids=ids)
 
     @staticmethod
     def new_ids(count: int) -> NDArray[np.int64]:
@@ -229,6 +230,9 @@ class LocateResult:
             if the level was asked for them, else None.
         crosscheck_index: (C, 2) int64 merged-frame indices ``(a, b)`` of each
             held-out registration (``b = a + 1``), or None.
+        check: the figures of the binned check of the scheme's registrations
+            (:meth:`~photonpano.schemes.check.LevelCheck.figures`; ``run.json``'s
+            ``registration_check``), or None where none ran.
     """
 
     keyframes: NDArray[np.float64]
@@ -239,6 +243,7 @@ class LocateResult:
     locator_cache: dict[str, int] | None = None
     crosscheck: PairRegistrations | None = None
     crosscheck_index: NDArray[np.int64] | None = None
+    check: dict[str, Any] | None = None
 
     @property
     def primary(self) -> NDArray[np.bool_]:
@@ -249,7 +254,8 @@ class LocateResult:
         """
         if self.pair_index is None:
             return np.ones(len(self.registrations.ok), bool)
-        return self.pair_index[:, 1] - self.pair_index[:, 0] == 1
+        primary: NDArray[np.bool_] = self.pair_index[:, 1] - self.pair_index[:, 0] == 1
+        return primary
 
     def failed_groups(self) -> NDArray[np.int64]:
         """(F,) int64 groups whose primary registration failed and was bridged.

@@ -13,32 +13,26 @@ drizzle, scale: 2}``; a top-level ``scale: 2`` is moved there)::
 
 Omitted stages use the paper's defaults (``midpoint``, ``flux-mle``, ``opencv-sift``,
 ``cubic-lk``) and the ``drizzle`` compositor. The stage slots are discriminated unions
-built at run time from the plugins installed, so third-party plugins validate exactly like built-ins.
+built at run time from the plugins installed, so third-party plugins validate exactly like built-ins
+(:mod:`photonpano.spec_model`); this module reads, overrides, validates and dumps specs.
 """
 
 from __future__ import annotations
 
 import re
 from pathlib import Path
-from typing import Annotated, Any, Literal, Union
+from typing import Any
 
 import yaml
 from pydantic import (
     BaseModel,
-    BeforeValidator,
-    ConfigDict,
-    Field,
     ValidationError,
-    create_model,
-    field_validator,
-    model_validator,
 )
 
-from .errors import PluginError, SpecError
+from .errors import SpecError
 from .faults import short_repr
 from .host import PluginHost
-from .spec_compat import move_refine_locator, move_scale
-from .spec_defaults import DEFAULT_PLUGINS, MOSAIC_PLUGINS
+from .spec_defaults import DEFAULT_PLUGINS
 from .spec_errors import (
     PLUGIN_SLOTS,
     blame_set,
@@ -53,203 +47,13 @@ from .spec_errors import (
     where,
     without_sections,
 )
+from .spec_model import OutputsConfig, level_schemes, plugin_configs, spec_model
 from .spec_paths import resolve_relative_paths
-from .stages import STAGES
 from .yaml_guard import control_character, load_yaml
 
 __all__ = ["DEFAULT_PLUGINS", "OutputsConfig", "spec_model", "load_spec", "validate_spec", "resolve_relative_paths",
            "apply_overrides", "dump_spec", "read_spec_file", "capture_instead_of_spec", "check_available",
            "level_schemes", "plugin_configs"]
-
-class OutputsConfig(BaseModel):
-    """Which optional outputs to write besides homographies, panorama and run.json."""
-
-    model_config = ConfigDict(extra="forbid", frozen=True, use_attribute_docstrings=True)
-
-    panorama_png: bool = True
-    """Write ``panorama.png``, the tone-mapped 16-bit sRGB panorama (with alpha: transparent where unobserved)."""
-    merged_frames: bool = False
-    """Write each level's merged frames as ``level_<k>/merged.npy`` (float32 flux) and PNGs,
-    at every level."""
-    trajectory_plot: bool = True
-    """Write ``trajectory.png``, the estimated (and true, if known) frame centres."""
-    report: bool = True
-    """Write ``report.html``: one self-contained page (images inlined) with the status, warnings,
-    panorama, trajectory, per-level figures, spec and versions."""
-    video: bool = False
-    """Write ``video.mp4``: the stabilised virtual exposures on the panorama canvas, as
-    ``photonpano video`` renders them by default (needs the ``video`` extra, PyAV)."""
-
-
-class _SpecBase(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True, use_attribute_docstrings=True)
-
-    @model_validator(mode="before")
-    @classmethod
-    def _former_keys(cls, data: Any) -> Any:
-        # keys of earlier specs, read under their present names
-        if isinstance(data, dict) and ("scale" in data or "refine_locator" in data):
-            data = dict(data)
-            move_scale(data, DEFAULT_PLUGINS["compositor"])
-            move_refine_locator(data)
-        return data
-
-    @property
-    def scale(self) -> float:
-        """The compositor's super-resolution scale (canvas pixels per frame pixel)."""
-        return self.compositor.scale
-
-    @field_validator(*STAGES, mode="before", check_fields=False)
-    @classmethod
-    def _plugin_shorthand(cls, value: Any) -> Any:
-        return {"plugin": value} if isinstance(value, str) else value
-
-    @model_validator(mode="after")
-    def _level_one_is_pairwise(self) -> Any:
-        if self.level_schemes[0] != "pairwise":
-            raise ValueError("level_schemes: level 1 must be pairwise (the mosaic scheme refines an existing "
-                             "estimate)")
-        return self
-
-
-def _group_size(value: Any) -> Any:
-    """Accept ``"auto"`` or an integer >= 2 as a group size, with one message for anything else."""
-    if value == "auto" or (isinstance(value, int) and not isinstance(value, bool) and value >= 2):
-        return value
-    raise ValueError("expected an integer >= 2 (binary frames per group) or auto")
-
-
-def _tagged(classes: list[type]) -> Any:
-    return Annotated[Union[tuple(classes)], Field(discriminator="plugin")]  # noqa: UP007
-
-
-def spec_model(host: PluginHost) -> type[BaseModel]:
-    """Build the ``PipelineSpec`` model for the plugins installed in ``host``.
-
-    Raises:
-        PluginError: if a stage kind has no plugin at all.
-    """
-    slots: dict[str, Any] = {}
-    for stage in STAGES:
-        classes = list(host.registry(stage).values())
-        if stage == "pose_estimator":  # optional: a spec with it runs `photonpano pose`
-            tagged = _tagged(classes) if classes else None
-            slots[stage] = (Annotated[Union[tagged, None], Field(  # noqa: UP007
-                description="Experimental: estimate 6-DoF camera poses instead of a panorama.")], None)
-            continue
-        if not classes:
-            raise PluginError(f"no {stage} plugins are installed (is photonpano installed?)")
-        if stage == "source":
-            slots[stage] = (_tagged(classes), ...)
-        else:
-            default_cls = host.registry(stage).get(DEFAULT_PLUGINS[stage], classes[0])
-            slots[stage] = (_tagged(classes), Field(default_factory=default_cls))
-    mosaic = _mosaic_model(host)
-    slots["mosaic"] = (mosaic, Field(default_factory=mosaic, description="Locator and template of the levels "
-                                     "whose scheme is mosaic (see [mosaic](#mosaic))."))
-    model = create_model(
-        "PipelineSpec",
-        __base__=_SpecBase,
-        version=(Literal[1], 1),
-        **slots,
-        levels=(Annotated[int, Field(ge=1, le=8, description="Number of levels (iterations of "
-                                     "re-sample, merge, locate, interpolate).")], 3),
-        group_size=(Annotated[Union[Literal["auto"], Annotated[int, Field(ge=2)]],  # noqa: UP007
-                              BeforeValidator(_group_size), Field(
-            description="Binary frames per group m (virtual exposure length, in frames); auto: "
-            "chosen from the capture's photon rate and apparent speed (photonpano.adaptive).")], "auto"),
-        pair_offsets=(Annotated[list[Annotated[int, Field(ge=1)]], Field(
-            min_length=1, description="Register merged frames g and g+k for each k; [1] is the "
-            "paper's chain, more offsets are solved jointly against chaining drift.")], [1, 2, 4, 8, 16, 32, 64]),
-        registration_binning=(Annotated[Union[Literal["auto"], Annotated[int, Field(ge=1, le=8)]],  # noqa: UP007
-                                        Field(description="Motion is estimated on merged frames binned k x k "
-            "(the photons of k x k sensor pixels summed): 2 gives the locators the half-resolution images they "
-            "register anyway for a quarter of the merging work; 1 merges at full resolution (e.g. with "
-            "`locator.image_scale: 0.5` for SIFT's former default). auto: 2 where the binned frames keep at "
-            "least 100 pixels on their short side, else 1 (photonpano.binning.auto_binning). The panorama is "
-            "always composited from the full-resolution photons.")], "auto"),
-        panorama_subbatch_px=(Annotated[float, Field(gt=0, le=2, description="Frames whose canvas "
-                              "warps differ by less than this (canvas pixels) are warped together.")], 0.5),
-        level_schemes=(Annotated[list[Literal["pairwise", "mosaic"]], Field(
-            min_length=1, description="Scheme of each level, the last repeated for the levels after: pairwise "
-            "(the paper's: pairs of merged frames and a pose graph; level 1 is always pairwise) or mosaic (each "
-            "merged frame against the panorama of the current estimate: no drift, one registration per "
-            "group).")], ["pairwise", "mosaic"]),
-        uncertainty=(bool, Field(True, description="Predict every frame's trajectory error (uncertainty.npy, "
-                     "run.json `uncertainty`, and `status`) from registrations held out of the fit: the last level "
-                     "also registers consecutive merged frames against each other (photonpano.uncertainty).")),
-        executor=(Literal["serial", "threads", "dask"], Field("threads", description="Where independent work "
-                  "(groups, chunks) runs: the calling thread, a pool of threads, or a Dask cluster (a local one "
-                  "of `workers` processes, or the scheduler at `dask_address`; see docs/scaling.md).")),
-        workers=(Annotated[int, Field(ge=0, description="Threads of the executor, or worker processes of a local "
-                                      "Dask cluster (0 = one per CPU core).")], 0),
-        dask_address=(Annotated[str | None, Field(
-            pattern=r"^(tcp|tls|inproc|ucx|ws|wss)://\S+$", description="executor dask: address of a running "
-            "Dask scheduler, e.g. tcp://10.0.0.5:8786; null starts a local cluster of `workers` processes.")], None),
-        outputs=(OutputsConfig, Field(default_factory=OutputsConfig)),
-    )
-    model.__doc__ = "A photonpano pipeline: one plugin per stage and the method's settings."
-    return model
-
-
-def _mosaic_model(host: PluginHost) -> type[BaseModel]:
-    """The model of the ``mosaic`` section (locator and template compositor of the mosaic scheme)."""
-    locators, compositors = host.registry("locator"), host.registry("compositor")
-
-    def locator(value: Any) -> Any:
-        value = {"plugin": value} if isinstance(value, str) else value
-        if isinstance(value, dict):
-            key = value.get("plugin", MOSAIC_PLUGINS["locator"])
-            value = {**getattr(locators.get(key), "template_defaults", {}), **value, "plugin": key}
-        return value
-
-    def compositor(value: Any) -> Any:
-        value = {"plugin": value} if isinstance(value, str) else value
-        return {"plugin": MOSAIC_PLUGINS["template"], **value} if isinstance(value, dict) else value
-
-    default_locator = locators[MOSAIC_PLUGINS["locator"]]
-    model = create_model(
-        "MosaicSpec", __config__=ConfigDict(extra="forbid", frozen=True),
-        locator=(Annotated[_tagged(list(locators.values())), BeforeValidator(locator), Field(
-            description="Locator registering each merged frame against the panorama view at its pose.")],
-            Field(default_factory=lambda: default_locator(**default_locator.template_defaults))),
-        template=(Annotated[_tagged(list(compositors.values())), BeforeValidator(compositor), Field(
-            description="Compositor of the panorama registered against, made afresh at each mosaic level "
-            "from the photons with that level's starting estimate.")],
-            Field(default_factory=compositors[MOSAIC_PLUGINS["template"]])),
-        subbatch_px=(Annotated[float, Field(gt=0, le=2, description="Sub-batch tolerance of that panorama, "
-                                            "in canvas pixels.")], 0.5),
-        reject_movers=(Annotated[Union[Annotated[float, Field(gt=0)], None], Field(  # noqa: UP007
-            description="Leave out of each registration the pixels of a merged frame that disagree with the "
-            "panorama view by more than this many robust standard deviations (a moving object, or its ghost; "
-            "e.g. 5). null (the default): every pixel is used. On: a disc crossing the scene 1.27 -> 0.12 px, "
-            "but static high-contrast scenes lose 0.04-0.27 px (docs/real_scenes.md).")], None),
-    )
-    model.__doc__ = ("The mosaic level scheme registers each merged frame against the panorama of the current "
-                     "estimate (frame-to-mosaic alignment): `locator` registers, `template` composites that "
-                     "panorama. A locator here starts from its `template_defaults` (opencv-ecc: one pyramid level, "
-                     "at most 10 iterations, stopping when the correlation gains less than 1e-4, on the merged "
-                     "frames of `registration_binning`). The former `refine_locator: X` is read as "
-                     "`mosaic: {locator: X}`, and `refine_locator: null` as `level_schemes: [pairwise]`.")
-    return model
-
-
-def level_schemes(spec: BaseModel) -> list[str]:
-    """The scheme of each of the spec's levels (``level_schemes``, its last entry repeated)."""
-    names = list(spec.level_schemes)
-    return [names[min(i, len(names) - 1)] for i in range(spec.levels)]
-
-
-def plugin_configs(spec: BaseModel) -> dict[str, Any]:
-    """The plugin configs a spec uses: ``{"locator": ..., "mosaic.locator": ..., ...}``.
-
-    Every stage slot that is set, and the mosaic scheme's locator and template when a
-    level uses that scheme.
-    """
-    configs = {stage: getattr(spec, stage) for stage in STAGES if getattr(spec, stage, None) is not None}
-    if "mosaic" in level_schemes(spec):
-        configs.update({"mosaic.locator": spec.mosaic.locator, "mosaic.template": spec.mosaic.template})
-    return configs
 
 
 def load_spec(path: Path, host: PluginHost, overrides: list[str] = ()) -> BaseModel:

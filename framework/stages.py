@@ -21,6 +21,7 @@ from numpy.typing import NDArray
 from pydantic import Field
 
 from .config import StageConfig
+from .locator import Locator, LocatorConfig, LocatorContext
 from .records import Groups, MergedFrames, PairRegistrations
 
 if TYPE_CHECKING:
@@ -40,6 +41,7 @@ __all__ = [
     "Merger",
     "PairRegistrations",
     "Locator",
+    "LocatorContext",
     "Interpolator",
     "CompositorConfig",
     "Compositor",
@@ -96,7 +98,7 @@ class PhotonSource(abc.ABC):
             float32 sums of linear intensity. Mergers that only handle one kind check it.
         frame_step: :meth:`sum_ranges` is cheapest for ranges whose edges are multiples
             of this many frames (1: any range; a capture whose photons were counted in
-            blocks, see :class:`photonpano.binning.BinnedBlocks`); callers that choose
+            blocks, see :class:`photonpano.budget.grid.BinnedBlocks`); callers that choose
             their ranges freely (sub-batches) put their edges there.
     """
 
@@ -189,70 +191,7 @@ class Merger(abc.ABC):
         """
 
 
-# --- locator: registration of merged frames --------------------------------------
-
-
-class LocatorConfig(StageConfig):
-    """Config base of locators; ``build()`` returns a :class:`Locator`.
-
-    A field whose name ends in ``_px`` is a length in sensor pixels, whatever resolution
-    the merged frames are registered at: the framework builds the locator from a copy
-    in merged-frame pixels (:func:`photonpano.binning.in_merged_pixels`).
-    """
-
-    stage: ClassVar[str] = "locator"
-    template_defaults: ClassVar[dict[str, Any]] = {}
-    """Settings suggested for registering against a low-noise panorama (the ``mosaic``
-    scheme's locator starts from them; fields the spec gives win)."""
-
-
-class Locator(abc.ABC):
-    """Estimates homographies between pairs of merged frames.
-
-    Attributes:
-        executor: set by the framework before :meth:`register_pairs`: an
-            :class:`~photonpano.executor.Executor` on which independent per-frame or
-            per-pair work may run (None: run serially). A locator may ignore it.
-        reuses_frames: set False by the framework when each frame is used in one call
-            only (the ``mosaic`` scheme): a locator that caches per-frame data across
-            calls may then skip its cache (and the cost of its keys).
-    """
-
-    executor: Any = None
-    reuses_frames: bool = True
-
-    @abc.abstractmethod
-    def register_pairs(self, merged: MergedFrames, pairs: NDArray[np.int64],
-                       initial: NDArray[np.float64]) -> PairRegistrations:
-        """Register each pair ``(a, b)``: find H mapping frame b's pixels to frame a's.
-
-        Args:
-            merged: merged frames of this level: at pairwise levels a ring of the
-                recent ones (the framework streams a level's frames in windows and
-                calls once per window), so indices are positions in ``merged``, not
-                group numbers, and a slot may hold another group in the next call.
-            pairs: (P, 2) int64 indices into ``merged``.
-            initial: (P, 3, 3) float64 current estimate of each pair's homography (for
-                direct methods or to guide matching; feature methods may ignore it).
-
-        Returns:
-            One result per pair. A pair that cannot be registered is returned with
-            ``ok=False``; raising is reserved for programming errors.
-        """
-
-    def cache_stats(self) -> dict[str, int]:
-        """Return feature-cache counters (``{"hits", "misses", "entries", ...}``); {} if none is kept."""
-        return {}
-
-    def reset_cache_stats(self) -> None:
-        """Zero the counters of :meth:`cache_stats` (a locator without a cache does nothing)."""
-
-    def end_level(self) -> None:
-        """Drop per-frame data kept across calls: the framework calls this when a level's registrations are done.
-
-        The next level merges every frame anew, so nothing cached can be reused; the
-        counters of :meth:`cache_stats` are kept. Default: nothing.
-        """
+# --- locator: registration of merged frames (the contract is :mod:`photonpano.locator`) ----------
 
 
 # --- interpolator: homographies for every binary frame ---------------------------
@@ -332,7 +271,7 @@ class Compositor(abc.ABC):
                 read the source their own way use it in :meth:`read`).
         """
 
-    def read(self, source: PhotonSource, edges: NDArray[np.int64]) -> NDArray:
+    def read(self, source: PhotonSource, edges: NDArray[np.int64]) -> NDArray[Any]:
         """Return the (B, H, W) sums of frame ranges ``edges`` that :meth:`feed` takes.
 
         The default is ``source.sum_ranges(edges)``; a compositor that needs other
@@ -341,7 +280,7 @@ class Compositor(abc.ABC):
         return source.sum_ranges(edges)
 
     @abc.abstractmethod
-    def feed(self, counts: NDArray, n_frames: NDArray[np.int64], homographies: NDArray[np.float64],
+    def feed(self, counts: NDArray[Any], n_frames: NDArray[np.int64], homographies: NDArray[np.float64],
              weights: NDArray[np.float32] | None = None) -> None:
         """Add a sub-batch of summed frames.
 

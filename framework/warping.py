@@ -36,7 +36,7 @@ def subbatch_edges(homographies: NDArray[np.float64], width: int, height: int,
             boundaries, so that the sub-batches of several overlapping groups are shared).
         frame_step: other edges fall on capture frames that are multiples of this (a
             source whose photons are counted in blocks of frames, see
-            :class:`photonpano.binning.BinnedBlocks`); a sub-batch then ends at the first
+            :class:`photonpano.budget.grid.BinnedBlocks`); a sub-batch then ends at the first
             such frame after its corners travelled ``tolerance_px``.
         first_frame: capture frame index of the first of the K frames.
 

@@ -38,6 +38,14 @@ def test_a_good_capture_ends_ok_and_records_its_group_size(tmp_path):
     assert summary["ground_truth"]["trajectory_rmse_px"] < 0.5
     assert summary["panorama_agreement"]["median"] > 0.8
     assert all("quality" in row for row in summary["levels"])
+    # the photon budget: one entry, every choice with why, and the steps used what it says
+    budget = summary["budget"]
+    assert budget["group_size"] == plan["group_size"] and budget["register_binning"] == 1  # 128 px: too small
+    assert budget["check_binning"] == summary["levels"][0]["registration_check"]["binning"] == 2
+    assert budget["agreement_binning"] == summary["panorama_agreement"]["binning"]
+    assert "registration_check" not in summary["levels"][1]  # the mosaic level has no pair check
+    assert all(isinstance(why, str) and why for why in budget["reasons"].values())
+    assert set(budget["reasons"]) == {"group_size", "register_binning", "check_binning", "agreement_binning"}
 
 
 def test_uniform_photons_never_end_ok(tmp_path):
@@ -55,7 +63,7 @@ def test_uniform_photons_never_end_ok(tmp_path):
 
 def test_assess_weighs_failures_by_where_they_happen():
     """Pairwise failures at level 1 are corrected later; failures against the panorama are not."""
-    from photonpano.adaptive import CaptureProbe, GroupPlan
+    from photonpano.budget import CaptureProbe, GroupPlan
     from photonpano.quality import assess
 
     plan = GroupPlan(500, 1, 50.0, 0.02, 10.0, "auto", True, CaptureProbe(0.1, 0.02))

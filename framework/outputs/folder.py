@@ -17,11 +17,8 @@ from numpy.typing import NDArray
 
 from ..errors import OutputError
 from .checkpoint import CHECKPOINTS, Checkpoint
+from .disk import lock_is_stale, read_manifest, read_text_lenient, walk_files
 from .files import PARTIAL, atomic_path, inside, oserror, refuse_symlink, regular_file_inside, sha256_file, write_text
-from .state import lock_is_stale as _lock_is_stale
-from .state import read_manifest as _read_manifest
-from .state import read_quietly as _read
-from .state import walk_files as _walk_files
 
 __all__ = ["MANIFEST", "LOCK", "RUN_JSON", "RunFolder"]
 
@@ -112,11 +109,11 @@ class RunFolder:
             try:
                 fd = os.open(lock, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
             except FileExistsError:
-                if _lock_is_stale(lock):
+                if lock_is_stale(lock):
                     with contextlib.suppress(OSError):
                         lock.unlink()
                     continue
-                holder = _read(lock).split()[:1] or ["?"]
+                holder = read_text_lenient(lock).split()[:1] or ["?"]
                 raise OutputError(f"output folder {self.root} is in use by another run (pid {holder[0]}, "
                                   f"lock {lock}); wait for it or choose another folder") from None
             except OSError as exc:
@@ -135,7 +132,7 @@ class RunFolder:
 
     def _inspect(self) -> None:
         present = {p.name for p in self.root.iterdir()} - {LOCK}
-        manifest, hashes = _read_manifest(self.root / MANIFEST)
+        manifest, hashes = read_manifest(self.root / MANIFEST)
         if self.resume:
             if manifest is None:
                 raise OutputError(f"--resume: {self.root} holds no interrupted run (no {MANIFEST})")
@@ -238,7 +235,7 @@ class RunFolder:
     def _new_files(self) -> list[str]:
         """Regular files below the folder, reached without links, that no one has listed yet."""
         known = set(self.files) | self._existing | {MANIFEST, LOCK}
-        names = [n for n in _walk_files(self.root) if n not in known and n.split("/")[0] not in self._existing]
+        names = [n for n in walk_files(self.root) if n not in known and n.split("/")[0] not in self._existing]
         return [n for n in names if not Path(n).name.startswith(PARTIAL)]
 
     # -- checkpoints -----------------------------------------------------------------
@@ -353,7 +350,7 @@ class RunFolder:
             return False
 
     def _remove_partials(self) -> None:
-        for name in _walk_files(self.root, links=True):
+        for name in walk_files(self.root, links=True):
             if Path(name).name.startswith(PARTIAL):
                 with contextlib.suppress(OSError):
                     (self.root / name).unlink()  # a link is removed, never followed

@@ -22,6 +22,7 @@ import stat
 from pathlib import Path
 
 from ..errors import OutputError
+from .disk import lock_is_stale, read_text_lenient
 from .files import oserror
 
 __all__ = ["claim_partial", "release_partial", "OWNER_SUFFIX"]
@@ -63,9 +64,6 @@ def claim_partial(output: Path, restart: bool = False) -> Path:
             without ``restart``), another conversion holds it, or it cannot be created;
             one line naming the path.
     """
-    from .state import lock_is_stale as _lock_is_stale
-    from .state import read_quietly as _read
-
     partial, owner = _names(output)
     if restart:
         _remove_interrupted(partial, owner)
@@ -75,13 +73,13 @@ def claim_partial(output: Path, restart: bool = False) -> Path:
         if exc.errno not in (errno.EEXIST, errno.ELOOP):
             raise oserror(owner, exc) from None
         regular = stat.S_ISREG(os.lstat(owner).st_mode)
-        if regular and _lock_is_stale(owner):
-            pid = (_read(owner).split() or ["?"])[0]
+        if regular and lock_is_stale(owner):
+            pid = (read_text_lenient(owner).split() or ["?"])[0]
             raise OutputError(f"convert: {partial} was left by an interrupted conversion (pid {pid}); rerun with "
                               "--resume to start it again, or remove it") from None
         if regular:
             raise OutputError(f"convert: {partial} is being written by another conversion (pid "
-                              f"{(_read(owner).split() or ['?'])[0]}, {owner}); wait for it") from None
+                              f"{(read_text_lenient(owner).split() or ['?'])[0]}, {owner}); wait for it") from None
         raise OutputError(f"convert: {owner} already exists ({_kind(owner)}, not written by this conversion); "
                           "remove it or choose another output") from None
     try:
@@ -107,19 +105,14 @@ def claim_partial(output: Path, restart: bool = False) -> Path:
 
 def release_partial(output: Path) -> None:
     """Remove this conversion's owner record of ``<output>.part`` (call once the ``.part`` is renamed or removed)."""
-    from .state import read_quietly as _read
-
     _, owner = _names(output)
     with contextlib.suppress(OSError):
-        if stat.S_ISREG(os.lstat(owner).st_mode) and _read(owner).split()[:1] == [str(os.getpid())]:
+        if stat.S_ISREG(os.lstat(owner).st_mode) and read_text_lenient(owner).split()[:1] == [str(os.getpid())]:
             owner.unlink()
 
 
 def _remove_interrupted(partial: Path, owner: Path) -> None:
     """Remove the ``.part`` (file or folder, never a link's target) and owner record of a dead conversion."""
-    from .state import lock_is_stale as _lock_is_stale
-    from .state import read_quietly as _read
-
     try:
         mode = os.lstat(owner).st_mode
     except FileNotFoundError:
@@ -129,9 +122,9 @@ def _remove_interrupted(partial: Path, owner: Path) -> None:
     if not stat.S_ISREG(mode):
         raise OutputError(f"convert: {owner} is {_kind(owner)}, not written by a conversion; remove it or "
                           "choose another output")
-    if not _lock_is_stale(owner):
+    if not lock_is_stale(owner):
         raise OutputError(f"convert: {partial} is being written by another conversion (pid "
-                          f"{(_read(owner).split() or ['?'])[0]}, {owner}); wait for it")
+                          f"{(read_text_lenient(owner).split() or ['?'])[0]}, {owner}); wait for it")
     try:
         mode = os.lstat(partial).st_mode if os.path.lexists(partial) else None
         if mode is not None and stat.S_ISDIR(mode):

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import abc
 from dataclasses import dataclass
-from typing import Callable, ClassVar
+from typing import Callable, ClassVar, Sequence
 
 import numpy as np
 from numpy.typing import NDArray
@@ -73,6 +73,21 @@ class LevelScheme(abc.ABC):
     needs_template: ClassVar[bool] = False
     """True if the scheme registers against the panorama of the current estimate: it cannot
     run at level 1."""
+
+    def prepare(self, levels: Sequence[Groups], group_size: int, executor: Executor) -> None:
+        """Called once before the levels run, with the groups of every level to run (default: nothing).
+
+        Work done here for all levels (e.g. :class:`~photonpano.schemes.binned.Binned`
+        counting the binned photons once) is timed with the first level's merge.
+
+        Args:
+            levels: the groups of each level to run, in order.
+            group_size: binary frames per group m.
+            executor: the run's executor.
+        """
+
+    def close(self) -> None:
+        """Called once after the levels ran, or failed (default: nothing); must not raise twice."""
 
     @abc.abstractmethod
     def locate(self, task: LevelTask) -> LocateResult:

@@ -43,8 +43,9 @@ from ..compose import compose, panorama_views
 from ..errors import StageError
 from ..executor import pure_task
 from ..guards import bridge, plausible
+from ..locator import Locator, LocatorContext
 from ..records import LocateResult, MergedFrames, PairRegistrations, Panorama
-from ..stages import Compositor, Locator
+from ..stages import Compositor
 from ..watchdog import watched
 from .base import LevelScheme, LevelTask
 
@@ -115,7 +116,7 @@ class MosaicScheme(LevelScheme):
         def run(index: NDArray[np.int64]) -> _WindowResult:
             start = time.perf_counter()
             locator = self.make_locator()
-            locator.reuses_frames = False  # each frame is registered once, by this locator
+            once = LocatorContext(reuses_frames=False)  # each frame is registered once, by this locator
             with watched("merger", task.merger, "merge"):
                 merged = task.merger.merge(source, task.homographies, groups.select(index))
             merge_s = time.perf_counter() - start
@@ -123,16 +124,12 @@ class MosaicScheme(LevelScheme):
             if self.reject_movers is not None:
                 merged = mask_disagreement(merged, views, self.reject_movers)
             n = len(index)
-            pairs = np.stack([np.arange(n), np.arange(n, 2 * n)], axis=1)
-            with watched("locator", locator, "register_pairs"):
-                found = locator.register_pairs(MergedFrames.concat(views, merged), pairs,
-                                               np.repeat(np.eye(3)[None], n, axis=0))
+            found = locator.register_to_template(views, merged, np.repeat(np.eye(3)[None], n, axis=0), once)
             cross = None
             if task.crosscheck and n > 1:  # held out: consecutive merged frames against each other
                 local = np.stack([np.arange(n - 1), np.arange(1, n)], axis=1)
-                with watched("locator", locator, "register_pairs"):
-                    cross = locator.register_pairs(merged, local, geometry.normalize(
-                        np.linalg.inv(current[index[:-1]]) @ current[index[1:]]))
+                cross = locator.register_pairs(merged, local, geometry.normalize(
+                    np.linalg.inv(current[index[:-1]]) @ current[index[1:]]), once)
             return _WindowResult(found, locator.cache_stats(), merge_s, time.perf_counter() - start,
                                  merged if task.keep_merged else None, cross)
 

@@ -19,11 +19,12 @@ from numpy.typing import NDArray
 from .. import geometry
 from ..errors import StageError
 from ..guards import plausible
+from ..locator import Locator, LocatorContext
 from ..posegraph import chain_keyframes, corner_disagreement, pairs_at_offsets, refine_keyframes
 from ..records import LocateResult, MergedFrames, PairRegistrations
-from ..stages import Locator
 from ..watchdog import watched
 from .base import LevelScheme, LevelTask
+from .check import LevelCheck, PairCheck
 
 __all__ = ["PairwiseScheme", "locate_keyframes"]
 
@@ -51,10 +52,13 @@ class _MergedRing:
         self.frames.ids[slots] = MergedFrames.new_ids(len(slots))
 
     def register(self, locator: Locator, pairs: NDArray[np.int64], initial: NDArray[np.float64],
-                 width: int, height: int) -> PairRegistrations:
-        """Register group pairs held in the ring; implausible results count as failed."""
-        with watched("locator", locator, "register_pairs"):
-            found = locator.register_pairs(self.frames, pairs % self.capacity, initial)
+                 width: int, height: int, context: LocatorContext, check: LevelCheck | None = None
+                 ) -> PairRegistrations:
+        """Register group pairs held in the ring (then ``check`` them); implausible results count as failed."""
+        slots = pairs % self.capacity
+        found = locator.register_pairs(self.frames, slots, initial, context)
+        if check is not None:
+            found = check(self.frames, slots, initial, found)
         return found.with_ok(found.ok & plausible(found.homographies, width, height))
 
 
@@ -84,7 +88,8 @@ def _merged_windows(merge: Callable[[NDArray[np.int64]], MergedFrames], windows:
 
 def locate_keyframes(locator: Locator, merge: Callable[[NDArray[np.int64]], MergedFrames],
                      current: NDArray[np.float64], pair_offsets: tuple[int, ...], width: int, height: int, *,
-                     window: int = 32, min_overlap: float = 0.5, outlier_px: float = 1.0, merge_ahead: bool = False
+                     window: int = 32, min_overlap: float = 0.5, outlier_px: float = 1.0, merge_ahead: bool = False,
+                     check: LevelCheck | None = None, context: LocatorContext | None = None
                      ) -> tuple[NDArray[np.float64], NDArray[np.int64], PairRegistrations]:
     """Register merged frames pairwise and solve for the homographies of their reference frames.
 
@@ -118,6 +123,9 @@ def locate_keyframes(locator: Locator, merge: Callable[[NDArray[np.int64]], Merg
         merge_ahead: merge each next window on a helper thread while this one registers
             (``merge`` must then be callable from another thread). With a thread pool
             behind both, its workers stay busy across each window's last tasks.
+        context: how the locator's calls may run (its executor; None: serially).
+        check: checks (and rescues) every locator call's registrations
+            (:class:`~photonpano.schemes.check.LevelCheck`), or None.
 
     Returns:
         ``(keyframes, pair_index, pairs)``: (G, 3, 3) float64 homographies, (P, 2)
@@ -160,7 +168,8 @@ def locate_keyframes(locator: Locator, merge: Callable[[NDArray[np.int64]], Merg
         index_all = np.concatenate(index)
         if not len(index_all):
             continue
-        found = ring.register(locator, index_all, np.concatenate(initial), width, height)
+        found = ring.register(locator, index_all, np.concatenate(initial), width, height,
+                              context or LocatorContext(), check)
         chain_parts.append(found.take(slice(0, n_chain)))
         if len(index_all) > n_chain:
             extra_parts.append((index_all[n_chain:], found.take(slice(n_chain, None))))
@@ -209,17 +218,22 @@ class PairwiseScheme(LevelScheme):
     """Register pairs of merged frames and solve the pose graph (the paper's scheme).
 
     Args:
-        locator: the built locator (its :attr:`~photonpano.stages.Locator.executor` is set
-            to the task's executor for its per-pair work).
+        locator: the built locator (its calls get the task's executor for their per-pair
+            work, :class:`~photonpano.locator.LocatorContext`).
         pair_offsets: register merged frames g and g + k for each k (1 is always used).
+        check: the binned check of every registration (:class:`~photonpano.schemes.check.PairCheck`;
+            the photon budget's ``check_binning``), or None; its figures are the
+            result's :attr:`~photonpano.records.LocateResult.check`.
     """
 
     name = "pairwise"
 
-    def __init__(self, locator: Locator, pair_offsets: tuple[int, ...] = (1,)) -> None:
+    def __init__(self, locator: Locator, pair_offsets: tuple[int, ...] = (1,), check: PairCheck | None = None
+                 ) -> None:
         """Create the scheme around a built locator."""
         self.locator = locator
         self.pair_offsets = tuple(pair_offsets)
+        self.check = check
 
     def locate(self, task: LevelTask) -> LocateResult:
         """Stream-merge the groups, register pairs, solve (see :func:`locate_keyframes`)."""
@@ -237,15 +251,17 @@ class PairwiseScheme(LevelScheme):
                 kept.append(part)
             return part
 
-        self.locator.executor = task.executor
         self.locator.reset_cache_stats()
+        check = self.check.start_level(task.executor) if self.check is not None else None
         try:
             keyframes, pair_index, pairs = locate_keyframes(
                 self.locator, merge, task.current, self.pair_offsets, task.source.width, task.source.height,
-                merge_ahead=task.executor.in_process and task.executor.workers > 1)
+                merge_ahead=task.executor.in_process and task.executor.workers > 1, check=check,
+                context=LocatorContext(executor=task.executor))
         except StageError as err:
             raise StageError("locator", type(self.locator).__name__, f"level {task.level}: {err.reason}") from None
         finally:
             self.locator.end_level()
         return LocateResult(keyframes, pairs, pair_index, merged=MergedFrames.concat(*kept) if kept else None,
-                            merge_s=merge_s, locator_cache=self.locator.cache_stats() or None)
+                            merge_s=merge_s, locator_cache=self.locator.cache_stats() or None,
+                            check=check.figures() if check is not None else None)

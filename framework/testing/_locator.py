@@ -14,7 +14,7 @@ from ._plugin import PluginContract
 
 
 class LocatorContract(PluginContract):
-    """The locator contract (see :meth:`photonpano.stages.Locator.register_pairs`).
+    """The locator contract (:mod:`photonpano.locator`: ``register_pairs``, ``register_to_template``, the context).
 
     Class attributes (besides :class:`PluginContract`'s):
         motion: the warps the locator must recover on synthetic frames: ``"translation"``
@@ -168,3 +168,44 @@ class LocatorContract(PluginContract):
         second = self._run(built, merged, [[0, 1]], [self.start(truth)])
         np.testing.assert_allclose(first.homographies, second.homographies, atol=1e-6)
         np.testing.assert_array_equal(first.ok, second.ok)
+
+    def _one(self, merged: MergedFrames, index: int) -> MergedFrames:
+        """Merged frame ``index`` alone (no content ids)."""
+        return MergedFrames(*(getattr(merged, f)[index:index + 1] for f in ("flux", "frames", "images", "masks")))
+
+    def test_registers_a_frame_against_a_template(self, built: Any) -> None:
+        """``register_to_template(views, frames)`` maps frame g's pixels to view g's, like the pair (view, frame)."""
+        truth = self.truth()
+        merged = synthetic_pair(truth, *self.size)
+        result = built.register_to_template(self._one(merged, 0), self._one(merged, 1), self.start(truth)[None])
+        assert result.homographies.shape == (1, 3, 3) and result.ok[0], "the template registration failed"
+        h, w = self.size
+        error = corner_error_px(result.homographies[0], truth, w, h)
+        assert error <= self.tolerance_px, f"mean corner error {error:.3f} px > {self.tolerance_px} px"
+
+    def test_same_result_on_an_executor_and_without_reuse(self, built: Any, config: Any) -> None:
+        """A :class:`~photonpano.locator.LocatorContext` changes how a call runs, never what it finds."""
+        from photonpano.executor import make_executor
+        from photonpano.locator import LocatorContext
+
+        truth = self.truth()
+        inv = np.linalg.inv(truth)
+        merged = synthetic_pair(truth, *self.size)
+        pairs = np.array([[0, 1], [1, 0]], np.int64)
+        initial = np.stack([self.start(truth), self.start(inv / inv[2, 2])])
+        serial = config.build().register_pairs(merged, pairs, initial)
+        with make_executor("threads", 2) as executor:
+            threaded = config.build().register_pairs(merged, pairs, initial, LocatorContext(executor=executor))
+        once = config.build().register_pairs(merged, pairs, initial, LocatorContext(reuses_frames=False))
+        for other in (threaded, once):
+            np.testing.assert_allclose(other.homographies, serial.homographies, atol=1e-6)
+            np.testing.assert_array_equal(other.ok, serial.ok)
+
+    def test_bad_arguments_are_refused_in_one_line_naming_the_locator(self, built: Any) -> None:
+        """Indices outside the frames, or ``initial`` of the wrong shape, raise a one-line ValueError."""
+        merged = synthetic_pair(self.truth(), *self.size)
+        name = type(built).__name__
+        for pairs, initial in (([[0, 2]], np.eye(3)[None]), ([[0, 1]], np.eye(3)[None].repeat(2, 0))):
+            with pytest.raises(ValueError, match=name) as raised:
+                built.register_pairs(merged, np.array(pairs, np.int64), initial)
+            assert "\n" not in str(raised.value)

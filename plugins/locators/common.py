@@ -11,7 +11,8 @@ Not a plugin (it registers nothing). Locators built on it:
 - :class:`DirectLocator` adds the direct recipe: prepare each frame once, register each pair
   from its initial estimate.
 - :class:`FeatureLocator` adds the feature-based recipe: describe each frame once, match
-  each pair, fit a robust motion model (:func:`robust_motion`), optionally polish it by ECC.
+  each pair, fit a robust motion model (:mod:`~photonpano.plugins.locators.matching`),
+  optionally polish it by ECC (:mod:`~photonpano.plugins.locators.polish`).
 
 Only numpy at module level; OpenCV is imported inside functions.
 """
@@ -24,13 +25,13 @@ from typing import Annotated, Any, Literal
 
 import numpy as np
 from numpy.typing import NDArray
-from photonpano.stages import Locator, LocatorConfig, MergedFrames, PairRegistrations
+from photonpano.stages import Locator, LocatorConfig, LocatorContext, MergedFrames, PairRegistrations
 from pydantic import Field
 
+from .polish import ecc_image, ecc_polish
+
 __all__ = ["Features", "PairResult", "FrameCache", "CachingLocator", "FeatureLocator", "PolishConfig",
-           "frame_key", "to_registrations", "keypoint_mask", "ecc_image", "ecc_polish", "corner_change",
-           "check_pairs", "MotionModel", "MOTION_PARAMETERS", "robust_method", "robust_motion", "gric",
-           "ratio_test_motion", "ratio_matches", "IntegralL2Matcher", "DirectLocator"]
+           "frame_key", "to_registrations", "keypoint_mask", "DirectLocator"]
 
 
 @dataclass(frozen=True)
@@ -126,9 +127,10 @@ class FrameCache:
 class CachingLocator(Locator):
     """A locator with a content-keyed per-frame cache and its statistics.
 
-    At the start of each ``register_pairs`` call a subclass calls :meth:`begin` with the
-    frames it will use (this evicts data of frames that are gone), then :meth:`frame_data`
-    to get per-frame data, computed once per distinct frame content.
+    At the start of each call a subclass calls :meth:`begin` with the frames it will use
+    and the call's :class:`~photonpano.locator.LocatorContext` (this evicts data of frames
+    that are gone), then :meth:`frame_data` to get per-frame data, computed once per
+    distinct frame content (or every time, when the context says no frame comes back).
     :meth:`cache_stats` is what the pipeline reports per level.
     """
 
@@ -136,12 +138,14 @@ class CachingLocator(Locator):
         self._caches: dict[str, FrameCache] = {}
         self._merged: MergedFrames | None = None
         self._keys: dict[tuple[int, bool], tuple[bytes, ...]] = {}
+        self._reuse = True
 
-    def begin(self, merged: MergedFrames, indices: NDArray[np.int64]) -> None:
+    def begin(self, merged: MergedFrames, indices: NDArray[np.int64], context: LocatorContext) -> None:
         """Start a batch on ``merged``: key its frames ``indices`` and evict other frames' data."""
         self._merged = merged
         self._keys = {}
-        if not self.reuses_frames:  # every frame is used in this call only: no cache, no keys
+        self._reuse = context.reuses_frames
+        if not self._reuse:  # every frame is used in this call only: no cache, no keys
             return
         keys = set()
         for i in np.unique(np.asarray(indices, dtype=np.int64)):
@@ -167,7 +171,7 @@ class CachingLocator(Locator):
         if self._merged is None:
             raise RuntimeError("CachingLocator.frame_data called before begin()")
         cache = self._caches.setdefault(kind, FrameCache())
-        if not self.reuses_frames:
+        if not self._reuse:
             cache.misses += 1
             return compute()
         return cache.get(self._key(index, flux), compute)
@@ -225,7 +229,7 @@ class FeatureLocator(CachingLocator):
     """Feature-based locator: per-frame features (cached), per-pair match and estimate.
 
     Subclasses implement :meth:`describe` and :meth:`match`; frames are described and
-    pairs matched on the framework's executor (:attr:`Locator.executor`) unless the
+    pairs matched on the call's executor (:class:`~photonpano.locator.LocatorContext`) unless the
     subclass sets ``thread_safe = False``. If the config has a ``refine``
     field equal to ``"ecc"``, successful pairs are polished by :func:`ecc_polish` with the
     config's ``ecc_iterations``, ``ecc_blur`` and ``ecc_max_change_px``.
@@ -263,23 +267,23 @@ class FeatureLocator(CachingLocator):
         Failures are returned as ``PairResult(ok=False)``, never raised.
         """
 
-    def register_pairs(self, merged: MergedFrames, pairs: NDArray[np.int64],
-                       initial: NDArray[np.float64]) -> PairRegistrations:
+    def _register_pairs(self, merged: MergedFrames, pairs: NDArray[np.int64], initial: NDArray[np.float64],
+                        context: LocatorContext) -> PairRegistrations:
         """Register each pair (see :meth:`Locator.register_pairs`); ``initial`` is unused.
 
         Each frame is described once per distinct content, whichever call needs it.
         """
-        pairs = check_pairs(merged, pairs, initial)
-        self.begin(merged, pairs)
+        self.begin(merged, pairs, context)
         try:
-            return self._register(merged, pairs)
+            return self._matched(merged, pairs, context)
         finally:
             self.finish()
 
-    def _register(self, merged: MergedFrames, pairs: NDArray[np.int64]) -> PairRegistrations:
+    def _matched(self, merged: MergedFrames, pairs: NDArray[np.int64], context: LocatorContext
+                 ) -> PairRegistrations:
         from photonpano.executor import SerialExecutor
 
-        executor = (self.executor if self.thread_safe else None) or SerialExecutor()
+        executor = (context.executor if self.thread_safe else None) or SerialExecutor()
         frames = [int(i) for i in np.unique(pairs)]
 
         def describe(i: int) -> Features:
@@ -325,11 +329,10 @@ class DirectLocator(CachingLocator):
     def register(self, prepared_a: Any, prepared_b: Any, initial: NDArray[np.float64]) -> PairResult:
         """Register one pair: frame a (moving) and b (template) as prepared, (3, 3) float64 start b to a."""
 
-    def register_pairs(self, merged: MergedFrames, pairs: NDArray[np.int64],
-                       initial: NDArray[np.float64]) -> PairRegistrations:
+    def _register_pairs(self, merged: MergedFrames, pairs: NDArray[np.int64], initial: NDArray[np.float64],
+                        context: LocatorContext) -> PairRegistrations:
         """Register each pair starting from ``initial`` (see :meth:`Locator.register_pairs`)."""
-        pairs = check_pairs(merged, pairs, initial)
-        self.begin(merged, pairs)
+        self.begin(merged, pairs, context)
         try:
             def frame(i: int) -> Any:
                 return self.frame_data(self.prepared_kind, i, lambda: self.prepare(merged.flux[i], merged.masks[i]),
@@ -351,22 +354,6 @@ def to_registrations(results: list[PairResult]) -> PairRegistrations:
     )
 
 
-def check_pairs(merged: MergedFrames, pairs: NDArray[np.int64],
-                initial: NDArray[np.float64]) -> NDArray[np.int64]:
-    """Validate the arguments of ``register_pairs``; return ``pairs`` as (P, 2) int64.
-
-    Raises:
-        ValueError: wrong shapes, or indices outside ``merged`` (programming errors).
-    """
-    from photonpano.types import check_shape
-
-    pairs = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
-    check_shape(np.asarray(initial), "P 3 3", name="initial", P=len(pairs))
-    if len(pairs) and (pairs.min() < 0 or pairs.max() >= len(merged)):
-        raise ValueError(f"pairs index merged frames 0..{len(merged) - 1}, got {pairs.min()}..{pairs.max()}")
-    return pairs
-
-
 def keypoint_mask(mask: NDArray[np.bool_], margin_px: int = 4) -> NDArray[np.uint8]:
     """Return the trusted mask eroded by ``margin_px`` pixels, as OpenCV's uint8 mask.
 
@@ -384,279 +371,3 @@ def keypoint_mask(mask: NDArray[np.bool_], margin_px: int = 4) -> NDArray[np.uin
 
     size = 2 * margin_px + 1
     return cv2.erode(mask.astype(np.uint8), np.ones((size, size), np.uint8))
-
-
-def ecc_image(flux: NDArray[np.float32], mask: NDArray[np.bool_]) -> NDArray[np.float32]:
-    """Return a merged flux image scaled to about [0, 1] (twice the mean trusted flux = 1) for ECC.
-
-    Every observed pixel keeps its (possibly noisier) flux: zeroing the untrusted border
-    would put false edges into the moving image and bias the alignment. Unobserved
-    (NaN) pixels are 0.
-
-    Args:
-        flux: (H, W) float32 flux, NaN where unobserved.
-        mask: (H, W) bool trusted pixels, used to pick the white level.
-
-    Returns:
-        (H, W) float32 image.
-
-    Raises:
-        ValueError: if ``flux`` and ``mask`` differ in shape.
-    """
-    from ._compiled import normalised_flux
-
-    # ECC is invariant to gain and offset: the scale only keeps the numbers near 1. One
-    # compiled pass (runs once per merged frame and panorama view, on the workers).
-    flux, mask = np.ascontiguousarray(flux, np.float32), np.ascontiguousarray(mask, bool)
-    if flux.shape != mask.shape:
-        raise ValueError(f"ecc_image: flux {flux.shape} and mask {mask.shape} differ in shape")
-    image = np.empty(flux.shape, np.float32)
-    normalised_flux(flux.reshape(-1), mask.reshape(-1), image.reshape(-1))
-    return image
-
-
-def corner_change(h1: NDArray[np.float64], h2: NDArray[np.float64], width: int, height: int) -> float:
-    """Return the largest distance (pixels) between the corners mapped by two homographies."""
-    from photonpano import geometry
-
-    moved = geometry.apply(np.stack([h1, h2]), geometry.corners(width, height))  # one call: each pair's ECC runs this
-    change = np.abs(moved[0] - moved[1]).max()
-    return float(change) if np.isfinite(change) else float("inf")
-
-
-def ecc_polish(image_a: NDArray[np.float32], image_b: NDArray[np.float32], mask_a: NDArray[np.bool_],
-               mask_b: NDArray[np.bool_], homography: NDArray[np.float64], *, iterations: int = 30, blur: int = 5,
-               max_change_px: float = 2.0) -> NDArray[np.float64]:
-    """Polish a homography (b to a) by ECC maximisation; return the input on failure.
-
-    OpenCV's ``findTransformECCWithMask`` with frame b as the template: only pixels
-    trusted in b whose warped position is trusted in a enter the correlation.
-
-    Args:
-        image_a: (H, W) float32 normalised flux of frame a (the moving image).
-        image_b: (H, W) float32 normalised flux of frame b (the template).
-        mask_a: (H, W) bool trusted pixels of frame a.
-        mask_b: (H, W) bool trusted pixels of frame b.
-        homography: (3, 3) float64 starting estimate mapping b's pixels to a's.
-        iterations: maximum Gauss-Newton iterations.
-        blur: Gaussian pre-filter size in pixels (made odd).
-        max_change_px: a result moving a corner further than this from ``homography``
-            (pixels) is discarded.
-
-    Returns:
-        (3, 3) float64 refined homography, or ``homography`` if ECC fails or moves a
-        corner by more than ``max_change_px``.
-    """
-    import cv2
-
-    criteria = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, iterations, 1e-5)
-    try:
-        _, warp = cv2.findTransformECCWithMask(image_b, image_a, mask_b.astype(np.uint8), mask_a.astype(np.uint8),
-                                               homography.astype(np.float32), cv2.MOTION_HOMOGRAPHY, criteria,
-                                               blur | 1)
-    except cv2.error:  # did not converge
-        return homography
-    warp = warp.astype(np.float64) / warp[2, 2]
-    h, w = image_b.shape
-    return warp if corner_change(warp, homography, w, h) < max_change_px else homography
-
-
-MotionModel = Literal["auto", "homography", "affine", "similarity"]
-"""Motion models a feature locator can fit; ``auto`` picks one per pair by :func:`gric`."""
-
-MOTION_PARAMETERS = {"homography": 8, "affine": 6, "similarity": 4}
-"""Degrees of freedom of each motion model."""
-
-
-def robust_method(name: str) -> int:
-    """Return OpenCV's flag for a robust estimator name (``ransac``, ``usac-magsac``, ``usac-accurate``, ``lmeds``)."""
-    import cv2
-
-    return {"ransac": cv2.RANSAC, "usac-magsac": cv2.USAC_MAGSAC, "usac-accurate": cv2.USAC_ACCURATE,
-            "lmeds": cv2.LMEDS}[name]
-
-
-def gric(model: NDArray[np.float64], src: NDArray[np.float32], dst: NDArray[np.float32], sigma_px: float,
-         parameters: int) -> float:
-    """Torr's Geometric Robust Information Criterion of a 2D motion model (lower is better).
-
-    ``GRIC = sum_i min(e_i^2 / sigma^2, 2 (r - d)) + lambda1 d n + lambda2 k`` with data
-    dimension r = 4 (two image points), model dimension d = 2 (every model here maps
-    points to points), ``lambda1 = ln r``, ``lambda2 = ln(r n)`` and k the model's degrees
-    of freedom (Torr, "Bayesian model estimation and selection for epipolar geometry and
-    generic manifold fitting", IJCV 50(1), 2002, Eq. 22). The residual term caps outliers,
-    the parameter term charges each degree of freedom: a homography wins only where its
-    extra parameters explain the data beyond the noise.
-
-    Args:
-        model: (3, 3) float64 mapping ``src`` to ``dst``.
-        src: (N, 2) float32 points of frame b, pixels.
-        dst: (N, 2) float32 matching points of frame a, pixels.
-        sigma_px: standard deviation of keypoint positions, pixels.
-        parameters: degrees of freedom k of the model.
-
-    Returns:
-        The criterion (dimensionless).
-    """
-    from ._compiled import capped_transfer_error  # compiled: 3 per pair at level 1, on the workers
-
-    n = len(src)
-    residual = capped_transfer_error(np.asarray(model, np.float64), src, dst, float(sigma_px) ** 2, 4.0)
-    return float(residual + 2 * np.log(4) * n + np.log(4 * n) * parameters)
-
-
-def robust_motion(src: NDArray[np.float32], dst: NDArray[np.float32], *, motion: str = "homography",
-                  method: str = "usac-magsac", threshold_px: float = 1.5, min_inliers: int = 12,
-                  refine: bool = True) -> PairResult:
-    """Fit a motion model to tentative correspondences with an OpenCV robust estimator.
-
-    Homographies are fitted by ``cv2.findHomography`` (refit to all inliers by least
-    squares with ``refine``), affine and similarity models by ``cv2.estimateAffine2D`` and
-    ``cv2.estimateAffinePartial2D`` (Levenberg-Marquardt on the inliers with ``refine``).
-    With ``motion="auto"`` all three are fitted and the one of lowest :func:`gric` (keypoint
-    noise ``threshold_px / 2``) is returned. This guards against degenerate
-    configurations: when the static scene's keypoints lie on a thin band (a floor, a
-    horizon), a homography can fit them *and* a few keypoints of an independently moving
-    object, a lower-order model fitted to the band alone scores better.
-
-    Args:
-        src: (N, 2) float32 points of frame b (pixels, photonpano's convention).
-        dst: (N, 2) float32 matching points of frame a.
-        motion: ``homography``, ``affine``, ``similarity`` or ``auto``.
-        method: robust estimator, see :func:`robust_method` (affine and similarity
-            models use RANSAC unless ``lmeds``).
-        threshold_px: inlier threshold in pixels.
-        min_inliers: fewer inliers than this flags the pair as failed.
-        refine: refit each model to its inliers.
-
-    Returns:
-        The pair's result: (3, 3) float64 homography mapping ``src`` to ``dst`` (of the
-        chosen model), the number of correspondences and of the model's inliers.
-    """
-    import cv2
-
-    fits: dict[str, tuple[NDArray[np.float64], int]] = {}
-    for name in (("homography", "affine", "similarity") if motion == "auto" else (motion,)):
-        if name == "homography":
-            model, mask = cv2.findHomography(src, dst, robust_method(method), threshold_px, maxIters=5000,
-                                             confidence=0.999)
-            if model is not None and mask is not None and refine and mask.sum() >= 8:
-                refined, _ = cv2.findHomography(src[mask.ravel() > 0], dst[mask.ravel() > 0], 0)
-                model = refined if refined is not None else model
-        else:
-            estimate = cv2.estimateAffine2D if name == "affine" else cv2.estimateAffinePartial2D
-            affine, mask = estimate(src, dst, method=cv2.LMEDS if method == "lmeds" else cv2.RANSAC,
-                                    ransacReprojThreshold=threshold_px, maxIters=5000, confidence=0.999,
-                                    refineIters=10 if refine else 0)
-            model = None if affine is None else np.vstack([affine, [0.0, 0.0, 1.0]])
-        if model is not None and mask is not None and np.all(np.isfinite(model)) and abs(model[2, 2]) > 1e-12:
-            fits[name] = (model.astype(np.float64) / model[2, 2], int(mask.sum()))
-    if not fits:
-        return PairResult(matches=len(src))
-    chosen = min(fits, key=lambda name: gric(fits[name][0], src, dst, threshold_px / 2, MOTION_PARAMETERS[name]))
-    h, n_in = fits[chosen]
-    ok = n_in >= min_inliers and abs(np.linalg.det(h[:2, :2])) > 1e-3
-    return PairResult(h, len(src), n_in, bool(ok))
-
-
-def ratio_test_motion(matcher: Any, points_a: NDArray, descriptors_a: NDArray, points_b: NDArray,
-                      descriptors_b: NDArray, config: Any) -> PairResult:
-    """Match descriptors of frame b to frame a, keep Lowe's ratio-test survivors, fit :func:`robust_motion`.
-
-    Args:
-        matcher: an OpenCV ``DescriptorMatcher`` (e.g. ``cv2.BFMatcher``) for the
-            descriptors, or an :class:`IntegralL2Matcher` (see :func:`ratio_matches`).
-        points_a: (Ka, 2) keypoints of frame a, pixels (photonpano's convention).
-        descriptors_a: (Ka, D) their descriptors.
-        points_b: (Kb, 2) keypoints of frame b.
-        descriptors_b: (Kb, D) their descriptors.
-        config: the locator's config, with ``ratio``, ``min_inliers``, ``motion``,
-            ``method``, ``reprojection_px`` and ``refine``.
-
-    Returns:
-        The pair's result (b to a); failed (``ok=False``) with fewer than four keypoints
-        in a frame or fewer than ``max(4, min_inliers)`` ratio-test matches.
-    """
-    if len(points_a) < 4 or len(points_b) < 4:
-        return PairResult()
-    query, train = ratio_matches(matcher, descriptors_b, descriptors_a, config.ratio)
-    if len(query) < max(4, config.min_inliers):
-        return PairResult(matches=len(query))
-    src = np.asarray(points_b, np.float32)[query]
-    dst = np.asarray(points_a, np.float32)[train]
-    return robust_motion(src, dst, motion=config.motion, method=config.method, threshold_px=config.reprojection_px,
-                         min_inliers=config.min_inliers, refine=config.refine != "none")
-
-
-def ratio_matches(matcher: Any, descriptors_query: NDArray, descriptors_train: NDArray,
-                  ratio: float) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
-    """Lowe's ratio test: each query descriptor's nearest train descriptor, if clearly the nearest.
-
-    Lowe, "Distinctive image features from scale-invariant keypoints", IJCV 2004, Sec. 7.1:
-    a match is kept when its distance is below ``ratio`` times the second-nearest's.
-
-    Args:
-        matcher: an OpenCV ``DescriptorMatcher`` (its ``knnMatch`` with k = 2), or an
-            object with this function's signature as a ``ratio_matches`` method
-            (:class:`IntegralL2Matcher`).
-        descriptors_query: (Kq, D) descriptors of the query frame (frame b of a pair).
-        descriptors_train: (Kt, D) descriptors of the train frame (frame a).
-        ratio: the threshold, in (0, 1).
-
-    Returns:
-        ``(query, train)``: (M,) int64 indices of the kept matches, in query order.
-    """
-    if hasattr(matcher, "ratio_matches"):
-        return matcher.ratio_matches(descriptors_query, descriptors_train, ratio)
-    knn = matcher.knnMatch(descriptors_query, descriptors_train, k=2)
-    good = [p[0] for p in knn if len(p) == 2 and p[0].distance < ratio * p[1].distance]
-    return (np.array([m.queryIdx for m in good], np.int64).reshape(-1),
-            np.array([m.trainIdx for m in good], np.int64).reshape(-1))
-
-
-class IntegralL2Matcher:
-    """Brute-force L2 matching of integer-valued descriptors (OpenCV SIFT's) as one BLAS product.
-
-    OpenCV's SIFT descriptors are 128 integers in 0..255 stored as float32, so every
-    squared distance ``|q|^2 - 2 q.t + |t|^2`` and every partial sum of it is an integer
-    below 2**24, exact in float32 whatever order the matrix product sums in: the
-    distances, hence the ratio test's decisions, are those of
-    ``cv2.BFMatcher(cv2.NORM_L2)`` (a tie for the nearest fails the test either way), at
-    about a fifth of its time (300 x 300 SIFT descriptors: 0.32 against 1.7 ms on one
-    core). It assumes what :meth:`exact` checks (the caller checks each frame's
-    descriptors once, e.g. when describing it): other float32 descriptors would be
-    matched with rounded distances.
-
-    Run it with the BLAS limited to one thread inside a thread pool (the
-    :class:`~photonpano.executor.ThreadExecutor` does): OpenBLAS's own threads,
-    called from two threads at once, ran it 2.4x slower.
-    """
-
-    @staticmethod
-    def exact(descriptors: NDArray) -> bool:
-        """Whether the (K, D) float32 descriptors are integers whose squared distances are exact in float32."""
-        d = np.asarray(descriptors)
-        if d.ndim != 2 or d.dtype != np.float32 or not d.size:
-            return False
-        low, high = float(d.min()), float(d.max())
-        return low >= 0 and 2 * d.shape[1] * high * high < 2 ** 24 and bool(np.array_equal(d, np.rint(d)))
-
-    def ratio_matches(self, descriptors_query: NDArray, descriptors_train: NDArray,
-                      ratio: float) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
-        """:func:`ratio_matches` for (Kq, D) and (Kt, D) float32 descriptors that are :meth:`exact`."""
-        q, t = np.asarray(descriptors_query, np.float32), np.asarray(descriptors_train, np.float32)
-        if len(t) < 2:  # knnMatch's rule: no second neighbour, no match
-            return np.zeros(0, np.int64), np.zeros(0, np.int64)
-        squared = q @ t.T
-        squared *= -2
-        squared += np.einsum("ij,ij->i", t, t)[None]
-        squared += np.einsum("ij,ij->i", q, q)[:, None]
-        rows = np.arange(len(q))
-        nearest = squared.argmin(axis=1)
-        first = squared[rows, nearest]
-        squared[rows, nearest] = np.inf
-        second = squared.min(axis=1)
-        # distances as OpenCV's (float32 square roots), compared in double as the knnMatch path is
-        keep = np.sqrt(first).astype(np.float64) < ratio * np.sqrt(second).astype(np.float64)
-        query = np.flatnonzero(keep)
-        return query, nearest[query].astype(np.int64)

@@ -29,7 +29,8 @@ from photonpano import hookimpl
 from photonpano.stages import LocatorConfig
 from pydantic import Field
 
-from .common import DirectLocator, PairResult, corner_change, ecc_image
+from .common import DirectLocator, PairResult
+from .polish import corner_change, ecc_image
 
 __all__ = ["OpenCVEccConfig", "OpenCVEccLocator", "ecc_pyramid", "pyramid_homography"]
 

@@ -19,7 +19,8 @@ from photonpano import hookimpl
 from photonpano.stages import LocatorConfig
 from pydantic import Field
 
-from .common import FeatureLocator, Features, MotionModel, PairResult, PolishConfig, keypoint_mask, ratio_test_motion
+from .common import FeatureLocator, Features, PairResult, PolishConfig, keypoint_mask
+from .matching import MotionModel, ratio_test_motion
 
 __all__ = ["OpenCVOrbConfig", "OpenCVBinaryLocator"]
 

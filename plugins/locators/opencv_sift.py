@@ -16,15 +16,8 @@ from photonpano import hookimpl
 from photonpano.stages import LocatorConfig
 from pydantic import Field
 
-from .common import (
-    FeatureLocator,
-    Features,
-    IntegralL2Matcher,
-    MotionModel,
-    PairResult,
-    keypoint_mask,
-    ratio_test_motion,
-)
+from .common import FeatureLocator, Features, PairResult, keypoint_mask
+from .matching import IntegralL2Matcher, MotionModel, ratio_test_motion
 
 __all__ = ["OpenCVSiftConfig", "OpenCVSiftLocator"]
 

@@ -90,7 +90,6 @@ def write_and_match(
     database.unlink(missing_ok=True)
     verification = pycolmap.TwoViewGeometryOptions()
     verification.ransac.random_seed = seed
-    pycolmap.logging.minloglevel = 2
     pycolmap.set_random_seed(seed)
     reader = pycolmap.ImageReaderOptions()
     reader.camera_model = camera_model
@@ -225,3 +224,136 @@ def prune_observations(rec: Any, factor: float) -> dict[str, float]:
             rec.delete_observation(image_id, index)
             pruned += 1
     return {"threshold_px": threshold, "pruned": pruned}
+
+
+def map_exposures(config: Any, images: NDArray[np.uint8], references: NDArray[np.int64], folder: Path,
+                  intrinsics: Any, progress: Any) -> tuple[Any, Any, Path | None]:
+    """Run COLMAP on the level-1 exposures.
+
+    Returns:
+        ``(reconstruction, intrinsics, database)``: the largest ``pycolmap.Reconstruction``
+        or None, the intrinsics (given, or COLMAP's), and the database it came from (None
+        without a reconstruction).
+
+    Up to ``attempts`` seeds; self-calibrated, when an exposure is left out, also with
+    the focal length held at 1.0, 0.8 and 0.6 x the larger image side.
+    """
+    import shutil
+
+    import pycolmap
+
+    cfg = config
+    model, params = (
+        ("PINHOLE", intrinsics.colmap_params()) if intrinsics is not None else ("SIMPLE_RADIAL", None)
+    )
+    options = pycolmap.IncrementalPipelineOptions()
+    # a sideways path of a few decimetres at metres' depth: small triangulation angles
+    options.mapper.init_min_tri_angle = cfg.min_angle_deg
+    if intrinsics is not None:
+        options.ba_refine_focal_length = False
+        options.ba_refine_principal_point = False
+        options.ba_refine_extra_params = False
+    rec, kept = None, None
+    for attempt in range(cfg.attempts):
+        # COLMAP's verification and mapper can settle on a poor initial pair: other seeds
+        database, image_dir = write_and_match(
+            config, images, references, folder, model, params, progress, 1, seed=cfg.seed + attempt
+        )
+        if attempt == 0:
+            first = database
+        options.random_seed = cfg.seed + attempt
+        models = pycolmap.incremental_mapping(database, image_dir, folder / f"sparse_{attempt}", options)
+        best = max(models.values(), key=lambda r: r.num_reg_images()) if models else None
+        if best is not None and (rec is None or best.num_reg_images() > rec.num_reg_images()):
+            rec, kept = best, database
+        if rec is not None and rec.num_reg_images() >= cfg.min_registered * len(images):
+            break
+    if intrinsics is None and (rec is None or rec.num_reg_images() < len(images)):
+        # self-calibration can run away with the focal length on a short path (seen: 1454 px
+        # for 420, half the exposures registered): map again with the focal length held at
+        # a few values; levels >= 2 refine it (refine_intrinsics)
+        options.ba_refine_focal_length = False
+        options.ba_refine_extra_params = False
+        options.random_seed = cfg.seed
+        side = float(max(images.shape[1:3]))
+        for scale in (1.0, 0.8, 0.6):
+            database = folder / f"database_focal_{scale}.db"
+            shutil.copyfile(first, database)
+            db = pycolmap.Database.open(str(database))
+            try:
+                camera = db.read_all_cameras()[0]
+                camera.params = [scale * side, camera.params[1], camera.params[2], 0.0]
+                camera.has_prior_focal_length = True
+                db.update_camera(camera)
+            finally:
+                db.close()
+            models = pycolmap.incremental_mapping(database, image_dir, folder / f"sparse_focal_{scale}", options)
+            best = max(models.values(), key=lambda r: r.num_reg_images()) if models else None
+            if best is not None and (rec is None or best.num_reg_images() > rec.num_reg_images()):
+                rec, kept = best, database
+            if rec is not None and rec.num_reg_images() == len(images):
+                break
+    if rec is None:
+        return None, intrinsics, None
+    return rec, intrinsics if intrinsics is not None else camera_intrinsics(rec), kept
+
+
+def localise(config: Any, images: NDArray[np.uint8], references: NDArray[np.int64], rec: Any, landmarks: Landmarks,
+             progress: Any, level: int) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Register each exposure against the level-1 model (SIFT, ratio test, LO-RANSAC P3P + refinement).
+
+    Args:
+        config: the ``pycolmap-sfm`` config (``max_features``, ``max_error_px``,
+            ``localise_neighbours``, ``min_inliers``).
+        images: (G, H, W) uint8 exposures.
+        references: (G,) int64 reference frame of each exposure.
+        rec: the level-1 ``pycolmap.Reconstruction`` (its camera is used).
+        landmarks: the level-1 model's observations (:func:`model_landmarks`).
+        progress: ``progress(task, total)`` returning ``advance(n)``, or None.
+        level: the level number (for the progress label).
+
+    Returns:
+        ``(poses, inliers)``: (G, 4, 4) camera-to-world poses (NaN where it failed) and
+        (G,) float inlier counts (NaN where it failed).
+    """
+    import cv2
+    import pycolmap
+
+    cfg = config
+    camera = next(iter(rec.cameras.values()))
+    extraction = pycolmap.FeatureExtractionOptions()
+    extraction.sift.max_num_features = cfg.max_features
+    sift = pycolmap.FeatureExtractor.create(extraction, device=pycolmap.Device.cpu)
+    matcher = cv2.BFMatcher(cv2.NORM_L2)
+    model_frames = np.unique(landmarks.frames)
+    estimation = pycolmap.AbsolutePoseEstimationOptions()
+    estimation.ransac.max_error = cfg.max_error_px
+    refinement = pycolmap.AbsolutePoseRefinementOptions()
+    refinement.refine_focal_length = False
+    refinement.refine_extra_params = False
+    poses = np.full((len(images), 4, 4), np.nan)
+    inliers = np.full(len(images), np.nan)
+    advance = progress(f"level {level}: register", len(images)) if progress else (lambda k: None)
+    for g, (image, ref) in enumerate(zip(images, references)):
+        features, described = sift.extract_from_uint8_array(np.ascontiguousarray(image))
+        keypoints = np.asarray(pycolmap.keypoints_to_matrix(features), np.float64)
+        desc = described.data.astype(np.float32)
+        desc /= np.maximum(np.linalg.norm(desc, axis=1, keepdims=True), 1e-12)
+        near = model_frames[np.argsort(np.abs(model_frames - ref))[: cfg.localise_neighbours]]
+        pick = np.flatnonzero(np.isin(landmarks.frames, near))
+        pairs = matcher.knnMatch(desc, landmarks.descriptors[pick], k=2)
+        good = [
+            (m.queryIdx, pick[m.trainIdx])
+            for m, *rest in pairs
+            if rest and m.distance < 0.8 * rest[0].distance
+        ]
+        if len(good) >= 12:
+            q, t = np.array(good).T
+            found = pycolmap.estimate_and_refine_absolute_pose(
+                keypoints[q, :2], landmarks.xyz[t], camera, estimation, refinement
+            )
+            if found is not None and found["num_inliers"] >= cfg.min_inliers:
+                poses[g] = np.vstack([found["cam_from_world"].inverse().matrix(), [0, 0, 0, 1]])
+                inliers[g] = found["num_inliers"]
+        advance(1)
+    return poses, inliers

@@ -1,4 +1,4 @@
-"""Registration at a binned resolution (photonpano.binning, spec `registration_binning`)."""
+"""Registration at a binned resolution (photonpano.budget.grid, spec `registration_binning`)."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import pytest
 
 
 def test_bin_counts_is_the_mean_of_each_block_and_drops_the_remainder():
-    from photonpano.binning import bin_counts
+    from photonpano.imaging import bin_counts
 
     counts = np.arange(2 * 5 * 7, dtype=np.uint16).reshape(2, 5, 7)
     binned = bin_counts(counts, 2)
@@ -22,7 +22,7 @@ def test_bin_counts_is_the_mean_of_each_block_and_drops_the_remainder():
 
 
 def test_binned_source_keeps_the_detection_probability(tiny_capture):
-    from photonpano.binning import BinnedSource
+    from photonpano.budget.grid import BinnedSource
 
     binned = BinnedSource(tiny_capture, 2)
     assert (binned.height, binned.width) == (tiny_capture.height // 2, tiny_capture.width // 2)
@@ -37,7 +37,7 @@ def test_binned_source_keeps_the_detection_probability(tiny_capture):
 
 def test_registration_grid_maps_a_binned_pixel_to_the_centre_of_its_block(tiny_capture):
     from photonpano import geometry
-    from photonpano.binning import RegistrationGrid
+    from photonpano.budget.grid import RegistrationGrid
 
     grid = RegistrationGrid(tiny_capture, 2)
     shift = geometry.translation(3.0, -2.0)[None]
@@ -51,7 +51,7 @@ def test_registration_grid_maps_a_binned_pixel_to_the_centre_of_its_block(tiny_c
 
 
 def test_auto_binning_keeps_100_pixels_on_the_short_side():
-    from photonpano.binning import auto_binning
+    from photonpano.budget.grid import auto_binning
 
     assert auto_binning(254, 496) == 2
     assert auto_binning(256, 512) == 2
@@ -60,7 +60,7 @@ def test_auto_binning_keeps_100_pixels_on_the_short_side():
 
 
 def test_locator_lengths_are_sensor_pixels_whatever_the_binning(host):
-    from photonpano.binning import in_merged_pixels
+    from photonpano.budget.grid import in_merged_pixels
     from photonpano.spec import validate_spec
 
     spec = validate_spec({"source": "simulate", "locator": {"plugin": "opencv-sift", "reprojection_px": 1.5}}, host)
@@ -75,8 +75,8 @@ def test_locator_lengths_are_sensor_pixels_whatever_the_binning(host):
 
 def test_a_binning_that_leaves_no_frame_is_a_one_line_error(host):
     from photonpano.errors import StageError
-    from photonpano.pipeline import Stages
     from photonpano.plugins.sources.simulate import SimulateConfig
+    from photonpano.reconstruction import Stages
     from photonpano.spec import validate_spec
 
     spec = validate_spec({"source": "simulate", "registration_binning": 8, "group_size": 200}, host)
@@ -89,8 +89,8 @@ def test_binned_registration_is_as_accurate_as_full_resolution(host):
     """Levels registered on 2x2-binned merged frames track the true motion about as well (another path and size)."""
     from photonpano.executor import SerialExecutor
     from photonpano.metrics import trajectory_error
-    from photonpano.pipeline import Stages
     from photonpano.plugins.sources.simulate import SimulateConfig
+    from photonpano.reconstruction import Stages
     from photonpano.spec import validate_spec
 
     source = SimulateConfig(frames=12000, height=220, width=360, flux=0.3, speed_px_per_frame=0.015,
@@ -108,9 +108,9 @@ def test_binned_registration_is_as_accurate_as_full_resolution(host):
 def test_binned_levels_report_registrations_in_sensor_pixels(host):
     """What observers and run.json get is in sensor pixels: the pairs agree with the solved keyframes."""
     from photonpano.executor import SerialExecutor
-    from photonpano.pipeline import Stages
     from photonpano.plugins.sources.simulate import SimulateConfig
     from photonpano.quality import level_figures
+    from photonpano.reconstruction import Stages
     from photonpano.spec import validate_spec
 
     source = SimulateConfig(frames=3000, height=200, width=320, flux=0.5, vibration_px=2.0).build()
@@ -118,15 +118,15 @@ def test_binned_levels_report_registrations_in_sensor_pixels(host):
     stages = Stages(spec, source)
     results = []
     stages.estimate_motion(SerialExecutor(), on_level=results.append)
-    pairwise = level_figures(results[0], stages.plan, source.width, source.height)
+    pairwise = level_figures(results[0], stages.budget.plan, source.width, source.height)
     assert pairwise["pose_graph_residual_px"] < 0.5, pairwise
     # a mosaic registration is the correction of a keyframe: sub-pixel here, not scaled by the binning
-    assert level_figures(results[1], stages.plan, source.width, source.height)["median_correction_px"] < 1.0
+    assert level_figures(results[1], stages.budget.plan, source.width, source.height)["median_correction_px"] < 1.0
 
 
 def test_block_store_reads_back_what_counting_gives(tiny_capture):
     """Photons counted once per block of frames equal the direct count of any range of whole blocks."""
-    from photonpano.binning import BinnedBlocks, BinnedSource
+    from photonpano.budget.grid import BinnedBlocks, BinnedSource
     from photonpano.executor import ThreadExecutor
 
     with ThreadExecutor(2) as executor:
@@ -149,7 +149,7 @@ def test_block_store_reads_back_what_counting_gives(tiny_capture):
 
 
 def test_block_size_holds_every_group_boundary():
-    from photonpano.binning import block_size
+    from photonpano.budget.grid import block_size
 
     assert block_size(np.arange(0, 100001, 125), 500) == 25
     assert block_size(np.arange(0, 6001, 85), 340) == 17
@@ -157,7 +157,7 @@ def test_block_size_holds_every_group_boundary():
 
 
 def test_bin_counts_does_not_overflow_long_ranges():
-    from photonpano.binning import bin_counts
+    from photonpano.imaging import bin_counts
 
     counts = np.full((1, 4, 4), 60000, np.uint16)  # a range of 60 000 frames, every frame a detection
     assert bin_counts(counts, 2, mean=False)[0, 0, 0] == 240000

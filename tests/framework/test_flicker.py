@@ -48,7 +48,7 @@ def test_a_short_or_slow_capture_is_not_analysed():
 
 
 def test_partial_flicker_makes_the_run_degraded_and_whole_field_flicker_does_not():
-    from photonpano.adaptive import GroupPlan
+    from photonpano.budget import GroupPlan
 
     plan = GroupPlan(300, 1, 30.0, 0.01, 3.0, "test", True, None, _flicker())
     status, warnings = assess(plan, [], None, None)
@@ -66,7 +66,7 @@ def _flicker(frequency_hz=120.0, depth=((0.0, 0.4, 0.8),) * 3):
 
 
 def test_groups_span_whole_periods_of_partial_flicker_with_a_level_per_doubling():
-    from photonpano.adaptive import GroupPlan, whole_flicker_periods
+    from photonpano.budget.probe import GroupPlan, whole_flicker_periods
 
     plan = GroupPlan(300, 1, 30.0, 0.01, 3.0, "motion", True, None)
     longer = whole_flicker_periods(plan, _flicker(), 20_000)

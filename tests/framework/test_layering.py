@@ -54,3 +54,25 @@ def test_no_two_framework_modules_import_each_other():
     assert "cli_base" in graph["cli_tools"] and "spec_defaults" in graph["spec_paths"]  # the scanner sees them
     pairs = sorted({tuple(sorted((a, b))) for a, targets in graph.items() for b in targets if a in graph[b]})
     assert not pairs, f"modules importing each other: {pairs}"
+
+
+MAX_LINES = 400
+"""Longest module allowed under framework/ and plugins/ (issue 31: split along real seams)."""
+
+
+def test_no_module_is_over_the_line_limit():
+    """No Python module under framework/ or plugins/ is longer than ``MAX_LINES`` lines."""
+    root = FRAMEWORK.parent
+    lengths = {str(p.relative_to(root)): len(p.read_text().splitlines())
+               for folder in ("framework", "plugins") for p in (root / folder).rglob("*.py")}
+    assert len(lengths) > 100 and max(lengths.values()) > MAX_LINES / 2  # the scan sees the tree
+    over = {name: n for name, n in sorted(lengths.items()) if n > MAX_LINES}
+    assert not over, f"modules over {MAX_LINES} lines: {over}"
+
+
+def test_the_level_loop_knows_nothing_of_binning():
+    """levels.py imports nothing of the photon budget; binning is a scheme wrapper's (schemes/binned.py)."""
+    imports = framework_imports(FRAMEWORK / "levels.py")
+    assert "schemes" in imports  # the scanner sees the level loop's imports
+    assert not {name for name in imports if name.split("/")[0] in ("budget", "imaging")}, imports
+    assert "binning" not in (FRAMEWORK / "levels.py").read_text()

@@ -68,7 +68,7 @@ def test_levels_emit_frozen_records_in_panorama_coordinates():
     The middle frame's homography is the identity, so observers see output coordinates.
     """
     from photonpano.executor import SerialExecutor
-    from photonpano.pipeline import Stages
+    from photonpano.reconstruction import Stages
 
     spec = _spec(source={"plugin": "simulate", "frames": 2400, "height": 128, "width": 248, "vibration_px": 2},
                  group_size=300, levels=3, outputs={"merged_frames": True})
@@ -111,7 +111,7 @@ def test_interpolator_warm_up_runs_in_the_background_and_its_errors_do_not_stop_
     import threading
 
     from photonpano.executor import SerialExecutor
-    from photonpano.pipeline import Stages
+    from photonpano.reconstruction import Stages
 
     spec = _spec(source={"plugin": "simulate", "frames": 2400, "height": 128, "width": 248, "vibration_px": 2},
                  group_size=300, levels=2)

@@ -24,7 +24,7 @@ class NoisyLocator(Locator):
         self.truth, self.noise, self.wrong = truth, noise_px, set(wrong)
         self.rng = np.random.default_rng(seed)
 
-    def register_pairs(self, merged, pairs, initial):
+    def _register_pairs(self, merged, pairs, initial, context):
         out = []
         for a, b in merged.flux[pairs, 0, 0].astype(int):  # the frames carry their group index
             rel = np.linalg.inv(self.truth[a]) @ self.truth[b]
@@ -103,9 +103,9 @@ def test_merged_frames_stream_through_a_bounded_window():
         return _numbered(index)
 
     class Recording(NoisyLocator):
-        def register_pairs(self, merged, pairs, initial):
+        def _register_pairs(self, merged, pairs, initial, context):
             seen.append(len(merged))
-            return super().register_pairs(merged, pairs, initial)
+            return super()._register_pairs(merged, pairs, initial, context)
 
     solved, index, _ = locate_keyframes(Recording(truth, 0.05), merge, truth[:1].repeat(100, 0), (1, 2, 8), W, H,
                                         window=10)

@@ -85,7 +85,7 @@ class _SwappedConfig(LocatorConfig):
 
 
 class _SwappedLocator(Locator):
-    def register_pairs(self, merged, pairs, initial):
+    def _register_pairs(self, merged, pairs, initial, context):
         from photonpano.plugins.locators.opencv_sift import OpenCVSiftConfig
 
         good = OpenCVSiftConfig().build().register_pairs(merged, pairs, initial)
@@ -155,7 +155,7 @@ class _HalfPixelConfig(LocatorConfig):
 
 
 class _HalfPixelLocator(Locator):
-    def register_pairs(self, merged, pairs, initial):
+    def _register_pairs(self, merged, pairs, initial, context):
         from photonpano import geometry
         from photonpano.plugins.locators.opencv_sift import OpenCVSiftConfig
 

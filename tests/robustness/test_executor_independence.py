@@ -14,7 +14,7 @@ import time
 import numpy as np
 import pytest
 from photonpano import geometry
-from photonpano.binning import BinnedSource, RegistrationGrid
+from photonpano.budget.grid import BinnedSource, RegistrationGrid
 from photonpano.compose import FOLD_RUNS, BilinearCompositor, compose
 from photonpano.executor import SerialExecutor, ThreadExecutor
 from photonpano.testing import tiny_capture

@@ -166,7 +166,7 @@ outputs: {{trajectory_plot: false, report: false}}
 
 
 def _process_ended(pid: int, timeout_s: float) -> bool:
-    from photonpano.outputs.state import is_zombie
+    from photonpano.outputs.disk import is_zombie
 
     end = time.perf_counter() + timeout_s
     while time.perf_counter() < end:

@@ -28,7 +28,7 @@ BOOM_LOCATOR = """
 
 
     class BoomLocator(Locator):
-        def register_pairs(self, merged, pairs, initial):
+        def _register_pairs(self, merged, pairs, initial, context):
             raise RuntimeError("boom in register_pairs " + "x" * 5000)
 
 

@@ -2,6 +2,7 @@
 
 import numpy as np
 import pytest
+from photonpano.locator import LocatorContext
 from photonpano.plugins.locators.opencv_ecc import OpenCVEccConfig
 from photonpano.plugins.locators.opencv_features import OpenCVOrbConfig
 from photonpano.plugins.locators.opencv_sift import OpenCVSiftConfig
@@ -67,8 +68,7 @@ def test_a_locator_told_frames_are_used_once_hashes_none(four_frames, monkeypatc
     monkeypatch.setattr(common, "frame_key", lambda *a, **k: hashed.append(1) or original(*a, **k))
     config = OpenCVEccConfig(**OpenCVEccConfig.template_defaults)
     once = config.build()
-    once.reuses_frames = False
-    found = once.register_pairs(four_frames, CHAIN, _eye(3))
+    found = once.register_pairs(four_frames, CHAIN, _eye(3), LocatorContext(reuses_frames=False))
     assert not hashed and once.cache_stats()["hits"] == 0
     reused = config.build().register_pairs(four_frames, CHAIN, _eye(3))
     assert hashed  # the default keys every frame by content

@@ -3,7 +3,7 @@
 import numpy as np
 from locator_cases import DATA
 from photonpano import geometry
-from photonpano.plugins.locators.common import ecc_polish
+from photonpano.plugins.locators.polish import ecc_polish
 
 W, H = 248, 160
 

@@ -1,9 +1,9 @@
-"""Robust motion fitting with GRIC model selection (plugins/locators/common.robust_motion)."""
+"""Robust motion fitting with GRIC model selection (plugins/locators/matching.robust_motion)."""
 
 import numpy as np
 import pytest
 from photonpano import geometry
-from photonpano.plugins.locators.common import gric, robust_motion
+from photonpano.plugins.locators.matching import gric, robust_motion
 
 W, H = 384, 384
 

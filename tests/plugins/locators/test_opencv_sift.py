@@ -41,7 +41,7 @@ def test_opencv_sift_flags_unrelated_frames_instead_of_raising():
 
 
 def test_blas_matcher_keeps_exactly_the_matches_of_opencvs_brute_force_matcher():
-    from photonpano.plugins.locators.common import IntegralL2Matcher, ratio_matches
+    from photonpano.plugins.locators.matching import IntegralL2Matcher, ratio_matches
 
     source, target = cv2.imread(str(DATA / "source.png")), cv2.imread(str(DATA / "target.png"))
     locator = OpenCVSiftConfig().build()

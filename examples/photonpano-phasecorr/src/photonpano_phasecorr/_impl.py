@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 from numpy.typing import NDArray
-from photonpano.stages import Locator, MergedFrames, PairRegistrations
+from photonpano.stages import Locator, LocatorContext, MergedFrames, PairRegistrations
 
 from .plugin import PhaseCorrConfig
 
@@ -113,10 +113,9 @@ class PhaseCorrLocator(Locator):
     def __init__(self, config: PhaseCorrConfig) -> None:
         self.config = config
 
-    def register_pairs(self, merged: MergedFrames, pairs: NDArray[np.int64],
-                       initial: NDArray[np.float64]) -> PairRegistrations:
-        """Register each pair (see :meth:`photonpano.stages.Locator.register_pairs`)."""
-        pairs = np.asarray(pairs, np.int64).reshape(-1, 2)
+    def _register_pairs(self, merged: MergedFrames, pairs: NDArray[np.int64], initial: NDArray[np.float64],
+                        context: LocatorContext) -> PairRegistrations:
+        """Register each pair (see :meth:`photonpano.stages.Locator.register_pairs`, which validated them)."""
         prepared: dict[int, NDArray[np.float64]] = {}
 
         def image(i: int) -> NDArray[np.float64]:

@@ -1,10 +1,10 @@
-"""group_size: auto (photonpano.adaptive) and the binned check and fallback (photonpano.coarse)."""
+"""The photon budget (photonpano.budget): group_size auto, the Budget record, the pairwise scheme's binned check."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
-from photonpano.adaptive import CaptureProbe, choose_group_size, plan_group_size, probe_capture
+from photonpano.budget.probe import CaptureProbe, choose_group_size, plan_group_size, probe_capture
 from photonpano.stages import Locator, MergedFrames, PairRegistrations
 
 
@@ -70,7 +70,7 @@ class _Fixed(Locator):
     def __init__(self, homography, ok):
         self.homography, self.ok = homography, ok
 
-    def register_pairs(self, merged, pairs, initial):
+    def _register_pairs(self, merged, pairs, initial, context):
         n = len(pairs)
         return PairRegistrations(np.repeat(self.homography[None], n, 0), np.zeros(n, np.int64),
                                  np.full(n, 50, np.int64), np.full(n, self.ok))
@@ -93,34 +93,43 @@ def _noisy_pair(shift, photons_per_pixel, seed=0):
                         masks=np.ones(flux.shape, bool))
 
 
-def test_cascade_rescues_failed_pairs_and_rejects_wrong_ones():
-    """Cascade rescues failed pairs and rejects wrong ones."""
-    from photonpano.coarse import CascadeLocator
+class _Checked:
+    """A locator's registrations through one level of the pairwise scheme's :class:`PairCheck`."""
 
+    def __init__(self, locator, binning):
+        from photonpano.executor import SerialExecutor
+        from photonpano.schemes import PairCheck
+
+        self.locator, self.level = locator, PairCheck(binning).start_level(SerialExecutor())
+
+    def register_pairs(self, merged, pairs, initial):
+        return self.level(merged, pairs, initial, self.locator.register_pairs(merged, pairs, initial))
+
+
+def test_check_rescues_failed_pairs_and_rejects_wrong_ones():
+    """The binned check rescues failed pairs and rejects wrong ones."""
     merged = _noisy_pair((6.0, -3.0), photons_per_pixel=1.5)
     truth = np.array([[1, 0, 6.0], [0, 1, -3.0], [0, 0, 1]])
     pairs, initial = np.array([[0, 1]]), np.eye(3)[None]
-    failing = CascadeLocator(_Fixed(np.eye(3), ok=False), binning=3)
+    failing = _Checked(_Fixed(np.eye(3), ok=False), binning=3)
     found = failing.register_pairs(merged, pairs, initial)
     assert found.ok[0]
     assert np.abs(found.homographies[0][:2, 2] - truth[:2, 2]).max() < 0.5
-    wrong = CascadeLocator(_Fixed(np.array([[1, 0, -40.0], [0, 1, 25.0], [0, 0, 1]]), ok=True), binning=3)
+    wrong = _Checked(_Fixed(np.array([[1, 0, -40.0], [0, 1, 25.0], [0, 0, 1]]), ok=True), binning=3)
     found = wrong.register_pairs(merged, pairs, initial)
-    stats = wrong.take_statistics()
-    assert stats["rejected_by_check"] == 1 and stats["rescued"] == 1
+    stats = wrong.level.figures()
+    assert stats["rejected_by_check"] == 1 and stats["rescued"] == 1 and stats["binning"] == 3
     assert np.abs(found.homographies[0][:2, 2] - truth[:2, 2]).max() < 0.5
 
 
-def test_cascade_flags_pure_noise():
-    """Cascade flags pure noise."""
-    from photonpano.coarse import CascadeLocator
-
+def test_check_flags_pure_noise():
+    """The binned check flags pure noise."""
     rng = np.random.default_rng(1)
     flux = rng.poisson(2.0, (2, 200, 400)).astype(np.float32)
     merged = MergedFrames(flux=flux, frames=np.ones_like(flux), images=np.zeros(flux.shape, np.uint8),
                           masks=np.ones(flux.shape, bool))
-    cascade = CascadeLocator(_Fixed(np.eye(3), ok=True), binning=3)
-    assert not cascade.register_pairs(merged, np.array([[0, 1]]), np.eye(3)[None]).ok[0]
+    checked = _Checked(_Fixed(np.eye(3), ok=True), binning=3)
+    assert not checked.register_pairs(merged, np.array([[0, 1]]), np.eye(3)[None]).ok[0]
 
 
 def test_binned_check_maps_homographies_to_binned_pixels_exactly():
@@ -133,8 +142,7 @@ def test_binned_check_maps_homographies_to_binned_pixels_exactly():
     """
     import cv2
     from photonpano import geometry
-    from photonpano.adaptive import binned_image
-    from photonpano.coarse import _in_binned, _warp
+    from photonpano.imaging import _warp, block_mean, in_binned_pixels
 
     yy, xx = np.mgrid[0:240, 0:320].astype(np.float32)
     scene = xx + 0.5 * yy  # frame b
@@ -143,40 +151,81 @@ def test_binned_check_maps_homographies_to_binned_pixels_exactly():
                                                       [zoom * np.sin(angle), zoom * np.cos(angle), 0], [0, 0, 1]])
     moved = cv2.warpPerspective(scene, h, (320, 240), flags=cv2.INTER_LINEAR)  # frame a: b's pixels mapped by h
     for factor in (2, 4):
-        a, valid_a = binned_image(moved, factor, moved > 0)
-        b, valid_b = binned_image(scene, factor)
-        warped, inside = _warp(b, valid_b, _in_binned(h, factor))
+        a, valid_a = block_mean(moved, factor, moved > 0)
+        b, valid_b = block_mean(scene, factor)
+        warped, inside = _warp(b, valid_b, in_binned_pixels(h, factor))
         core = inside & valid_a
         core[:2], core[-2:], core[:, :2], core[:, -2:] = False, False, False, False
         assert np.abs(warped - a)[core].mean() < 0.06, factor
 
 
-def test_cascade_bins_each_frame_once_across_calls_and_drops_frames_no_longer_used(monkeypatch):
+def test_check_bins_each_frame_once_across_calls_and_drops_frames_no_longer_used(monkeypatch):
     """A frame used by consecutive calls is binned once (by content id, or digest without ids)."""
-    from photonpano import coarse
+    from photonpano.schemes import check
 
     merged = _noisy_pair((6.0, -3.0), photons_per_pixel=1.5)
     binned = []
-    original = coarse.binned_frame
-    monkeypatch.setattr(coarse, "binned_frame", lambda *a, **k: binned.append(1) or original(*a, **k))
-    cascade = coarse.CascadeLocator(_Fixed(np.array([[1, 0, 6.0], [0, 1, -3.0], [0, 0, 1]]), ok=True), binning=3)
+    original = check.binned_frame
+    monkeypatch.setattr(check, "binned_frame", lambda *a, **k: binned.append(1) or original(*a, **k))
+    checked = _Checked(_Fixed(np.array([[1, 0, 6.0], [0, 1, -3.0], [0, 0, 1]]), ok=True), binning=3)
     pairs, initial = np.array([[0, 1]]), np.eye(3)[None]
-    first = cascade.register_pairs(merged, pairs, initial)
+    first = checked.register_pairs(merged, pairs, initial)
     assert len(binned) == 2
-    again = cascade.register_pairs(merged, pairs, initial)  # same content, no ids: digests match
+    again = checked.register_pairs(merged, pairs, initial)  # same content, no ids: digests match
     assert len(binned) == 2
     np.testing.assert_array_equal(first.homographies, again.homographies)
     with_ids = MergedFrames(merged.flux, merged.frames, merged.images, merged.masks, ids=MergedFrames.new_ids(2))
-    cascade.register_pairs(with_ids, pairs, initial)  # ids are other keys: binned anew, old entries dropped
-    cascade.register_pairs(with_ids, np.array([[1, 0]]), initial)
-    assert len(binned) == 4 and len(cascade._binned) == 2
+    checked.register_pairs(with_ids, pairs, initial)  # ids are other keys: binned anew, old entries dropped
+    checked.register_pairs(with_ids, np.array([[1, 0]]), initial)
+    assert len(binned) == 4 and len(checked.level._binned) == 2
     renewed = MergedFrames(merged.flux, merged.frames, merged.images, merged.masks, ids=MergedFrames.new_ids(2))
-    cascade.register_pairs(renewed, pairs, initial)  # same pixels, new ids: the producer says new content
+    checked.register_pairs(renewed, pairs, initial)  # same pixels, new ids: the producer says new content
     assert len(binned) == 6
-    cascade.end_level()  # the next level merges every frame anew: nothing is kept
-    assert not cascade._binned
+    checked = _Checked(checked.locator, binning=3)  # the next level starts its own check: nothing is kept
+    assert not checked.level._binned
     masked = merged.masks.copy()
     masked[1, :20] = False  # same flux, another mask: another binned frame
-    cascade.register_pairs(MergedFrames(merged.flux, merged.frames, merged.images, merged.masks), pairs, initial)
-    cascade.register_pairs(MergedFrames(merged.flux, merged.frames, merged.images, masked), pairs, initial)
+    checked.register_pairs(MergedFrames(merged.flux, merged.frames, merged.images, merged.masks), pairs, initial)
+    checked.register_pairs(MergedFrames(merged.flux, merged.frames, merged.images, masked), pairs, initial)
     assert len(binned) == 6 + 2 + 1
+
+
+def _budget(source, **spec):
+    from photonpano.budget import Budget
+    from photonpano.host import PluginHost
+    from photonpano.spec import validate_spec
+
+    return Budget.for_capture(validate_spec({"source": "simulate", **spec}, PluginHost()), source)
+
+
+def test_budget_of_a_dark_capture_bins_the_check_and_the_agreement_and_says_why():
+    """group_size auto in the dark: longer groups, a binned check, a coarser agreement; each with its reason."""
+    import dataclasses
+
+    budget = _budget(_capture(flux=0.02, speed_px_per_frame=0.02), registration_binning=1)
+    plan = budget.plan
+    assert plan.auto and budget.group_size == plan.group_size > 500  # the light, not the typical m, set it
+    assert budget.register_binning == 1 and budget.register_reason == "set in the spec"
+    assert budget.check_binning == max(2, plan.binning)  # in merged-frame pixels = sensor pixels at k = 1
+    # about 20 photons per binned pixel: the agreement's blocks grow as the light falls
+    per_group = plan.photons_per_pixel_per_group
+    assert per_group * budget.agreement_binning ** 2 >= 20 > per_group * (budget.agreement_binning - 1) ** 2
+    record = budget.record()
+    assert record["check_binning"] == budget.check_binning and record["reasons"]["group_size"] == plan.reason
+    assert "light" in plan.reason and f"{budget.agreement_binning}x{budget.agreement_binning}" in \
+        record["reasons"]["agreement_binning"]
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        budget.check_binning = 1
+
+
+def test_budget_with_an_explicit_group_size_runs_no_check_and_counts_the_check_in_merged_pixels():
+    """An explicit m keeps the plain locator; with auto the check's blocks are counted in merged-frame pixels."""
+    from photonpano.budget import check_binning
+    from photonpano.budget.probe import GroupPlan
+
+    explicit = _budget(_capture(frames=1000), group_size=200, registration_binning=2)
+    assert (explicit.group_size, explicit.check_binning, explicit.register_binning) == (200, None, 2)
+    assert "not checked" in explicit.check_reason
+    auto = GroupPlan(300, binning=6, auto=True)
+    assert [check_binning(auto, k) for k in (1, 2, 3, 4)] == [6, 3, 2, 2]  # round(6 / k), blocks of >= 2 sensor px
+    assert check_binning(GroupPlan(300, auto=True), 4) == 1

@@ -8,9 +8,9 @@ camera's readout does), gives the locators the same images for a k^2-th of the
 warping, flux and tone-mapping work.
 
 :class:`RegistrationGrid` is the change of coordinates between the sensor's pixels and
-the binned ones; the level loop (:func:`photonpano.levels.estimate_motion`) hands its
-schemes the binned capture and binned homographies and turns their keyframes back into
-sensor pixels, so schemes, mergers and locators need not know about binning. The
+the binned ones; :class:`~photonpano.schemes.binned.Binned` hands its scheme the binned
+capture and binned homographies and turns their keyframes back into sensor pixels, so
+the level loop, schemes, mergers and locators need not know about binning. The
 panorama is composited from the full-resolution photons.
 """
 
@@ -21,12 +21,13 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from . import geometry
-from .jit import cached_njit
-from .records import LocateResult
-from .stages import LocatorConfig, PhotonSource
+from .. import geometry
+from ..imaging import bin_counts
+from ..jit import cached_njit
+from ..records import LocateResult
+from ..stages import LocatorConfig, PhotonSource
 
-__all__ = ["BinnedSource", "BinnedBlocks", "RegistrationGrid", "bin_counts", "block_size", "in_merged_pixels",
+__all__ = ["BinnedSource", "BinnedBlocks", "RegistrationGrid", "block_size", "in_merged_pixels",
            "auto_binning", "registration_binning", "MIN_BINNED_SIDE"]
 
 MIN_BINNED_SIDE = 100
@@ -52,7 +53,7 @@ def registration_binning(spec: Any, source: PhotonSource) -> int:
     Raises:
         StageError: if the binning leaves frames smaller than 16 pixels.
     """
-    from .errors import StageError
+    from ..errors import StageError
 
     value = spec.registration_binning
     factor = auto_binning(source.height, source.width) if value == "auto" else int(value)
@@ -84,45 +85,6 @@ def in_merged_pixels(config: LocatorConfig, binning: int) -> LocatorConfig:
         if name.endswith("_px") and isinstance(value, (int, float)) and not isinstance(value, bool):
             update[name] = -(-value // binning) if isinstance(value, int) else value / binning
     return config.model_copy(update=update)
-
-
-def bin_counts(counts: NDArray, factor: int, dtype: Any = np.float32, *, mean: bool = True) -> NDArray:
-    """Sum (or mean) of each ``factor`` x ``factor`` block of pixels of B count images.
-
-    Args:
-        counts: (B, H, W) detection counts (any real dtype).
-        factor: block size k in pixels (>= 1).
-        dtype: dtype of the result (an integer dtype must hold ``k^2`` times the counts).
-        mean: divide by ``k^2`` (the mean count per sensor pixel), else the block sums.
-
-    Returns:
-        (B, H // k, W // k) ``dtype`` per block (the last ``H % k`` rows and ``W % k``
-        columns are left out).
-    """
-    b, h, w = counts.shape
-    k = int(factor)
-    hb, wb = h // k, w // k
-    if k == 2 and not mean and counts.dtype.kind == "u" and np.dtype(dtype).kind == "u":
-        out = np.empty((b, hb, wb), dtype)  # photon counts binned 2x2 (the default): one compiled pass, 9x faster
-        _bin_counts_2x2(np.ascontiguousarray(counts), out)
-        return out
-    out = np.zeros((b, hb, wb), dtype)
-    for dy in range(k):  # k^2 strided adds: several times faster than a sum over a 5-D reshape
-        rows = counts[:, dy:hb * k:k]
-        for dx in range(k):
-            out += rows[:, :, dx:wb * k:k]
-    if mean:
-        out *= out.dtype.type(1.0 / (k * k))
-    return out
-
-
-@cached_njit(nogil=True)
-def _bin_counts_2x2(counts, out):  # pragma: no cover - compiled
-    for b in range(out.shape[0]):
-        for i in range(out.shape[1]):
-            top, bottom, row = counts[b, 2 * i], counts[b, 2 * i + 1], out[b, i]
-            for j in range(row.size):
-                row[j] = top[2 * j] + top[2 * j + 1] + bottom[2 * j] + bottom[2 * j + 1]
 
 
 @cached_njit(nogil=True)
@@ -169,7 +131,7 @@ class BinnedBlocks:
         import os
         import tempfile
 
-        from .executor import SerialExecutor
+        from ..executor import SerialExecutor
 
         self.factor, self.block = int(factor), int(block)
         self.n_blocks = source.n_frames // self.block
@@ -313,11 +275,14 @@ class RegistrationGrid:
         self.factor = int(factor)
         self.source = source if self.factor == 1 else BinnedSource(source, self.factor)
         self.blocks: BinnedBlocks | None = None
+        self._counted = False
         self._to_binned = geometry.scale_matrix(1.0 / self.factor)
         self._to_sensor = np.linalg.inv(self._to_binned)
 
     def count_once(self, boundaries: NDArray[np.int64], group_size: int, executor: Any) -> None:
         """Count the binned photons once for every level (:class:`BinnedBlocks`), where that pays.
+
+        Only the first call counts (the schemes of a run share one grid).
 
         Only with binning (at full resolution, blocks of 25 frames would shrink a
         packed cube only about three times), binary frames and a block grid of at least
@@ -334,6 +299,9 @@ class RegistrationGrid:
         """
         import logging
 
+        if self._counted:  # schemes sharing the grid each ask
+            return
+        self._counted = True
         if self.factor == 1 or self.source.kind != "binary":
             return
         capture = self.source.source

@@ -1,4 +1,8 @@
-"""What an output folder holds: its manifest, its files (never through a link), its lock's liveness."""
+"""What a run folder's bookkeeping reads from disk: its manifest, the files below it, its lock.
+
+Reading only, and lenient: a damaged manifest lists nothing, an unreadable file reads
+as ''. Writing is :class:`~photonpano.outputs.RunFolder`'s.
+"""
 
 from __future__ import annotations
 
@@ -8,11 +12,11 @@ import os
 import socket
 from pathlib import Path
 
-__all__ = ["read_quietly", "read_manifest", "walk_files", "lock_is_stale", "is_zombie"]
+__all__ = ["read_text_lenient", "read_manifest", "walk_files", "lock_is_stale", "is_zombie"]
 
 
-def read_quietly(path: Path) -> str:
-    """The text of ``path`` (undecodable bytes replaced), or ``""`` if it cannot be read."""
+def read_text_lenient(path: Path) -> str:
+    """The text of ``path`` (undecodable bytes replaced), or '' if it cannot be read."""
     try:
         return path.read_text(errors="replace")
     except OSError:
@@ -29,7 +33,7 @@ def read_manifest(path: Path) -> tuple[list[str] | None, dict[str, str] | None]:
     if path.is_symlink() or not path.is_file():
         return None, None
     try:
-        data = json.loads(read_quietly(path))
+        data = json.loads(read_text_lenient(path))
     except ValueError:
         return [], {}
     if not isinstance(data, dict):
@@ -65,7 +69,7 @@ def walk_files(root: Path, links: bool = False) -> list[str]:
 
 def lock_is_stale(lock: Path) -> bool:
     """A lock is stale when its process (on this host) no longer runs."""
-    fields = read_quietly(lock).split()
+    fields = read_text_lenient(lock).split()
     if len(fields) < 2 or not fields[0].isdigit():
         return True
     if fields[1] != socket.gethostname():
@@ -83,7 +87,7 @@ def lock_is_stale(lock: Path) -> bool:
 
 
 def is_zombie(pid: int) -> bool:
-    """Whether process ``pid`` has ended but not been reaped yet (Linux ``/proc``; False where unknown)."""
+    """Whether process ``pid`` has exited and waits for its parent (Linux ``/proc``; False where unknown)."""
     with contextlib.suppress(OSError, IndexError):
         return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] == "Z"
     return False

@@ -15,7 +15,7 @@ from the capture in a cheap pre-pass, and :func:`choose_group_size` turns them i
 
 m is ``min(typical, m_motion)``, raised towards ``m_light`` in the dark (up to twice
 the blur budget); any photon deficit left is made up at level 1 by registering
-spatially binned merged frames (:class:`~photonpano.coarse.CascadeLocator`, the
+spatially binned merged frames (:class:`~photonpano.schemes.check.PairCheck`, the
 ``binning`` of the plan). Explicit integers bypass all of this.
 """
 
@@ -26,12 +26,11 @@ from dataclasses import asdict, dataclass, field, replace
 from typing import Any
 
 import numpy as np
-from numpy.typing import NDArray
 
-from .jit import cached_njit
+from ..imaging import block_mean, phase_shift_correlation
 
 __all__ = ["CaptureProbe", "GroupPlan", "probe_capture", "choose_group_size", "plan_group_size",
-           "binned_image", "normalised_correlation", "whole_flicker_periods"]
+           "whole_flicker_periods"]
 
 
 @dataclass(frozen=True)
@@ -96,91 +95,6 @@ class GroupPlan:
         return out
 
 
-def binned_image(image: NDArray[np.floating], factor: int, mask: NDArray[np.bool_] | None = None
-                 ) -> tuple[NDArray[np.float32], NDArray[np.bool_]]:
-    """Average ``factor`` x ``factor`` blocks of an image, ignoring untrusted pixels.
-
-    Args:
-        image: (H, W) float image (NaN allowed where ``mask`` is False).
-        factor: block size in pixels (>= 1); the image is cropped to a multiple of it.
-        mask: (H, W) bool trusted pixels (None: all finite pixels).
-
-    Returns:
-        ``(binned, valid)``: (H // factor, W // factor) float32 block means and bool
-        blocks with at least 90 % trusted pixels. Binned pixel ``u`` covers input pixels
-        ``factor * u .. factor * u + factor - 1``, i.e. its centre is at
-        ``factor * u + (factor - 1) / 2``.
-    """
-    import cv2
-
-    h, w = (image.shape[0] // factor) * factor, (image.shape[1] // factor) * factor
-    image = image[:h, :w]
-    trusted = np.isfinite(image) if mask is None else (mask[:h, :w] & np.isfinite(image))
-    values = np.where(trusted, image, 0).astype(np.float32)
-    size = (w // factor, h // factor)
-    total = cv2.resize(values, size, interpolation=cv2.INTER_AREA)
-    weight = cv2.resize(trusted.astype(np.float32), size, interpolation=cv2.INTER_AREA)
-    valid = weight >= 0.9
-    return np.where(valid, total / np.maximum(weight, 1e-6), 0).astype(np.float32), valid
-
-
-def normalised_correlation(a: NDArray[np.floating], b: NDArray[np.floating],
-                           valid: NDArray[np.bool_]) -> float:
-    """Pearson correlation of two images over ``valid`` pixels (0 with fewer than 16).
-
-    Args:
-        a: (H, W) image (float32 pairs are read as float32, others as float64).
-        b: (H, W) image of the same shape.
-        valid: (H, W) bool pixels to compare.
-
-    Returns:
-        The correlation in [-1, 1], computed in float64 in two passes (means, then
-        centred products), in one compiled loop that releases the GIL: the check of
-        every level-1 pair calls this (0.36 ms per 127x248 pair in numpy, mostly
-        masked copies held under the GIL).
-    """
-    dtype = np.result_type(a, b, np.float32)  # float32 pairs stay float32, anything else is float64
-    a, b = np.ascontiguousarray(a, dtype=dtype), np.ascontiguousarray(b, dtype=dtype)
-    return float(_masked_correlation(a.reshape(-1), b.reshape(-1), np.ascontiguousarray(valid).reshape(-1)))
-
-
-@cached_njit(nogil=True)
-def _masked_correlation(a, b, valid):  # pragma: no cover - compiled
-    n, sum_a, sum_b = 0, 0.0, 0.0
-    for i in range(a.size):
-        if valid[i]:
-            n += 1
-            sum_a += a[i]
-            sum_b += b[i]
-    if n < 16:
-        return 0.0
-    mean_a, mean_b = sum_a / n, sum_b / n
-    aa, bb, ab = 0.0, 0.0, 0.0
-    for i in range(a.size):
-        if valid[i]:
-            x, y = a[i] - mean_a, b[i] - mean_b
-            aa += x * x
-            bb += y * y
-            ab += x * y
-    denominator = math.sqrt(aa * bb)
-    return ab / denominator if denominator > 0 else 0.0
-
-
-def _shift_and_correlation(a: NDArray[np.float32], b: NDArray[np.float32]
-                           ) -> tuple[NDArray[np.float64], float]:
-    """Translation of ``b`` relative to ``a`` by phase correlation, and their correlation after it."""
-    import cv2
-
-    window = cv2.createHanningWindow(a.shape[::-1], cv2.CV_32F)
-    (dx, dy), _ = cv2.phaseCorrelate(a - a.mean(), b - b.mean(), window)
-    h, w = a.shape
-    moved = cv2.warpAffine(b, np.float32([[1, 0, -dx], [0, 1, -dy]]), (w, h), flags=cv2.INTER_LINEAR,
-                           borderValue=np.nan)
-    valid = np.isfinite(moved)
-    valid[:2], valid[-2:], valid[:, :2], valid[:, -2:] = False, False, False, False
-    return np.array([dx, dy]), normalised_correlation(a, moved, valid)
-
-
 def probe_capture(source, *, probes: int = 8, min_photons: float = 20.0, min_block: int = 200,
                   min_correlation: float = 0.25) -> CaptureProbe:
     """Measure a capture's photon rate and apparent speed from a few blocks of frames.
@@ -227,9 +141,9 @@ def probe_capture(source, *, probes: int = 8, min_photons: float = 20.0, min_blo
         for centre in centres:
             counts = source.sum_ranges(np.array([centre - length, centre, centre + length]))
             detections, counted = detections + float(counts.mean()) * 2, counted + 2 * length
-            a, _ = binned_image(counts[0].astype(np.float32), binning)
-            b, _ = binned_image(counts[1].astype(np.float32), binning)
-            shift, cc = _shift_and_correlation(a, b)
+            a, _ = block_mean(counts[0].astype(np.float32), binning)
+            b, _ = block_mean(counts[1].astype(np.float32), binning)
+            shift, cc = phase_shift_correlation(a, b)
             correlations.append(cc)
             speeds.append(float(np.hypot(*shift)) * binning / length if cc >= min_correlation else np.nan)
         found = int(np.sum(np.isfinite(speeds)))
@@ -302,7 +216,7 @@ def plan_group_size(group_size: int | str, source) -> GroupPlan:
     Raises:
         ValueError: for a value that is neither a positive integer nor ``"auto"``.
     """
-    from .flicker import detect_flicker
+    from ..flicker import detect_flicker
 
     if group_size == "auto":
         return whole_flicker_periods(choose_group_size(probe_capture(source), source.n_frames),

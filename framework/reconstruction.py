@@ -1,0 +1,231 @@
+"""The stages of a spec for one opened capture, and :func:`reconstruct`: its motion and panorama (nothing written).
+
+:class:`Stages` builds every stage of a spec once for a capture (its photon budget
+first, :class:`~photonpano.budget.Budget`) and serves ``run``, ``compare`` and the API;
+:func:`reconstruct` runs the levels, the panorama and the confidence report on it.
+Writing the output folder is :mod:`photonpano.pipeline`'s.
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Any, Callable
+
+import numpy as np
+from numpy.typing import NDArray
+from pydantic import BaseModel
+
+from .errors import StageError
+from .executor import Executor
+from .records import LevelResult, Panorama
+from .stages import PhotonSource
+from .watchdog import watched
+
+__all__ = ["Stages", "reconstruct"]
+
+
+class Stages:
+    """The stages of a spec, built once for one opened capture; used by run, compare and the API.
+
+    Holds the capture's photon budget (:attr:`budget`, :class:`~photonpano.budget.Budget`),
+    the built resampler, merger, locator, interpolator and the scheme of each level (the
+    pairwise scheme with the budget's binned check when ``group_size: auto``), and runs
+    the levels (:meth:`estimate_motion`, on the capture binned by the budget's
+    registration binning) and the panorama (:meth:`compose`).
+
+    Args:
+        spec: a validated ``PipelineSpec``.
+        source: the opened capture.
+
+    Levels the capture has no room for are dropped with a note (:attr:`notes`), see
+    :meth:`_fit_levels`.
+
+    Raises:
+        StageError: if the group-size pre-pass cannot read the capture, or the capture is
+            too short for even one level.
+    """
+
+    def __init__(self, spec: BaseModel, source: PhotonSource) -> None:
+        """Build every stage of ``spec`` for ``source``."""
+        from .budget import Budget
+        from .budget.grid import in_merged_pixels
+        from .schemes import MosaicScheme, PairCheck, PairwiseScheme
+        from .spec import level_schemes
+
+        self.spec, self.source = spec, source
+        self.budget = budget = Budget.for_capture(spec, source)
+        self.locator = in_merged_pixels(spec.locator, budget.register_binning).build()
+        check = PairCheck(budget.check_binning) if budget.check_binning is not None else None
+        self.resampler, self.merger = spec.resampler.build(), spec.merger.build()
+        self.interpolator = spec.interpolator.build()
+        built = {"pairwise": PairwiseScheme(self.locator, tuple(spec.pair_offsets), check),
+                 "mosaic": MosaicScheme(in_merged_pixels(spec.mosaic.locator, budget.register_binning).build,
+                                        spec.mosaic.template.build,
+                                        subbatch_px=spec.mosaic.subbatch_px,
+                                        reject_movers=spec.mosaic.reject_movers)}
+        self.schemes = [built[name] for name in level_schemes(spec)]
+        self.notes: list[str] = []
+        plan = budget.plan
+        if plan.extra_levels:
+            self.schemes += [self.schemes[-1]] * plan.extra_levels
+            self.notes.append(f"groups span whole flicker periods ({plan.group_size} frames): "
+                              f"{plan.extra_levels} more level(s) keep the last level's keyframes as dense")
+        self._fit_levels()
+
+    def _fit_levels(self) -> None:
+        """Keep the levels the capture has room for, noting any dropped; none at all is an error.
+
+        A resampler that cannot build level k >= 2 for this capture and group size (a
+        short clip: the ``midpoint`` groups would be centred less than a frame apart)
+        leaves levels 1 .. k-1 to run, with a one-line note in :attr:`notes`.
+
+        Raises:
+            StageError: if the resampler cannot build level 1 (e.g. a capture of fewer
+                than 4 frames: too short to register anything).
+        """
+        n, m = self.source.n_frames, self.budget.group_size
+        for level in range(1, len(self.schemes) + 1):
+            try:
+                with watched("resampler", self.resampler, "groups"):
+                    self.resampler.groups(n, m, level)
+            except ValueError as exc:
+                if level == 1:
+                    raise StageError("resampler", type(self.resampler).__name__, str(exc)) from None
+                planned = len(self.schemes)
+                self.schemes = self.schemes[:level - 1]
+                self.notes.append(f"a capture of {n} frames in groups of {m} has room for {level - 1} of the "
+                                  f"{planned} levels; running {level - 1} ({exc})")
+                return
+
+    def estimate_motion(self, executor: Executor, *, on_level: Callable[[LevelResult], None] | None = None,
+                        progress: Any = None, resume: Any = None) -> NDArray[np.float64]:
+        """Run the levels (:func:`photonpano.levels.estimate_motion`).
+
+        With a registration binning k > 1 every scheme runs on the capture binned k x k
+        (:class:`~photonpano.schemes.Binned`, one grid per call).
+
+        Args:
+            executor: where independent work runs.
+            on_level: called with each level's frozen :class:`~photonpano.records.LevelResult`.
+            progress: ``progress(task, total)`` returning an ``advance(n)`` callable.
+            resume: a :class:`~photonpano.outputs.Checkpoint` to continue from (None: level 1).
+
+        Returns:
+            (T, 3, 3) float64 frame-to-panorama homographies (middle-frame pixels).
+        """
+        from .budget.grid import RegistrationGrid
+        from .levels import estimate_motion
+        from .schemes import Binned
+
+        start = {} if resume is None else {
+            "start_level": resume.level + 1, "initial": resume.homographies}
+        schemes = self.schemes
+        if self.budget.register_binning > 1:
+            grid, wrapped = RegistrationGrid(self.source, self.budget.register_binning), {}
+            schemes = [wrapped.setdefault(id(scheme), Binned(scheme, grid)) for scheme in schemes]
+        return estimate_motion(self.source, self.resampler, self.merger, self.interpolator, schemes,
+                               group_size=self.budget.group_size, executor=executor,
+                               keep_merged=self.spec.outputs.merged_frames, on_level=on_level, progress=progress,
+                               crosscheck=self.spec.uncertainty, **start)
+
+    def compose(self, homographies: NDArray[np.float64], executor: Executor,
+                progress: Callable[[int], None] | None = None) -> Panorama:
+        """The panorama of every binary frame by the spec's compositor (:func:`photonpano.compose.compose`)."""
+        from .compose import compose
+
+        return compose(self.source, homographies, self.spec.source.panorama_compositor(self.spec.compositor.build),
+                       subbatch_px=self.spec.panorama_subbatch_px, progress=progress, executor=executor)
+
+    def level_statistics(self, result: LevelResult) -> dict[str, Any]:
+        """One level's ``run.json`` row.
+
+        Its statistics, feature-cache use, ground-truth-free quality figures, the
+        binned-frame check's counts and, with ground truth, the RMSE.
+        """
+        from .metrics import source_trajectory_error
+        from .quality import level_figures
+
+        row = result.statistics()
+        if result.located.locator_cache is not None:
+            row["locator_cache"] = result.located.locator_cache
+        row["quality"] = level_figures(result, self.budget.plan, self.source.width, self.source.height)
+        if result.located.check is not None:
+            row["registration_check"] = result.located.check
+        if self.source.ground_truth is not None:
+            row["trajectory_rmse_px"] = source_trajectory_error(result.homographies, self.source).rmse_px
+        return row
+
+
+def reconstruct(spec: BaseModel, source: PhotonSource, *, on_level: Callable[[LevelResult], None] | None = None,
+                progress: Any = None, checkpoint: Callable[[Any], None] | None = None, resume: Any = None,
+                report: dict[str, Any] | None = None
+                ) -> tuple[NDArray[np.float64], list[dict[str, Any]], Panorama, dict[str, float]]:
+    """Estimate the motion of ``source`` and composite its panorama as ``spec`` says.
+
+    Args:
+        spec: a validated ``PipelineSpec`` (its ``source`` section is not used).
+        source: the opened capture.
+        on_level: called with each :class:`~photonpano.records.LevelResult`.
+        progress: ``progress(task, total)`` returning an ``advance(n)`` callable.
+        checkpoint: called with a :class:`~photonpano.outputs.Checkpoint` after each level.
+        resume: a :class:`~photonpano.outputs.Checkpoint` to continue from (None: level 1).
+        report: filled, if given, with the confidence report of ``run.json``:
+            ``status``, ``warnings``, ``notes`` (one line per adjustment the capture
+            needed, e.g. fewer levels for a short clip), ``group_size`` (the plan: chosen m and why, see
+            :class:`~photonpano.budget.GroupPlan`), ``budget`` (:meth:`~photonpano.budget.Budget.record`:
+            the group size and the three binnings, each with why), ``panorama_agreement``
+            (:func:`~photonpano.quality.panorama_agreement`), ``uncertainty`` (the
+            summary of the per-frame uncertainty, None if there was no evidence) and
+            ``frame_uncertainty`` (the :class:`~photonpano.uncertainty.FrameUncertainty`
+            itself, or None; not JSON: a caller writing ``run.json`` takes it out) and
+            ``flicker`` (:meth:`~photonpano.flicker.Flicker.record` of the flickering
+            light found in the photon counts, or None).
+
+    Returns:
+        ``(homographies, level_statistics, panorama, timings_s)``: (T, 3, 3) float64
+        frame-to-panorama homographies (middle-frame pixels), one statistics dict per
+        level (with the trajectory RMSE when the source has ground truth), the
+        :class:`~photonpano.records.Panorama` (from the spec's compositor; its
+        ``homographies`` map frames to canvas pixels) and wall times in seconds.
+    """
+    from .executor import make_executor
+    from .outputs import Checkpoint
+    from .quality import assess, panorama_agreement
+    from .uncertainty import frame_uncertainty
+
+    stats: list[dict[str, Any]] = list(resume.statistics) if resume is not None else []
+    stages = Stages(spec, source)
+    last: LevelResult | None = None
+
+    def level_done(result: LevelResult) -> None:
+        nonlocal last
+        last = result
+        if on_level is not None:
+            on_level(result)
+        stats.append(stages.level_statistics(result))
+        if checkpoint is not None:
+            checkpoint(Checkpoint(result.level, result.homographies, list(stats)))
+
+    timings: dict[str, float] = {}
+    with make_executor(spec.executor, spec.workers, spec.dask_address) as executor:
+        t0 = time.perf_counter()
+        homographies = stages.estimate_motion(executor, on_level=level_done, progress=progress, resume=resume)
+        timings["levels"] = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        pano = stages.compose(homographies, executor, progress("panorama", source.n_frames) if progress else None)
+        timings["panorama"] = time.perf_counter() - t0
+    if report is not None:
+        t0 = time.perf_counter()
+        budget = stages.budget
+        plan = budget.plan
+        agreement = panorama_agreement(source, stages.merger, homographies, pano, plan.group_size,
+                                       budget.agreement_binning)
+        uncertainty = frame_uncertainty(last, source.width, source.height) if last is not None else None
+        summary = uncertainty.summary(source.frame_rate_hz) if uncertainty is not None else None
+        status, warnings = assess(plan, stats, agreement, summary)
+        report.update(status=status, warnings=warnings, notes=list(stages.notes), group_size=plan.record(),
+                      budget=budget.record(),
+                      panorama_agreement=agreement, uncertainty=summary, frame_uncertainty=uncertainty,
+                      flicker=plan.flicker.record() if plan.flicker is not None else None)
+        timings["confidence"] = time.perf_counter() - t0
+    return homographies, stats, pano, timings

@@ -1,0 +1,141 @@
+"""The pairwise scheme's check of its registrations on binned frames, and their rescue.
+
+Features need texture that a merged frame of a few photons per pixel does not show;
+the scene's *signal* is still there, spread over many pixels. With ``group_size: auto``
+the pairwise scheme hands every locator call's result to a :class:`PairCheck` (its
+binning is the photon budget's ``check_binning``, :class:`~photonpano.budget.Budget`):
+
+1. every pair the locator registered is **checked** on spatially binned merged frames
+   (blocks of ``binning`` pixels, square-root flux, which makes photon noise about
+   uniform; :func:`~photonpano.imaging.binned_frame`): the correlation of frame a with
+   frame b warped by the homography must reach ``min_correlation``, else the pair
+   counts as failed (a spurious match on photon noise correlates near 0);
+2. every failed pair is registered **directly** on the binned frames: phase
+   correlation for the translation left by the current estimate, then ECC
+   (Evangelidis and Psarakis, 2008) for an affine correction
+   (:func:`~photonpano.imaging.register_binned`).
+
+A level's figures (correlation per pair, pairs checked out and rescued) travel in its
+:attr:`~photonpano.records.LocateResult.check` to ``run.json``'s ``registration_check``.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ..executor import Executor, SerialExecutor
+from ..imaging import binned_frame, register_binned, warped_correlation
+from ..records import MergedFrames, PairRegistrations
+
+__all__ = ["PairCheck", "LevelCheck"]
+
+
+class PairCheck:
+    """How the pairwise scheme checks and rescues its registrations (see the module).
+
+    Args:
+        binning: merged-frame pixels per side of the binned frames (>= 1).
+        min_correlation: the binned correlation a registration must reach.
+        min_overlap: fraction of binned pixels both frames must share.
+    """
+
+    def __init__(self, binning: int, *, min_correlation: float = 0.4, min_overlap: float = 0.3) -> None:
+        """Set the check's binning and limits."""
+        self.factor = max(1, int(binning))
+        self.min_correlation = min_correlation
+        self.min_overlap = min_overlap
+
+    def start_level(self, executor: Executor) -> LevelCheck:
+        """The check of one level: its binned frames and figures, run on ``executor``'s threads.
+
+        A Dask executor's tasks would ship the frames to other processes, so with an
+        executor outside this process the check runs here, one pair after another.
+        """
+        return LevelCheck(self, executor if executor.in_process else SerialExecutor())
+
+
+class LevelCheck:
+    """One level's :class:`PairCheck`: the binned frames kept across calls and the figures so far.
+
+    Args:
+        policy: the :class:`PairCheck`.
+        executor: runs the binning and the pairs' checks (OpenCV and the compiled
+            correlation release the GIL).
+    """
+
+    def __init__(self, policy: PairCheck, executor: Executor) -> None:
+        """Start a level with no binned frames and no figures."""
+        self.policy, self.executor = policy, executor
+        self.checked = self.rejected = self.rescued = 0
+        self.correlations: list[float] = []
+        self._binned: dict[tuple[bytes, bytes], tuple[NDArray[np.float32], NDArray[np.bool_]]] = {}
+
+    def __call__(self, merged: MergedFrames, pairs: NDArray[np.int64], initial: NDArray[np.float64],
+                 found: PairRegistrations) -> PairRegistrations:
+        """Check, and rescue where they failed, a locator's registrations of ``pairs``.
+
+        Each frame is binned once per content (:meth:`~photonpano.records.MergedFrames.content_key`):
+        frames that the previous call used are reused, others are dropped.
+
+        Args:
+            merged: the merged frames the pairs index.
+            pairs: (P, 2) int64 indices ``(a, b)`` into ``merged``.
+            initial: (P, 3, 3) float64 current estimates mapping b's pixels to a's.
+            found: the locator's (P) registrations of ``pairs``.
+
+        Returns:
+            The (P) registrations after the check: rescued pairs carry the direct
+            registration (``inliers`` ``max(8, 100 cc^2)``), pairs that fail both are not ok.
+        """
+        factor = self.policy.factor
+        frames = [int(i) for i in np.unique(pairs)]
+        # a binned frame reads the flux and the mask: key both (one id when the frames carry ids)
+        keys = {i: (merged.content_key(i), merged.content_key(i, flux=True)) for i in frames}
+        missing = [i for i in frames if keys[i] not in self._binned]
+        computed = dict(zip(missing, self.executor.map(
+            lambda i: binned_frame(merged.flux[i], merged.masks[i], factor), missing)))
+        binned = {i: computed[i] if i in computed else self._binned[keys[i]] for i in frames}
+        self._binned = {keys[i]: binned[i] for i in frames}
+        policy = self.policy
+
+        def check(p: int) -> tuple[NDArray[np.float64], int, bool, float, bool]:
+            """Pair p's (homography, inliers, ok, correlation, rescued)."""
+            a, b = binned[int(pairs[p, 0])], binned[int(pairs[p, 1])]
+            need = policy.min_overlap * max(int(b[1].sum()), 1)
+            homography, inliers = found.homographies[p], int(found.inliers[p])
+            if found.ok[p]:
+                cc, overlap = warped_correlation(a, b, homography, factor)
+                if cc >= policy.min_correlation and overlap >= need:
+                    return homography, inliers, True, cc, False
+            h, cc, overlap = register_binned(a, b, initial[p], factor)
+            if cc >= policy.min_correlation and overlap >= need:
+                return h, max(8, int(round(100 * cc ** 2))), True, cc, True
+            return homography, inliers, False, cc, False
+
+        checked = self.executor.map(check, range(len(pairs)))
+        if not checked:
+            return found
+        ok = np.array([c[2] for c in checked], bool)
+        rescued = np.array([c[4] for c in checked], bool)
+        self.checked += int(found.ok.sum())
+        self.rejected += int((found.ok & ~(ok & ~rescued)).sum())
+        self.rescued += int(rescued.sum())
+        self.correlations.extend(c[3] for c in checked)
+        return PairRegistrations(np.stack([c[0] for c in checked]), found.matches,
+                                 np.array([c[1] for c in checked], found.inliers.dtype), ok)
+
+    def figures(self) -> dict[str, Any]:
+        """The level's figures, JSON-ready (``run.json``'s ``registration_check``).
+
+        Returns:
+            ``{"binning", "checked", "rejected_by_check", "rescued",
+            "median_correlation", "min_correlation"}`` (correlations of the pairs'
+            final homographies on binned frames; -1 where ECC failed; None without pairs).
+        """
+        cc = np.asarray(self.correlations, np.float64)
+        return {"binning": self.policy.factor, "checked": self.checked, "rejected_by_check": self.rejected,
+                "rescued": self.rescued, "median_correlation": float(np.median(cc)) if len(cc) else None,
+                "min_correlation": float(cc.min()) if len(cc) else None}
