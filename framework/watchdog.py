@@ -1,6 +1,6 @@
 """A watchdog over the stage calls of a run: a plugin call that does not return in time ends the run, named.
 
-The level loop and the panorama call plugin code (a locator's ``register_pairs``, a
+The level loop and the panorama call plugin code (a locator's ``register_pairs`` or ``register_to_template``, a
 merger's ``merge``, an interpolator's ``interpolate``, a resampler's ``groups``, a
 compositor's ``prepare``/``read``/``feed``/``finish``) through :func:`watched`, which
 records the call and its deadline in a table (a dictionary entry: no thread per call).

@@ -14,29 +14,21 @@ HANGING_LOCATOR = """
     from typing import Literal
 
     from photonpano import hookimpl
+    from photonpano.locator import Locator
     from photonpano.plugins.locators.opencv_features import OpenCVOrbConfig
 
 
-    class Stuck:
+    class Stuck(Locator):
         def __init__(self, config):
             self.config = config
 
-        def register_pairs(self, merged, pairs, initial):
+        def _register_pairs(self, merged, pairs, initial, context):
             while True:  # e.g. waiting on a licence server
                 try:
                     time.sleep(0.1)
                 except KeyboardInterrupt:  # a bare `except:` in plugin code swallows the interrupt
                     if self.config.how == "sleep":
                         raise
-
-        def cache_stats(self):
-            return {}
-
-        def reset_cache_stats(self):
-            pass
-
-        def end_level(self):
-            pass
 
 
     class StuckConfig(OpenCVOrbConfig):
