@@ -114,3 +114,17 @@ def test_calls_within_the_limit_or_unguarded_or_switched_off_are_left_alone(monk
                            ("-3", None), ("45", 45.0)):
         monkeypatch.setenv(watchdog.ENV, text)
         assert watchdog.limit_s() == expected, text
+
+
+@pytest.mark.slow
+def test_compare_records_a_hanging_locator_and_runs_the_next(tmp_path):
+    """The hung locator's row says so; the comparison goes on with the next locator and completes."""
+    import json
+
+    out = tmp_path / "cmp"
+    result = run_subprocess("compare", "simulate", "-o", out, "-l", "stuck-locator,opencv-orb", *TINY,
+                            "--set", "levels=1", env=_env(tmp_path), timeout=120)
+    assert result.returncode == 0, result.stderr
+    runs = json.loads((out / "compare.json").read_text())["runs"]
+    assert runs[0]["status"].startswith("locator (stuck-locator) in register_pairs did not return within 2 s")
+    assert runs[1]["status"] == "ok"
