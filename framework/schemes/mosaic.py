@@ -125,8 +125,8 @@ class MosaicScheme(LevelScheme):
             found = locator.register_to_template(views, merged, np.repeat(np.eye(3)[None], n, axis=0), once)
             cross = None
             if task.crosscheck and n > 1:  # held out: consecutive merged frames against each other
-                local = np.stack([np.arange(n - 1), np.arange(1, n)], axis=1)
-                cross = locator.register_pairs(merged, local, geometry.normalize(
+                names = merged.frame_ids()
+                cross = locator.register_pairs(merged, np.stack([names[:-1], names[1:]], axis=1), geometry.normalize(
                     np.linalg.inv(current[index[:-1]]) @ current[index[1:]]), once)
             return _WindowResult(found, locator.cache_stats(), merge_s, time.perf_counter() - start,
                                  merged if task.keep_merged else None, cross)
