@@ -30,6 +30,7 @@ from numpy.typing import NDArray
 
 from .config import StageConfig
 from .records import MergedFrames, PairRegistrations
+from .watchdog import watched
 
 __all__ = ["LocatorConfig", "Locator", "LocatorContext", "named_frames"]
 
@@ -161,8 +162,9 @@ class Locator(abc.ABC):
         owner = f"{type(self).__name__}.register_pairs"
         frames, positions = named_frames(owner, merged, pairs)
         initial = _checked_initial(owner, initial, len(positions))
-        return self._result(owner, self._register_pairs(frames, positions, initial, context or LocatorContext()),
-                            len(positions))
+        with watched("locator", self, "register_pairs"):  # a hung call ends the run (photonpano.watchdog)
+            found = self._register_pairs(frames, positions, initial, context or LocatorContext())
+        return self._result(owner, found, len(positions))
 
     def register_to_template(self, views: MergedFrames, frames: MergedFrames, initial: NDArray[np.float64],
                              context: LocatorContext | None = None) -> PairRegistrations:
@@ -188,8 +190,9 @@ class Locator(abc.ABC):
             raise ValueError(f"{owner}: views {views.flux.shape} and frames {frames.flux.shape} differ in shape")
         n = len(frames)
         initial = _checked_initial(owner, initial, n)
-        return self._result(owner, self._register_to_template(views, frames, initial, context or LocatorContext()),
-                            n)
+        with watched("locator", self, "register_to_template"):
+            found = self._register_to_template(views, frames, initial, context or LocatorContext())
+        return self._result(owner, found, n)
 
     @staticmethod
     def _result(owner: str, found: PairRegistrations, n: int) -> PairRegistrations:

@@ -38,6 +38,7 @@ from .reconstruction import reconstruct
 from .records import Panorama
 from .spec import dump_spec
 from .stages import PhotonSource
+from .watchdog import guarding
 
 __all__ = ["RunResult", "prepare_output", "run_pipeline", "reconstruct"]
 
@@ -119,6 +120,8 @@ def run_pipeline(spec: BaseModel, out_dir: Path | None, host: PluginHost, *, for
 
     Raises:
         PhotonpanoError: bad output folder, unreadable source, failed stage.
+        PluginHung: a plugin stage call did not return within the limit
+            (:mod:`photonpano.watchdog`); the folder is left as after Ctrl-C.
     """
     from .outputs import RunFolder
     from .spec import check_available
@@ -128,7 +131,7 @@ def run_pipeline(spec: BaseModel, out_dir: Path | None, host: PluginHost, *, for
         from .video_encode import require_av
 
         require_av()  # before the run, not after it
-    with reporting(host):
+    with guarding(host), reporting(host):  # a hung plugin call: PluginHung, outside the folder (kept as on Ctrl-C)
         if out_dir is None:
             return _run_into(spec, None, host)
         with RunFolder(out_dir, force=force, resume=resume, inputs=_input_paths(spec)) as folder:

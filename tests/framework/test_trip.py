@@ -48,6 +48,9 @@ LEAVES = {
     "photonpano.progress": "progress bars: a phase starts a task and advances it (through the host's hooks)",
     "photonpano.config": "the base class of stage configs (build, check_available)",
     "photonpano.spec_errors": "wording of spec validation errors",
+    "photonpano.watchdog": "the deadline around each plugin call (a context manager every caller of a stage "
+                           "wraps the call in): it calls the errors and faults helpers only",
+    "photonpano.faults": "wording of plugin faults",
     "photonpano.spec_model": "the spec's schema, and queries of a validated spec (the plugin configs it "
                              "holds, the scheme of each level): it calls the host and the config base only",
 }
