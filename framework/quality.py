@@ -78,7 +78,7 @@ def panorama_agreement(source, merger, homographies: NDArray[np.float64], panora
 
     ``samples`` groups of ``group_size`` frames spread over the capture are merged with
     the final homographies, the panorama is resampled into each reference frame's grid
-    (:func:`~photonpano.compose.panorama_views`), and both are binned by ``factor``
+    (:func:`~photonpano.views.panorama_views`), and both are binned by ``factor``
     (square-root flux, see :func:`~photonpano.imaging.binned_frame`) and correlated.
 
     Args:
@@ -94,7 +94,7 @@ def panorama_agreement(source, merger, homographies: NDArray[np.float64], panora
         ``{"median", "min", "binning"}``: correlations (1 = identical up to gain and
         offset, about 0 for photon noise).
     """
-    from .compose import panorama_views
+    from .views import panorama_views
 
     n = source.n_frames
     m = min(group_size, n)
