@@ -60,7 +60,7 @@ def trajectory_error(estimated: NDArray[np.float64], truth: NDArray[np.float64],
     est = geometry.apply(estimated, c)  # (T, 4, 2)
     gt = geometry.apply(truth, c)
     found, _ = cv2.findHomography(est.reshape(-1, 2), gt.reshape(-1, 2), 0)
-    g = np.eye(3) if found is None else np.asarray(found)  # cv2's Mat as an ndarray (no copy)
+    g = np.eye(3) if found is None else np.asarray(found, np.float64)  # float64 already (no copy)
     aligned = geometry.apply(g, est.reshape(-1, 2)).reshape(est.shape)
     per_frame = np.linalg.norm(aligned - gt, axis=-1).mean(axis=-1)
     return TrajectoryError(float(np.sqrt(np.mean(per_frame ** 2))), per_frame, g / g[2, 2])
@@ -177,7 +177,7 @@ def scene_on_canvas(source, canvas_from_scene: NDArray[np.float64],
         to_canvas = to_canvas @ geometry.scale_matrix(step)
     warped = cv2.warpPerspective(scene, to_canvas, shape[::-1], flags=cv2.INTER_LANCZOS4,
                                  borderMode=cv2.BORDER_CONSTANT, borderValue=np.nan)
-    return np.asarray(warped)  # cv2's Mat as an ndarray (no copy)
+    return np.asarray(warped, np.float32)  # scene_flux is float32: no copy
 
 
 def source_trajectory_error(homographies: NDArray[np.float64], source: Any) -> TrajectoryError:

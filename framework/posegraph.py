@@ -222,7 +222,8 @@ class NormalMatrix:
         self._entries: tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.float64]] | None = None
         if (self.band + 1) * self.n * 8 <= max_band_bytes:
             index = (self.band + rows - cols) * self.n + cols
-            self._ab = np.bincount(index, values, minlength=(self.band + 1) * self.n).reshape(-1, self.n)
+            sums = np.asarray(np.bincount(index, values, minlength=(self.band + 1) * self.n), np.float64)  # no copy
+            self._ab = sums.reshape(-1, self.n)
         else:
             self._entries = rows, cols, values
 

@@ -347,7 +347,7 @@ class SimulatedCapture(PhotonSource):
             pick = (self.corrector.cfa.astype(np.intp) + 1)[..., None]
 
         def intensity(t: int) -> NDArray[np.float32]:
-            image = np.asarray(cv2.warpPerspective(scene, to_scene[t], size, flags=flags))  # an ndarray (no copy)
+            image = np.asarray(cv2.warpPerspective(scene, to_scene[t], size, flags=flags), np.float32)  # no copy
             if pick is not None:
                 image = np.take_along_axis(image, pick, axis=2)[..., 0]
             if split:
