@@ -119,8 +119,8 @@ def phase_shift_correlation(a: NDArray[np.float32], b: NDArray[np.float32]
     window = cv2.createHanningWindow(a.shape[::-1], cv2.CV_32F)
     (dx, dy), _ = cv2.phaseCorrelate(a - a.mean(), b - b.mean(), window)
     h, w = a.shape
-    moved = cv2.warpAffine(b, np.array([[1, 0, -dx], [0, 1, -dy]], np.float32), (w, h), flags=cv2.INTER_LINEAR,
-                           borderValue=np.nan)
+    moved = np.asarray(cv2.warpAffine(b, np.array([[1, 0, -dx], [0, 1, -dy]], np.float32), (w, h),
+                                      flags=cv2.INTER_LINEAR, borderValue=np.nan), np.float32)  # no copy
     valid = np.isfinite(moved)
     valid[:2], valid[-2:], valid[:, :2], valid[:, -2:] = False, False, False, False
     return np.array([dx, dy]), normalised_correlation(a, moved, valid)
@@ -255,10 +255,10 @@ def register_binned(a: tuple[NDArray, NDArray], b: tuple[NDArray, NDArray], init
     warp = np.array([[1, 0, -dx], [0, 1, -dy]], np.float32)
     criteria = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, iterations, 1e-5)
     try:
-        cc, warp = cv2.findTransformECCWithMask(moved, a[0], inside.astype(np.uint8), a[1].astype(np.uint8),
-                                                warp, cv2.MOTION_AFFINE, criteria, 1)
+        cc, refined = cv2.findTransformECCWithMask(moved, a[0], inside.astype(np.uint8), a[1].astype(np.uint8),
+                                                   warp, cv2.MOTION_AFFINE, criteria, 1)
     except cv2.error:
         return initial, -1.0, 0
-    correction = np.vstack([warp.astype(np.float64), [0, 0, 1]])
+    correction = np.vstack([refined.astype(np.float64), [0, 0, 1]])
     found = geometry.normalize(in_binned_pixels(correction @ start, factor, back=True))
     return found, float(cc), int((inside & a[1]).sum())
