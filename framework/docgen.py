@@ -135,7 +135,7 @@ def spec_reference_markdown(host: PluginHost | None = None) -> str:
     return "\n".join(lines)
 
 
-def _field_rows(model: type[BaseModel], *, skip: tuple[str, ...] = (), **texts: str) -> list[str]:
+def _field_rows(model: type[BaseModel], skip: tuple[str, ...] = (), texts: dict[str, str] | None = None) -> list[str]:
     """Table rows ``| name | default | meaning |`` of a pydantic model's fields, in order.
 
     ``texts`` gives the meaning of fields without a description.
@@ -156,7 +156,7 @@ def _field_rows(model: type[BaseModel], *, skip: tuple[str, ...] = (), **texts: 
                 default = "see below"
             else:
                 default = f"`{value!r}`"
-        text = rst_inline_to_markdown(" ".join((field.description or texts.get(name, "")).split()))
+        text = rst_inline_to_markdown(" ".join((field.description or (texts or {}).get(name, "")).split()))
         rows.append(f"| `{name}` | {default} | {text} |")
     return rows
 
@@ -174,8 +174,9 @@ def _top_level_markdown(host: PluginHost) -> list[str]:
                      "| field | default | meaning |", "| --- | --- | --- |", *_field_rows(section)]
     return ["## Top level", "", inspect.cleandoc(model.__doc__ or ""), "",
             "| field | default | meaning |", "| --- | --- | --- |",
-            *_field_rows(model, version="Spec format version; 1 is the only one.",
-                         outputs="Optional outputs (see [outputs](#outputs)).", **stages), *sections, ""]
+            *_field_rows(model, texts={"version": "Spec format version; 1 is the only one.",
+                                       "outputs": "Optional outputs (see [outputs](#outputs)).", **stages}),
+            *sections, ""]
 
 
 def main(argv: list[str] | None = None) -> None:

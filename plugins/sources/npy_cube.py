@@ -77,6 +77,7 @@ class NpyCube(ReopenOnPickle, PhotonSource):
         from photonpano.streaming import FrameFiles, FrameSegment
 
         frame_bytes = int(np.prod(cube.shape[1:])) * cube.dtype.itemsize
+        assert isinstance(cube, np.memmap)  # loaded with mmap_mode="r"
         self.frames = FrameFiles([FrameSegment(path, int(cube.offset) + config.start * frame_bytes, self.n_frames)],
                                  cube.shape[1:], cube.dtype, chunk_bytes=int(config.chunk_mb * 2**20))
 
