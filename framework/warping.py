@@ -322,8 +322,9 @@ def _merge_two_stage(counts, sizes, to_window, edges, boundaries, starts, stops,
         k0, k1 = np.searchsorted(boundaries, [start, stop])
         total = sum(blocks[k].counts for k in range(k0, k1))
         frames = sum(blocks[k].frames for k in range(k0, k1))
+        assert isinstance(total, np.ndarray) and isinstance(frames, np.ndarray)  # each window spans >= 1 block
         warp = geometry.normalize(to_reference @ inverse)
         flags, size = cv2.INTER_LINEAR, (width, height)
-        out.append((cv2.warpPerspective(total, warp, size, flags=flags, borderValue=0),
-                    cv2.warpPerspective(frames, warp, size, flags=flags, borderValue=0)))
+        out.append((np.asarray(cv2.warpPerspective(total, warp, size, flags=flags, borderValue=0), np.float32),
+                    np.asarray(cv2.warpPerspective(frames, warp, size, flags=flags, borderValue=0), np.float32)))
     return out
