@@ -70,8 +70,8 @@ NUISANCE = {
 }
 """Third capture of each photo, assigned by turns: name -> simulate settings over the base."""
 
-QUICK = ["city_madison/base", "outdoor_camera/dark", "foliage_grass/flux-0.005"]
-"""The subset CI runs (one easy, two hard)."""
+QUICK = ["city_madison/base", "outdoor_camera/dark", "foliage_grass/flux-0.005", "office_equirect/rotation-zoom"]
+"""The subset CI runs (one easy, two hard, and rotation + zoom, where the compositor is tested hardest)."""
 
 
 @dataclass

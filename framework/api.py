@@ -61,7 +61,7 @@ def _override_strings(overrides: Sequence[str] | Mapping[str, Any] | None) -> li
 
 def run(spec: str | Path | Mapping[str, Any], out_dir: str | Path | None = None,
         overrides: Sequence[str] | Mapping[str, Any] | None = None, *, progress: bool = True,
-        force: bool = False, host: Any = None) -> RunResult:
+        force: bool = False, host: Any = None, resume: bool = False) -> RunResult:
     """Run a pipeline spec and return its results (the Python face of ``photonpano run``).
 
     Args:
@@ -77,6 +77,8 @@ def run(spec: str | Path | Mapping[str, Any], out_dir: str | Path | None = None,
             or a mapping ``{"stage.field": value}``.
         progress: show progress bars (tqdm: widgets in a notebook, text in a terminal).
         force: allow writing into a non-empty ``out_dir``.
+        resume: continue the interrupted run in ``out_dir`` from its last finished level
+            (the same spec; the results equal those of an uninterrupted run).
         host: a :class:`~photonpano.host.PluginHost` to use (default: a new one that
             loads every installed plugin).
 
@@ -113,7 +115,8 @@ def run(spec: str | Path | Mapping[str, Any], out_dir: str | Path | None = None,
         observer = TqdmProgress()
         host.register(observer, name="api-progress")
     try:
-        return run_pipeline(parsed, Path(out_dir) if out_dir is not None else None, host, force=force)
+        return run_pipeline(parsed, Path(out_dir) if out_dir is not None else None, host, force=force,
+                            resume=resume)
     finally:
         if observer is not None:
             observer.stop()

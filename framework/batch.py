@@ -15,6 +15,13 @@ Jobs run concurrently:
 ``executor``, ``workers`` and ``dask_address`` are read from the ``--set`` overrides;
 every other override applies to every capture. A failing capture is reported and the
 others go on.
+
+Each capture writes through its own :class:`~photonpano.outputs.RunFolder` (atomic files,
+``run.json`` last), so a batch killed at any moment leaves no complete-looking partial
+run. ``--resume`` then skips the captures whose run finished (reported as reused),
+continues the interrupted ones from their last finished level and runs the others: the
+outputs equal those of an uninterrupted batch. The process pool's workers end with the
+batch process (they watch it), so none keeps writing after a kill.
 """
 
 from __future__ import annotations
@@ -28,7 +35,7 @@ from typing import Any, Callable, Sequence
 from .errors import PhotonpanoError
 
 __all__ = ["BatchJob", "BatchResult", "plan_jobs", "run_capture", "run_batch", "summary_table",
-           "EXECUTION_FIELDS"]
+           "EXECUTION_FIELDS", "capture_state"]
 
 EXECUTION_FIELDS = ("executor", "workers", "dask_address")
 """Spec fields that choose where the batch runs (read from the overrides, not per capture)."""
@@ -64,6 +71,7 @@ class BatchResult:
         levels: levels run (0 if it failed).
         time_s: wall-clock seconds of the run, in the worker.
         error: a one-line reason when it failed, else None.
+        reused: the run was already complete in ``out_dir`` (``--resume``): not run again.
     """
 
     input: str
@@ -73,6 +81,7 @@ class BatchResult:
     levels: int = 0
     time_s: float = 0.0
     error: str | None = None
+    reused: bool = False
 
 
 def _stem(text: str) -> str:
@@ -124,7 +133,36 @@ def plan_jobs(inputs: Sequence[str], out_root: Path, host: Any) -> list[BatchJob
     return jobs
 
 
-def run_capture(job: BatchJob, overrides: Sequence[str], force: bool) -> BatchResult:
+def capture_state(out_dir: Path) -> str:
+    """What ``out_dir`` holds: ``"complete"``, ``"interrupted"`` (a manifest, no run.json) or ``"new"``.
+
+    Never follows a symbolic link (a linked folder or manifest is ``"new"``: the run
+    itself then refuses the folder in one line).
+    """
+    from .outputs import MANIFEST, RUN_JSON
+
+    manifest = out_dir / MANIFEST
+    if out_dir.is_symlink() or manifest.is_symlink() or not manifest.is_file():
+        return "new"
+    run_json = out_dir / RUN_JSON
+    return "complete" if run_json.is_file() and not run_json.is_symlink() else "interrupted"
+
+
+def _reused(job: BatchJob) -> BatchResult | None:
+    """The result of a capture whose run finished before (``--resume``), from its ``run.json``; None if unreadable."""
+    import json
+
+    from .outputs import RUN_JSON
+
+    try:
+        summary = json.loads((job.out_dir / RUN_JSON).read_text())
+        return BatchResult(job.input, job.out_dir, "ok", int(summary["source"]["frames"]), len(summary["levels"]),
+                           reused=True)
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+
+
+def run_capture(job: BatchJob, overrides: Sequence[str], force: bool, resume: bool = False) -> BatchResult:
     """Run one capture's whole pipeline with the serial executor (a process or Dask task).
 
     Args:
@@ -132,6 +170,9 @@ def run_capture(job: BatchJob, overrides: Sequence[str], force: bool) -> BatchRe
         overrides: ``--set`` strings for every capture (the execution fields are
             replaced by ``executor=serial``).
         force: replace a previous run's outputs in ``job.out_dir``.
+        resume: a capture whose run in ``job.out_dir`` is complete is not run again
+            (its result comes from its ``run.json``, ``reused``); an interrupted one
+            continues from its last finished level; any other runs from the start.
 
     Returns:
         The capture's :class:`BatchResult`; every exception of the run becomes a
@@ -143,8 +184,14 @@ def run_capture(job: BatchJob, overrides: Sequence[str], force: bool) -> BatchRe
     from .api import run
 
     sets = [o for o in overrides if o.split("=", 1)[0].strip() not in EXECUTION_FIELDS] + ["executor=serial"]
+    state = capture_state(job.out_dir) if resume else "new"
+    if state == "complete":
+        reused = _reused(job)
+        if reused is not None:
+            return reused
     try:
-        summary = run(job.spec, job.out_dir, sets, progress=False, force=force).summary
+        summary = run(job.spec, job.out_dir, sets, progress=False, force=force,
+                      resume=state != "new").summary
     except Exception as exc:  # any failure of one capture is reported, not raised
         reason = str(exc) if isinstance(exc, PhotonpanoError) else f"{type(exc).__name__}: {exc}"
         return BatchResult(job.input, job.out_dir, "failed", time_s=time.perf_counter() - t0,
@@ -166,8 +213,8 @@ def execution_settings(overrides: Sequence[str], host: Any) -> Any:
                          overridden=picked)
 
 
-def run_batch(jobs: Sequence[BatchJob], overrides: Sequence[str] = (), *, force: bool = False, host: Any = None,
-              on_result: Callable[[BatchResult], None] | None = None,
+def run_batch(jobs: Sequence[BatchJob], overrides: Sequence[str] = (), *, force: bool = False,
+              resume: bool = False, host: Any = None, on_result: Callable[[BatchResult], None] | None = None,
               on_start: Callable[[str], None] | None = None) -> list[BatchResult]:
     """Run the jobs concurrently and return their results in job order.
 
@@ -177,6 +224,7 @@ def run_batch(jobs: Sequence[BatchJob], overrides: Sequence[str] = (), *, force:
             choose where the jobs run (see the module docstring), the others apply to
             every capture.
         force: replace previous outputs in the capture folders.
+        resume: skip finished captures and continue interrupted ones (see :func:`run_capture`).
         host: the plugin host used to validate the execution fields.
         on_result: called in this process with each result as it arrives.
         on_start: called with a line describing where the jobs run (the Dask dashboard
@@ -209,7 +257,8 @@ def run_batch(jobs: Sequence[BatchJob], overrides: Sequence[str] = (), *, force:
         from concurrent.futures import ProcessPoolExecutor
 
         cluster = None
-        pool = ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"))
+        pool = ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"),
+                                   initializer=exit_with_parent, initargs=(os.getpid(),))
         where = f"{workers} worker processes"
     if on_start is not None:
         on_start(f"{len(jobs)} captures on {where}")
@@ -217,11 +266,11 @@ def run_batch(jobs: Sequence[BatchJob], overrides: Sequence[str] = (), *, force:
         futures: dict[Future, int] = {}
         for i, job in enumerate(jobs):
             if job.spec is None:  # refused before running: nothing to ship
-                results[i] = run_capture(job, overrides, force)
+                results[i] = run_capture(job, overrides, force, resume)
                 if on_result is not None:
                     on_result(results[i])
             else:
-                futures[pool.submit(run_capture, job, list(overrides), force)] = i
+                futures[pool.submit(run_capture, job, list(overrides), force, resume)] = i
         for future in as_completed(futures):
             i = futures[future]
             try:
@@ -242,6 +291,24 @@ def run_batch(jobs: Sequence[BatchJob], overrides: Sequence[str] = (), *, force:
     return [results[i] for i in range(len(jobs))]
 
 
+def exit_with_parent(parent: int, period_s: float = 0.5) -> None:
+    """Make this worker process end (exit status 1) within ``period_s`` seconds once process ``parent`` is gone.
+
+    The initializer of the batch's worker processes: a batch killed with SIGKILL cannot
+    stop its workers, and an orphaned one would go on writing into a capture folder (and
+    hold its lock against ``--resume``). A daemon thread polls the parent pid.
+    """
+    import os
+    import threading
+
+    def watch() -> None:
+        while os.getppid() == parent:
+            time.sleep(period_s)
+        os._exit(1)
+
+    threading.Thread(target=watch, name="photonpano-exit-with-parent", daemon=True).start()
+
+
 def summary_table(results: Sequence[BatchResult]) -> Any:
     """A rich table of the results: input, output, frames, levels, time, status."""
     from rich.table import Table
@@ -252,12 +319,12 @@ def summary_table(results: Sequence[BatchResult]) -> Any:
         table.add_column(name, justify=justify, overflow="fold")
     for r in results:
         table.add_row(r.input, str(r.out_dir), str(r.frames) if r.frames else "-", str(r.levels) if r.levels else "-",
-                      f"{r.time_s:.1f}", r.status)
+                      f"{r.time_s:.1f}", f"{r.status} (reused)" if r.reused else r.status)
     return table
 
 
 def main(inputs: Sequence[str], out_root: Path, overrides: Sequence[str], force: bool, quiet: bool,
-         host: Any) -> int:
+         host: Any, resume: bool = False) -> int:
     """The ``photonpano batch`` command: run, show one progress bar and the summary table.
 
     Returns:
@@ -275,6 +342,8 @@ def main(inputs: Sequence[str], out_root: Path, overrides: Sequence[str], force:
 
     if not inputs:
         raise PhotonpanoError("batch: give at least one input")
+    if force and resume:
+        raise PhotonpanoError("batch: --force and --resume exclude each other")
     refuse_symlink(out_root, "batch: output folder")  # each capture's folder is refused by its run
     if out_root.exists() and not out_root.is_dir():
         raise PhotonpanoError(f"batch: -o {out_root} is a file; expected a folder")
@@ -293,10 +362,12 @@ def main(inputs: Sequence[str], out_root: Path, overrides: Sequence[str], force:
     def done(result: BatchResult) -> None:
         if bars is not None:
             bars.photonpano_progress(task="captures", total=len(jobs), advance=1)
-            bars.bars.console.print(f"{result.input}: {result.status} ({result.time_s:.1f} s)", markup=False)
+            how = "reused" if result.reused else f"{result.time_s:.1f} s"
+            bars.bars.console.print(f"{result.input}: {result.status} ({how})", markup=False)
 
     try:
-        results = run_batch(jobs, overrides, force=force, host=host, on_result=done, on_start=start)
+        results = run_batch(jobs, overrides, force=force, resume=resume, host=host, on_result=done,
+                            on_start=start)
     finally:
         if bars is not None:
             bars.stop()

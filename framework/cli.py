@@ -175,8 +175,10 @@ def main() -> None:
     warnings.showwarning = lambda message, *args, **kwargs: typer.secho(f"warning: {message}", err=True,
                                                                         fg=typer.colors.YELLOW)
     from .cli_io import GuardedStdout, silence_stdout, stdout_problem
+    from .watchdog import command_line, exit_if_stuck
 
     sys.stdout = GuardedStdout(sys.stdout)
+    command_line()
     code: int | str | None = 0
     try:
         app()
@@ -196,6 +198,7 @@ def main() -> None:
         code = 1
     elif code in (0, None) and _log_failed():
         code = 1
+    exit_if_stuck(code if isinstance(code, int) else 1)  # a hung plugin's thread cannot be joined at exit
     sys.exit(code)
 
 

@@ -77,13 +77,17 @@ def convert(inputs: Annotated[list[Path], typer.Argument(help="A folder of Swiss
                                                  "cube to write (must not exist).")],
             layout: Annotated[str, typer.Option(help="Readout layout: half (512 frames of 256x512 per file) or "
                                                 "full (256 frames of 512x512).")] = "half",
-            check_layout: Annotated[bool, typer.Option(help="Refuse a layout the data does not fit.")] = True) -> None:
+            check_layout: Annotated[bool, typer.Option(help="Refuse a layout the data does not fit.")] = True,
+            resume: Annotated[bool, typer.Option(
+                "--resume", help="Restart a conversion that was interrupted (killed): the <output>.part it "
+                                 "left is removed and the conversion runs again from the start.")] = False) -> None:
     """Convert SwissSPAD2 raw readouts to a bit-packed .npy photon cube, or a cube between .npy and .zarr, streaming.
 
     From readouts the cube holds the raw frames, (T, 256, 64) or (T, 512, 64) uint8 packed
     MSB first; read it with `photonpano pano cube.npy --set source.fix=colorspad` (or
     grayspad). A .npy cube converts to a chunked, compressed zarr array (source
-    zarr-cube) and back, keeping its shape and dtype.
+    zarr-cube) and back, keeping its shape and dtype. The output appears only when complete
+    (it is written as <output>.part and renamed).
     """
     for path in inputs:
         if not path.exists():
@@ -111,12 +115,12 @@ def convert(inputs: Annotated[list[Path], typer.Argument(help="A folder of Swiss
 
                 to_zarr = kinds[1] == ".zarr"
                 frames = (convert_npy_to_zarr if to_zarr else convert_zarr_to_npy)(inputs[0], output,
-                                                                                    progress=progress)
+                                                                                    progress=progress, restart=resume)
             else:
                 from photonpano.plugins.sources.swissspad import convert_bin_to_npy
 
                 frames, notes = convert_bin_to_npy(inputs, output, layout, check_layout=check_layout,
-                                                   progress=progress)
+                                                   progress=progress, restart=resume)
         except OSError as exc:  # reading an input failed (writes fail as OutputError naming the output)
             raise PhotonpanoError(f"convert: cannot read {exc.filename or 'an input'}: "
                                   f"{exc.strerror or exc}") from None
@@ -131,7 +135,10 @@ def batch(inputs: Annotated[list[str], typer.Argument(
               help="Captures (anything `pano` reads), spec files (.yaml) or source keys such as 'simulate'.")],
           output: Annotated[Path, typer.Option("--output", "-o", help="Folder receiving one output folder per "
                                                "input, named after the input's stem.")],
-          set_: SetOption = None, force: ForceOption = False) -> None:
+          set_: SetOption = None, force: ForceOption = False,
+          resume: Annotated[bool, typer.Option(
+              "--resume", help="Continue an interrupted batch: finished captures are reused, interrupted ones "
+                               "continue from their last finished level, the others run.")] = False) -> None:
     """Reconstruct several captures concurrently (processes, or Dask with --set executor=dask).
 
     Prints one progress bar over the captures and a summary table; exits 1 if any capture
@@ -140,7 +147,7 @@ def batch(inputs: Annotated[list[str], typer.Argument(
     from .batch import main as batch_main
     from .cli_base import _state
 
-    code = batch_main(inputs, output, set_ or [], force, _state["quiet"], _host())
+    code = batch_main(inputs, output, set_ or [], force, _state["quiet"], _host(), resume=resume)
     if code:
         raise typer.Exit(code)
 
@@ -157,13 +164,17 @@ def compare(input: Annotated[str, typer.Argument(help="A spec (.yaml), a capture
             refine: Annotated[bool, typer.Option(
                 "--refine", help="Keep the spec's level_schemes (compare whole pipelines as `run` executes "
                                  "them); default: each locator registers pairs at every level.")
-            ] = False) -> None:
+            ] = False,
+            resume: Annotated[bool, typer.Option(
+                "--resume", help="Continue the interrupted comparison in the output folder: locators that "
+                                 "finished are reused, the others run (same command).")] = False) -> None:
     """Run the same pipeline with each locator; write a table and a plot of error and time.
 
-    Writes compare.md, compare.json, compare.png and <locator>/homographies.npy into OUTPUT.
+    Writes compare.md, compare.png, <locator>/homographies.npy and, last, compare.json into
+    OUTPUT (atomically, with a manifest: see docs/locators.md).
     """
-    from .compare import compare_locators, markdown_table, write_comparison
-    from .pipeline import prepare_output
+    from .compare import COMPARE_JSON, compare_locators, markdown_table, write_comparison
+    from .outputs import RunFolder
     from .spec import apply_overrides
 
     host = _host()
@@ -182,14 +193,14 @@ def compare(input: Annotated[str, typer.Argument(help="A spec (.yaml), a capture
     keys = [k.strip() for k in locators.split(",") if k.strip()]
     if not keys:
         raise PhotonpanoError("--locators: give at least one locator key")
-    from .outputs.files import refuse_symlink
-
-    refuse_symlink(output, "output folder")  # never written through, --force or not
-    prepare_output(output, force)
-    with _observed(host) as bars:
-        log = bars.bars.console.print if bars is not None else typer.echo  # above the bars, not glued to them
-        rows = compare_locators(data, keys, host, output, origin=input, log=log,
-                                on_row=lambda done: write_comparison(done, output, data), refine=refine)
+    if force and resume:
+        raise PhotonpanoError("compare: --force and --resume exclude each other")
+    inputs = [path] if input != "simulate" and path.exists() else []
+    with RunFolder(output, force=force, resume=resume, inputs=inputs, final=COMPARE_JSON) as folder:
+        with _observed(host) as bars:
+            log = bars.bars.console.print if bars is not None else typer.echo  # above the bars, not glued to them
+            rows = compare_locators(data, keys, host, folder, origin=input, log=log, refine=refine)
+        write_comparison(rows, folder, data)
     typer.echo(markdown_table(rows))
     if not any(row["status"] == "ok" for row in rows):
         _fail("no locator completed (see the table)")

@@ -21,6 +21,7 @@ from .errors import StageError
 from .executor import Executor, SerialExecutor, pure_task
 from .records import Canvas, MergedFrames, Panorama
 from .stages import Compositor, PhotonSource
+from .watchdog import watched
 
 __all__ = ["FOLD_RUNS", "Panorama", "Canvas", "canvas_homographies", "compose", "BilinearCompositor",
            "assemble_panorama", "panorama_views"]
@@ -98,7 +99,8 @@ def compose(source: PhotonSource, homographies: NDArray[np.float64], compositor:
         to_canvas, (ch, cw) = canvas_homographies(homographies, source.width, source.height, compositor.scale)
     else:
         to_canvas, (ch, cw) = geometry.normalize(homographies), canvas_shape
-    compositor.prepare(Canvas(ch, cw, to_canvas), source)
+    with watched("compositor", compositor, "prepare"):
+        compositor.prepare(Canvas(ch, cw, to_canvas), source)
     edges = subbatch_edges(to_canvas, source.width, source.height, subbatch_px,
                            frame_step=source.frame_step)
     executor = executor or SerialExecutor()
@@ -112,7 +114,8 @@ def compose(source: PhotonSource, homographies: NDArray[np.float64], compositor:
         for c in run:
             executor.raise_if_cancelled()  # Ctrl-C: stop within a chunk
             chunk = edges[starts[c]:starts[c] + chunk_batches + 1]
-            part.feed(part.read(source, chunk), np.diff(chunk), to_canvas[(chunk[:-1] + chunk[1:]) // 2])
+            with watched("compositor", part, "read and feed"):
+                part.feed(part.read(source, chunk), np.diff(chunk), to_canvas[(chunk[:-1] + chunk[1:]) // 2])
             if progress is not None:
                 progress(int(chunk[-1] - chunk[0]))
         return part
@@ -130,7 +133,8 @@ def compose(source: PhotonSource, homographies: NDArray[np.float64], compositor:
     compositor, *others = executor.map(feed, parts, runs)
     for part in others:
         compositor.join(part)
-    return compositor.finish()
+    with watched("compositor", compositor, "finish"):
+        return compositor.finish()
 
 
 class BilinearCompositor(Compositor):

@@ -139,11 +139,17 @@ class ThreadExecutor(Executor):
             raise
 
     def close(self) -> None:
-        """Shut the pool down and restore OpenCV's and the BLAS's thread counts."""
+        """Shut the pool down and restore OpenCV's and the BLAS's thread counts.
+
+        After a plugin call hung (:mod:`photonpano.watchdog`) the pool is not waited for:
+        its stuck thread would never be joined.
+        """
         import cv2
 
+        from .watchdog import hung
+
         if self._pool is not None:
-            self._pool.shutdown(cancel_futures=True)
+            self._pool.shutdown(wait=not hung(), cancel_futures=True)
             self._pool = None
             cv2.setNumThreads(self._cv_threads)
             self._blas.restore_original_limits()

@@ -11,6 +11,8 @@ Environment controls:
     PHOTONPANO_TRACE_PLUGINS: if set, print every hook call to stderr.
     PHOTONPANO_PLUGIN_TIMEOUT_S: seconds instead of :data:`PLUGIN_IMPORT_TIMEOUT_S`
         (a positive number; anything else keeps the default).
+    PHOTONPANO_HOOK_TIMEOUT_S: the limit of one stage call at run time (see
+        :mod:`photonpano.watchdog`).
 
 A third-party plugin module imports, and its registration hooks run, in a daemon thread
 given :data:`PLUGIN_IMPORT_TIMEOUT_S`: one that hangs there (a network call, a lock, a

@@ -22,6 +22,7 @@ from .guards import guard_keyframes, plausible
 from .records import Groups, LevelResult
 from .schemes import LevelScheme, LevelTask
 from .stages import Interpolator, Merger, PhotonSource, Resampler
+from .watchdog import watched
 
 __all__ = ["estimate_motion"]
 
@@ -124,7 +125,8 @@ def _warm_up(interpolator: Interpolator) -> None:
 def _resample(resampler: Resampler, n: int, group_size: int, level: int) -> Groups:
     """The level's groups; a capture too short for them is the resampler's error."""
     try:
-        return resampler.groups(n, group_size, level)
+        with watched("resampler", resampler, "groups"):
+            return resampler.groups(n, group_size, level)
     except ValueError as exc:
         raise StageError("resampler", type(resampler).__name__, str(exc)) from None
 
@@ -134,7 +136,8 @@ def _interpolate(interpolator: Interpolator, groups: Groups, current: NDArray[np
                  level: int) -> NDArray[np.float64]:
     """Interpolate the keyframe corrections to every frame and apply them (refusing folds)."""
     correction = keyframes @ np.linalg.inv(current)
-    update = interpolator.interpolate(groups.reference, correction, len(homographies), groups)
+    with watched("interpolator", interpolator, "interpolate"):
+        update = interpolator.interpolate(groups.reference, correction, len(homographies), groups)
     updated = geometry.normalize(update @ homographies)
     if not plausible(geometry.invert(homographies) @ updated, source.width, source.height).all():
         raise StageError("interpolator", type(interpolator).__name__,

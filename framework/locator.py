@@ -27,6 +27,7 @@ from numpy.typing import NDArray
 
 from .config import StageConfig
 from .records import MergedFrames, PairRegistrations
+from .watchdog import watched
 
 __all__ = ["LocatorConfig", "Locator", "LocatorContext"]
 
@@ -113,8 +114,9 @@ class Locator(abc.ABC):
         """
         owner = f"{type(self).__name__}.register_pairs"
         pairs, initial = _checked_pairs(owner, merged, pairs, initial)
-        return self._result(owner, self._register_pairs(merged, pairs, initial, context or LocatorContext()),
-                            len(pairs))
+        with watched("locator", self, "register_pairs"):  # a hung call ends the run (photonpano.watchdog)
+            found = self._register_pairs(merged, pairs, initial, context or LocatorContext())
+        return self._result(owner, found, len(pairs))
 
     def register_to_template(self, views: MergedFrames, frames: MergedFrames, initial: NDArray[np.float64],
                              context: LocatorContext | None = None) -> PairRegistrations:
@@ -140,8 +142,10 @@ class Locator(abc.ABC):
             raise ValueError(f"{owner}: views {views.flux.shape} and frames {frames.flux.shape} differ in shape")
         n = len(frames)
         _checked_pairs(owner, frames, np.zeros((n, 2), np.int64), initial)
-        return self._result(owner, self._register_to_template(views, frames, np.asarray(initial, np.float64),
-                                                              context or LocatorContext()), n)
+        with watched("locator", self, "register_to_template"):
+            found = self._register_to_template(views, frames, np.asarray(initial, np.float64),
+                                               context or LocatorContext())
+        return self._result(owner, found, n)
 
     @staticmethod
     def _result(owner: str, found: PairRegistrations, n: int) -> PairRegistrations:

@@ -37,6 +37,7 @@ from .reconstruction import reconstruct
 from .records import Panorama
 from .spec import dump_spec
 from .stages import PhotonSource
+from .watchdog import guarding
 
 if TYPE_CHECKING:
     from .outputs import Checkpoint, RunFolder
@@ -123,6 +124,8 @@ def run_pipeline(spec: PipelineSpec, out_dir: Path | None, host: PluginHost, *, 
 
     Raises:
         PhotonpanoError: bad output folder, unreadable source, failed stage.
+        PluginHung: a plugin stage call did not return within the limit
+            (:mod:`photonpano.watchdog`); the folder is left as after Ctrl-C.
     """
     from .outputs import RunFolder
     from .spec import check_available
@@ -132,7 +135,7 @@ def run_pipeline(spec: PipelineSpec, out_dir: Path | None, host: PluginHost, *, 
         from .video_encode import require_av
 
         require_av()  # before the run, not after it
-    with reporting(host):
+    with guarding(host), reporting(host):  # a hung plugin call: PluginHung, outside the folder (kept as on Ctrl-C)
         if out_dir is None:
             return _run_into(spec, None, host)
         with RunFolder(out_dir, force=force, resume=resume, inputs=_input_paths(spec)) as folder:

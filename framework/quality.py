@@ -22,6 +22,7 @@ from . import geometry
 from .budget.probe import GroupPlan
 from .imaging import binned_frame, normalised_correlation
 from .stages import Groups
+from .watchdog import watched
 
 __all__ = ["level_figures", "panorama_agreement", "assess", "THRESHOLDS"]
 
@@ -100,7 +101,8 @@ def panorama_agreement(source, merger, homographies: NDArray[np.float64], panora
     refs = np.unique(np.linspace(m // 2, n - 1 - (m - 1) // 2, samples).astype(np.int64))
     start = np.clip(refs - m // 2, 0, n - m)
     groups = Groups(start=start, stop=start + m, reference=refs)
-    merged = merger.merge(source, homographies, groups)
+    with watched("merger", merger, "merge"):
+        merged = merger.merge(source, homographies, groups)
     views = panorama_views(panorama, panorama.homographies[refs], source.height, source.width, min_frames=m)
     values = []
     for i in range(len(refs)):

@@ -18,6 +18,7 @@ from .errors import StageError
 from .executor import Executor
 from .records import LevelResult, Panorama
 from .stages import PhotonSource
+from .watchdog import watched
 
 if TYPE_CHECKING:
     from .schemes import Binned
@@ -88,7 +89,8 @@ class Stages:
         n, m = self.source.n_frames, self.budget.group_size
         for level in range(1, len(self.schemes) + 1):
             try:
-                self.resampler.groups(n, m, level)
+                with watched("resampler", self.resampler, "groups"):
+                    self.resampler.groups(n, m, level)
             except ValueError as exc:
                 if level == 1:
                     raise StageError("resampler", type(self.resampler).__name__, str(exc)) from None

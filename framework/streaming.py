@@ -20,6 +20,8 @@ from typing import Any, Callable, Iterable
 import numpy as np
 from numpy.typing import NDArray
 
+from .outputs.partial import claim_partial, release_partial
+
 __all__ = ["FrameSegment", "FrameFiles", "DEFAULT_CHUNK_BYTES", "sum_ranges_by_blocks", "ReopenOnPickle",
            "write_npy_blocks", "claim_partial"]
 
@@ -48,14 +50,15 @@ class ReopenOnPickle:
 
 
 def write_npy_blocks(output: Path, shape: tuple[int, ...], dtype: Any, blocks: Iterable[NDArray],
-                     progress: Callable[[int, int], None] | None = None) -> None:
+                     progress: Callable[[int, int], None] | None = None, restart: bool = False) -> None:
     """Write an ``.npy`` file from consecutive blocks along its first axis, streaming.
 
     The file is written under ``<output>.part`` and renamed when complete, so an
     interrupted write leaves no truncated ``output`` behind. The ``.part`` file is
     created exclusively (never through a symbolic link, never over an existing path:
-    one left by an interrupted conversion must be removed by hand), and only a ``.part``
-    this call created is deleted.
+    one left by an interrupted conversion is removed only with ``restart``, see
+    :func:`photonpano.outputs.partial.claim_partial`), and only a ``.part`` this call
+    created is deleted.
 
     Args:
         output: the ``.npy`` file to write (replaced if it exists: callers check first).
@@ -63,6 +66,8 @@ def write_npy_blocks(output: Path, shape: tuple[int, ...], dtype: Any, blocks: I
         dtype: the element dtype (a C-ordered array of it is written).
         blocks: arrays of shape ``(t_i, *shape[1:])`` whose ``t_i`` sum to ``shape[0]``.
         progress: called as ``progress(rows_done, shape[0])`` after each block.
+        restart: remove the ``.part`` left by an interrupted conversion first and
+            start again (``photonpano convert --resume``).
 
     Raises:
         ValueError: if the blocks do not add up to ``shape``.
@@ -74,7 +79,7 @@ def write_npy_blocks(output: Path, shape: tuple[int, ...], dtype: Any, blocks: I
 
     dtype = np.dtype(dtype)
     refuse_symlink(output, "output")
-    partial = claim_partial(output)
+    partial = claim_partial(output, restart)
     nbytes = int(np.prod(shape, dtype=object)) * dtype.itemsize
     done = 0
     read_errors: list[OSError] = []
@@ -107,33 +112,7 @@ def write_npy_blocks(output: Path, shape: tuple[int, ...], dtype: Any, blocks: I
         raise oserror(output, exc, needed=nbytes) from None
     finally:
         partial.unlink(missing_ok=True)
-
-
-def claim_partial(output: Path) -> Path:
-    """Create ``<output>.part`` exclusively (an empty file, never through a link) and return it.
-
-    Converters write into it and rename it to ``output`` when complete.
-
-    Raises:
-        OutputError: ``<output>.part`` already exists (a file, a folder or a symbolic
-            link: not this conversion's), or it cannot be created; one line naming it.
-    """
-    import errno
-
-    from .errors import OutputError
-    from .outputs.files import oserror
-
-    partial = output.with_name(output.name + ".part")
-    try:
-        fd = os.open(partial, os.O_CREAT | os.O_EXCL | os.O_WRONLY | getattr(os, "O_NOFOLLOW", 0), 0o644)
-    except OSError as exc:
-        if exc.errno in (errno.EEXIST, errno.ELOOP):
-            kind = ("a symbolic link" if partial.is_symlink() else "a folder" if partial.is_dir() else "a file")
-            raise OutputError(f"convert: {partial} already exists ({kind}, not written by this conversion); "
-                              "remove it or choose another output") from None
-        raise oserror(partial, exc) from None
-    os.close(fd)
-    return partial
+        release_partial(output)
 
 
 @dataclass(frozen=True)

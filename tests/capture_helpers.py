@@ -16,21 +16,23 @@ from pathlib import Path
 import numpy as np
 
 
-def embed_colorspad(packed: np.ndarray, seed: int = 1) -> np.ndarray:
+def embed_colorspad(packed: np.ndarray, seed: int = 1, block: int = 256) -> np.ndarray:
     """Put corrected (T, 254, 62) packed frames into raw (T, 256, 64) colour half-array frames.
 
     The inverse of the colour-SPAD fix: corrected pixel (y, x) sits at raw (y + 2, x),
     with columns 252:256 and 260:264 swapped; the rows and columns the fix crops hold
-    random bits (p = 0.3), so a reader that misplaces them is caught.
+    random bits (p = 0.3), so a reader that misplaces them is caught. Works ``block``
+    frames at a time (unpacked and drawn whole, 4300 frames took 6.7 GB).
     """
-    frames = np.unpackbits(packed, axis=-1)
-    t = len(frames)
     rng = np.random.default_rng(seed)
-    raw = (rng.random((t, 256, 512)) < 0.3).astype(np.uint8)
-    corrected = frames.copy()
-    corrected[:, :, 252:256], corrected[:, :, 260:264] = frames[:, :, 260:264], frames[:, :, 252:256]
-    raw[:, 2:, :496] = corrected
-    return np.packbits(raw, axis=-1)
+    out = np.empty((len(packed), 256, 64), np.uint8)
+    for start in range(0, len(packed), block):
+        frames = np.unpackbits(packed[start:start + block], axis=-1)
+        raw = (rng.random((len(frames), 256, 512), dtype=np.float32) < 0.3).astype(np.uint8)
+        raw[:, 2:, :496] = frames
+        raw[:, 2:, 252:256], raw[:, 2:, 260:264] = frames[:, :, 260:264], frames[:, :, 252:256]
+        out[start:start + block] = np.packbits(raw, axis=-1)
+    return out
 
 
 def simulate_raw_half(frames: int, **simulate):

@@ -49,6 +49,8 @@ class RunFolder:
         force: remove the previous run's outputs (its manifest files) and write anew.
         resume: continue the interrupted run in the folder from its last checkpoint.
         inputs: files and folders the run reads; none may lie inside ``path``.
+        final: the file written last by :meth:`commit`, whose presence means the run
+            is complete (``run.json``; ``compare.json`` for ``photonpano compare``).
 
     Raises:
         OutputError: from ``__enter__``: a file in place of the folder, an input inside
@@ -57,8 +59,9 @@ class RunFolder:
     """
 
     def __init__(self, path: Path, *, force: bool = False, resume: bool = False,
-                 inputs: Sequence[Path] = ()) -> None:
+                 inputs: Sequence[Path] = (), final: str = RUN_JSON) -> None:
         self.root = Path(path)
+        self.final = final
         self.force, self.resume = force, resume
         self.inputs = [Path(p) for p in inputs]
         self.files: list[str] = []
@@ -133,8 +136,8 @@ class RunFolder:
         if self.resume:
             if manifest is None:
                 raise OutputError(f"--resume: {self.root} holds no interrupted run (no {MANIFEST})")
-            if (self.root / RUN_JSON).exists():
-                raise OutputError(f"--resume: the run in {self.root} is already complete ({RUN_JSON} exists)")
+            if (self.root / self.final).exists():
+                raise OutputError(f"--resume: the run in {self.root} is already complete ({self.final} exists)")
             self.files = list(manifest)
             self.hashes = dict(hashes or {})
             self._existing = present
@@ -257,13 +260,13 @@ class RunFolder:
 
     # -- finishing -------------------------------------------------------------------
     def commit(self, summary_text: str) -> None:
-        """Record every output, write ``run.json`` last, then drop the checkpoints."""
+        """Record every output, write ``summary_text`` as the final file (``run.json``) last, drop the checkpoints."""
         self.adopt_new_files()
         self._hash_unrecorded()
-        if RUN_JSON not in self.files:
-            self.files.append(RUN_JSON)
-        target = inside(self.root, RUN_JSON)
-        self.hashes[RUN_JSON] = hashlib.sha256(summary_text.encode("utf-8")).hexdigest()
+        if self.final not in self.files:
+            self.files.append(self.final)
+        target = inside(self.root, self.final)
+        self.hashes[self.final] = hashlib.sha256(summary_text.encode("utf-8")).hexdigest()
         self._write_manifest(complete=True)
         write_text(target, summary_text)
         self._committed = True
@@ -307,7 +310,7 @@ class RunFolder:
         """Whether the folder holds a checkpoint (a regular file, reached without a link)."""
         folder = self.root / CHECKPOINTS
         return folder.is_dir() and not folder.is_symlink() and any(
-            regular_file_inside(self.root, f"{CHECKPOINTS}/{p.name}") for p in folder.glob("level_*.npz"))
+            regular_file_inside(self.root, f"{CHECKPOINTS}/{p.name}") for p in folder.glob("*.npz"))
 
     def _remove(self, names: Sequence[str], hashes: dict[str, str] | None) -> list[str]:
         """Delete the files ``names`` that a run wrote; return the names kept.

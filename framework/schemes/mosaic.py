@@ -46,6 +46,7 @@ from ..guards import bridge, plausible
 from ..locator import Locator, LocatorContext
 from ..records import LocateResult, MergedFrames, PairRegistrations, Panorama
 from ..stages import Compositor
+from ..watchdog import watched
 from .base import LevelScheme, LevelTask
 
 __all__ = ["MosaicScheme", "mask_disagreement"]
@@ -116,7 +117,8 @@ class MosaicScheme(LevelScheme):
             start = time.perf_counter()
             locator = self.make_locator()
             once = LocatorContext(reuses_frames=False)  # each frame is registered once, by this locator
-            merged = task.merger.merge(source, task.homographies, groups.select(index))
+            with watched("merger", task.merger, "merge"):
+                merged = task.merger.merge(source, task.homographies, groups.select(index))
             merge_s = time.perf_counter() - start
             views = panorama_views(template, to_canvas[index], source.height, source.width, task.group_size)
             if self.reject_movers is not None:

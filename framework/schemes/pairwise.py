@@ -22,6 +22,7 @@ from ..guards import plausible
 from ..locator import Locator, LocatorContext
 from ..posegraph import chain_keyframes, corner_disagreement, pairs_at_offsets, refine_keyframes
 from ..records import LocateResult, MergedFrames, PairRegistrations
+from ..watchdog import watched
 from .base import LevelScheme, LevelTask
 from .check import LevelCheck, PairCheck
 
@@ -242,8 +243,9 @@ class PairwiseScheme(LevelScheme):
         def merge(index: NDArray[np.int64]) -> MergedFrames:
             nonlocal merge_s
             start = time.perf_counter()
-            part = task.merger.merge(task.source, task.homographies, task.groups.select(index),
-                                     progress=task.progress, executor=task.executor)
+            with watched("merger", task.merger, "merge"):
+                part = task.merger.merge(task.source, task.homographies, task.groups.select(index),
+                                         progress=task.progress, executor=task.executor)
             merge_s += time.perf_counter() - start
             if task.keep_merged:
                 kept.append(part)

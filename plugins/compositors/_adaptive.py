@@ -32,7 +32,21 @@ import math
 import numpy as np
 from numpy.typing import NDArray
 
-__all__ = ["drop_sharpness", "blend_sums"]
+__all__ = ["drop_sharpness", "blend_sums", "DETAIL_GAIN"]
+
+DETAIL_GAIN = 5.0
+"""Default factor on the local detail variance in :func:`blend_sums`'s weight.
+
+Lee's weight takes the detail variance as the mean over a window one frame pixel either
+side, which at a strong edge is smaller than the edge pixels' own: it leans those pixels
+towards the wide (blurred) estimate, where the error is largest. Measured with the true
+motion on 30 captures of 11 suite photographs (pan + vibration at flux 0.5 and 0.05, and
+rotation + zoom; PSNR above ``flux-canvas`` on the same canvas): Lee's weight (1) averages
++2.55 dB but falls to -0.50 dB on rotation + zoom (texture_gravel; -0.18 to -0.47 on the
+others), where many frames see each pixel and the loss is all at edges; 4 averages +2.47
+dB, worst -0.06 dB; 5 is worst -0.02 dB on the rotation + zoom captures and keeps +5.3 dB
+or more over ``flux-canvas`` at flux 0.05 (Lee's: +6.6 to +7.2 dB).
+"""
 
 
 def drop_sharpness(kernel: str, drop_px: float) -> float:
@@ -62,7 +76,7 @@ def drop_sharpness(kernel: str, drop_px: float) -> float:
 
 
 def blend_sums(sums: NDArray[np.float32], frames: NDArray[np.float32], scale: float, wide_px: float,
-               sharpness: float) -> NDArray[np.float32]:
+               sharpness: float, detail_gain: float = 1.0) -> NDArray[np.float32]:
     """Blend the fine detection probability with a wide one where photon noise dominates.
 
     See the module docstring.
@@ -73,6 +87,8 @@ def blend_sums(sums: NDArray[np.float32], frames: NDArray[np.float32], scale: fl
         scale: canvas pixels per frame pixel.
         wide_px: half-width of the wide tent, in frame pixels (> 0).
         sharpness: :func:`drop_sharpness` of the drops.
+        detail_gain: factor on the local detail variance before the weight is taken
+            (1: Lee's weight; see :data:`DETAIL_GAIN`).
 
     Returns:
         (Hc, Wc) float32 detections ``p_out N`` to put in place of ``sums`` (0 where
@@ -94,6 +110,7 @@ def blend_sums(sums: NDArray[np.float32], frames: NDArray[np.float32], scale: fl
     detail = p - p_wide
     window = (2 * round(scale) + 1,) * 2  # one frame pixel either side
     signal = np.maximum(cv2.boxFilter(detail * detail, -1, window) - cv2.boxFilter(noise, -1, window), 0)
+    signal *= np.float32(detail_gain)
     with np.errstate(divide="ignore", invalid="ignore"):
         keep = np.where(signal + noise > 0, signal / (signal + noise), np.float32(1))
     return ((p_wide + keep * detail) * frames).astype(np.float32)

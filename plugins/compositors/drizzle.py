@@ -37,6 +37,8 @@ from photonpano.compose import Canvas, Panorama
 from photonpano.stages import Compositor, CompositorConfig, PhotonSource
 from pydantic import Field
 
+from ._adaptive import DETAIL_GAIN
+
 __all__ = ["DrizzleConfig", "Drizzle"]
 
 
@@ -59,10 +61,14 @@ class DrizzleConfig(CompositorConfig):
     """Half-width in frame pixels of the tent that makes the wide estimate of
     ``noise_adaptive``."""
 
+    detail_gain: Annotated[float, Field(gt=0, le=100)] = DETAIL_GAIN
+    """Factor on the local detail variance in the weight of ``noise_adaptive`` (1: Lee's
+    local Wiener weight; larger keeps more of the fine drops at edges)."""
+
     def build(self) -> Drizzle:
         """Return the compositor."""
         return Drizzle(self.scale, self.kernel, self.pixfrac or 1.0 / self.scale,
-                       wide_px=self.wide_px if self.noise_adaptive else None)
+                       wide_px=self.wide_px if self.noise_adaptive else None, detail_gain=self.detail_gain)
 
 
 class Drizzle(Compositor):
@@ -74,14 +80,16 @@ class Drizzle(Compositor):
         pixfrac: drop size in frame pixels (square side or Gaussian FWHM).
         wide_px: half-width in frame pixels of the wide estimate that noise-adaptive
             drizzle blends in (:func:`._adaptive.blend_sums`); None: plain drizzle.
+        detail_gain: factor on the detail variance in that blend's weight.
     """
 
     def __init__(self, scale: float = 1.0, kernel: str = "square", pixfrac: float = 1.0,
-                 wide_px: float | None = None) -> None:
+                 wide_px: float | None = None, detail_gain: float = 1.0) -> None:
         """Create an unprepared compositor."""
         from . import _splat
 
         self.scale, self.kernel, self.pixfrac, self.wide_px = scale, kernel, pixfrac, wide_px
+        self.detail_gain = detail_gain
         self._splat = {"point": _splat.splat_point, "square": _splat.splat_square,
                        "gaussian": _splat.splat_gaussian}[kernel]
 
@@ -108,7 +116,7 @@ class Drizzle(Compositor):
 
     def fork(self) -> Drizzle:
         """An empty copy on the same canvas (see :meth:`Compositor.fork`)."""
-        other = Drizzle(self.scale, self.kernel, self.pixfrac, self.wide_px)
+        other = Drizzle(self.scale, self.kernel, self.pixfrac, self.wide_px, self.detail_gain)
         other.prepare(self._canvas, self._source)
         return other
 
@@ -125,7 +133,7 @@ class Drizzle(Compositor):
             from ._adaptive import blend_sums, drop_sharpness
 
             sharpness = drop_sharpness(self.kernel, self.pixfrac * self.scale)
-            sums = blend_sums(sums, frames, self.scale, self.wide_px, sharpness)
+            sums = blend_sums(sums, frames, self.scale, self.wide_px, sharpness, self.detail_gain)
         flux = estimate_radiance(self._source, sums, frames)
         return Panorama(flux=flux, frames=frames, homographies=self._canvas.homographies)
 

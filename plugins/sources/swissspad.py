@@ -184,7 +184,8 @@ class SwissSpadBin(ReopenOnPickle, PhotonSource):
 
 def convert_bin_to_npy(inputs: list[Path], output: Path, layout: str = "half", *,
                        progress: Callable[[int, int], None] | None = None,
-                       chunk_mb: float = 32.0, check_layout: bool = True) -> tuple[int, list[str]]:
+                       chunk_mb: float = 32.0, check_layout: bool = True,
+                       restart: bool = False) -> tuple[int, list[str]]:
     """Convert SwissSPAD2 raw readouts into a bit-packed ``.npy`` photon cube, streaming.
 
     The cube holds the raw frames in sensor pixel order, ``(T, 256, 64)`` (half) or
@@ -201,6 +202,8 @@ def convert_bin_to_npy(inputs: list[Path], output: Path, layout: str = "half", *
         progress: called as ``progress(frames_done, total_frames)``.
         chunk_mb: read buffer in MiB.
         check_layout: refuse a layout that does not fit the data.
+        restart: remove the ``.part`` left by an interrupted conversion first (see
+            :func:`photonpano.outputs.partial.claim_partial`).
 
     Returns:
         ``(frames, notes)``: frames written and caveats (a truncated last file).
@@ -221,7 +224,7 @@ def convert_bin_to_npy(inputs: list[Path], output: Path, layout: str = "half", *
     step = source.frames.chunk_frames
     write_npy_blocks(output, (source.n_frames, lay.height, lay.width // 8), np.uint8,
                      (source.read_frames(start, min(start + step, source.n_frames))
-                      for start in range(0, source.n_frames, step)), progress)
+                      for start in range(0, source.n_frames, step)), progress, restart)
     return source.n_frames, source.notes
 
 

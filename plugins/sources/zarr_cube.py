@@ -177,7 +177,7 @@ def check_zarr_layout(path: Path, what: str, shape: tuple[int, ...], chunks: tup
 
 
 def convert_npy_to_zarr(source: Path, output: Path, *, chunk_bytes: int = CHUNK_BYTES,
-                        progress: Callable[[int, int], None] | None = None) -> int:
+                        progress: Callable[[int, int], None] | None = None, restart: bool = False) -> int:
     """Copy an ``.npy`` photon cube into a new zarr array, streaming.
 
     The array keeps the cube's shape and dtype (a bit-packed cube stays bit-packed),
@@ -191,6 +191,8 @@ def convert_npy_to_zarr(source: Path, output: Path, *, chunk_bytes: int = CHUNK_
         output: the zarr folder to create (must not exist).
         chunk_bytes: uncompressed bytes per chunk (at least one frame).
         progress: called as ``progress(frames_done, total_frames)``.
+        restart: remove the ``.part`` left by an interrupted conversion first (see
+            :func:`photonpano.outputs.partial.claim_partial`).
 
     Returns:
         The number of frames written.
@@ -204,7 +206,7 @@ def convert_npy_to_zarr(source: Path, output: Path, *, chunk_bytes: int = CHUNK_
     """
     from photonpano.npy_header import load_npy
     from photonpano.outputs.files import oserror, refuse_symlink
-    from photonpano.streaming import claim_partial
+    from photonpano.outputs.partial import claim_partial, release_partial
 
     refuse_symlink(output, "output")
     if output.exists():
@@ -215,19 +217,20 @@ def convert_npy_to_zarr(source: Path, output: Path, *, chunk_bytes: int = CHUNK_
     if cube.ndim != 3 or np.isfortran(cube):
         raise SourceError(f"convert: {source} has shape {cube.shape}; expected a C-ordered photon cube (T, H, W/8) "
                           "or (T, H, W)")
-    partial = claim_partial(output)  # refuses a .part that is not ours (a link, a folder, a file)
-    partial.unlink()
     try:
         import zarr
         from zarr.codecs import ZstdCodec
     except ImportError:
         raise SourceError(f"convert: writing {output} needs zarr: pip install 'photonpano[dask]'") from None
+    partial = claim_partial(output, restart)  # refuses a .part that is not ours (a link, a folder, a file)
+    partial.unlink()
 
     frame_bytes = int(np.prod(cube.shape[1:])) * cube.dtype.itemsize
     step = max(1, int(chunk_bytes) // max(frame_bytes, 1))
     try:
         partial.mkdir()
     except OSError as exc:
+        release_partial(output)
         raise oserror(partial, exc) from None
     try:
         array = zarr.create_array(str(partial), shape=cube.shape, dtype=cube.dtype, chunks=(step, *cube.shape[1:]),
@@ -242,11 +245,12 @@ def convert_npy_to_zarr(source: Path, output: Path, *, chunk_bytes: int = CHUNK_
         raise oserror(output, exc, needed=int(cube.nbytes)) from None
     finally:
         _remove_tree(partial)
+        release_partial(output)
     return len(cube)
 
 
 def convert_zarr_to_npy(source: Path, output: Path, *, chunk_bytes: int = 32 * 2**20,
-                        progress: Callable[[int, int], None] | None = None) -> int:
+                        progress: Callable[[int, int], None] | None = None, restart: bool = False) -> int:
     """Copy a zarr photon cube into a new ``.npy`` file, streaming (the inverse of :func:`convert_npy_to_zarr`).
 
     Args:
@@ -254,6 +258,7 @@ def convert_zarr_to_npy(source: Path, output: Path, *, chunk_bytes: int = 32 * 2
         output: the ``.npy`` file to write (must not exist).
         chunk_bytes: largest read block in bytes (whole zarr chunks, at least one).
         progress: called as ``progress(frames_done, total_frames)``.
+        restart: remove the ``.part`` left by an interrupted conversion first.
 
     Returns:
         The number of frames written.
@@ -273,7 +278,7 @@ def convert_zarr_to_npy(source: Path, output: Path, *, chunk_bytes: int = 32 * 2
         raise SourceError(f"convert: {source} has shape {array.shape}; expected a photon cube (T, H, W/8) or (T, H, W)")
     frames = ZarrFrames(array, 0, array.shape[0], chunk_bytes)
     write_npy_blocks(output, array.shape, array.dtype, (block for _, block in frames.blocks(0, frames.n_frames)),
-                     progress)
+                     progress, restart)
     return frames.n_frames
 
 

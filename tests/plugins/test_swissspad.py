@@ -58,7 +58,7 @@ def test_half_array_files_read_back_bit_exact_with_a_truncated_last_file(raw_cap
 
 
 def test_full_array_files_read_back_bit_exact(tmp_path):
-    frames = (np.random.default_rng(5).random((300, 512, 512)) < 0.25).astype(np.uint8)
+    frames = (np.random.default_rng(5).random((300, 512, 512), dtype=np.float32) < 0.25).astype(np.uint8)
     files = write_bin_files(np.packbits(frames, axis=-1), tmp_path / "full", "full")
     assert [f.stat().st_size for f in files] == [8 * 2**20, 44 * 32768]
     with pytest.warns(SourceWarning):
@@ -140,7 +140,8 @@ def test_photoncube_reads_the_same_files_identically(tmp_path):
     rng = np.random.default_rng(9)
     for name in ("half", "full"):
         layout = LAYOUTS[name]
-        frames = (rng.random((layout.frames_per_file * 2, layout.height, layout.width)) < 0.3).astype(np.uint8)
+        frames = (rng.random((layout.frames_per_file * 2, layout.height, layout.width), dtype=np.float32)
+                  < 0.3).astype(np.uint8)
         folder = tmp_path / name
         write_bin_files(np.packbits(frames, axis=-1), folder, layout)
         theirs = tmp_path / f"{name}.npy"

@@ -106,7 +106,7 @@ def test_convert_npy_to_zarr_and_back_is_exact_and_never_overwrites(cube, tmp_pa
 
 def test_file_sources_pickle_as_their_settings_not_their_photons(tmp_path):
     rng = np.random.default_rng(5)
-    np.save(tmp_path / "big.npy", np.packbits(rng.random((20_000, 64, 128)) < 0.1, axis=-1))  # 20 MB
+    np.save(tmp_path / "big.npy", np.packbits(rng.random((20_000, 64, 128), np.float32) < 0.1, axis=-1))  # 20 MB
     convert_npy_to_zarr(tmp_path / "big.npy", tmp_path / "big.zarr")
     edges = np.array([3, 400, 5000, 19_000])
     for config in (NpyCubeConfig(path=tmp_path / "big.npy", start=100, fix="none"),

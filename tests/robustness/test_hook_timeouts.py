@@ -1,0 +1,130 @@
+"""A plugin stage call that hangs at run time ends the run within the limit, one line naming plugin and method."""
+
+from __future__ import annotations
+
+import os
+import time
+
+import pytest
+from photonpano import watchdog
+from robust import TINY, assert_one_line_error, run_subprocess, write_plugin
+
+HANGING_LOCATOR = """
+    import time
+    from typing import Literal
+
+    from photonpano import hookimpl
+    from photonpano.locator import Locator
+    from photonpano.plugins.locators.opencv_features import OpenCVOrbConfig
+
+
+    class Stuck(Locator):
+        def __init__(self, config):
+            self.config = config
+
+        def _register_pairs(self, merged, pairs, initial, context):
+            while True:  # e.g. waiting on a licence server
+                try:
+                    time.sleep(0.1)
+                except KeyboardInterrupt:  # a bare `except:` in plugin code swallows the interrupt
+                    if self.config.how == "sleep":
+                        raise
+
+
+    class StuckConfig(OpenCVOrbConfig):
+        plugin: Literal["stuck-locator"] = "stuck-locator"
+        how: str = "sleep"
+
+        def build(self):
+            return Stuck(self)
+
+
+    @hookimpl
+    def photonpano_register_locators():
+        return [StuckConfig]
+"""
+
+
+def _env(tmp_path, limit_s: float = 2.0) -> dict[str, str]:
+    folder = write_plugin(tmp_path / "site", "stuck", HANGING_LOCATOR, dist="stuck-locator",
+                          entry_points={"stuck-locator": "stuck"})
+    return {"PYTHONPATH": os.pathsep.join([str(folder), os.environ.get("PYTHONPATH", "")]),
+            watchdog.ENV: str(limit_s)}
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("executor", ["serial", "threads"])
+def test_a_hanging_locator_ends_the_run_naming_it(tmp_path, executor):
+    """Sleeping forever in register_pairs, on the main thread or a worker thread: one line after the 2 s limit."""
+    start = time.perf_counter()
+    result = run_subprocess("demo", "-o", tmp_path / "out", *TINY, "--set", "locator=stuck-locator",
+                            "--set", f"executor={executor}", "--set", "workers=2", env=_env(tmp_path), timeout=120)
+    took = time.perf_counter() - start
+    assert_one_line_error(result, "locator (stuck-locator) in register_pairs", "did not return within 2 s",
+                          watchdog.ENV)
+    assert took < 60  # start-up, the simulation and 2 s; the process does not wait for the stuck thread
+    assert not (tmp_path / "out" / "run.json").exists()
+
+
+@pytest.mark.slow
+def test_a_locator_swallowing_the_interrupt_ends_the_command_after_the_grace_period(tmp_path):
+    """The main thread never takes the interrupt: the command prints the line and exits all the same."""
+    start = time.perf_counter()
+    result = run_subprocess("demo", "-o", tmp_path / "out", *TINY, "--set", "locator=stuck-locator",
+                            "--set", "locator.how=swallow", env=_env(tmp_path), timeout=120)
+    assert_one_line_error(result, "locator (stuck-locator) in register_pairs", "did not return within 2 s")
+    assert time.perf_counter() - start < 60 + watchdog.GRACE_S
+
+
+class _Plugin:
+    class config:  # noqa: N801 - mimics a plugin's validated config
+        plugin = "my-merger"
+
+
+def test_a_watched_call_past_the_limit_raises_plugin_hung(monkeypatch):
+    monkeypatch.delenv(watchdog.ENV, raising=False)
+    with watchdog.guarding(), watchdog.watched("merger", _Plugin(), "merge"):  # the watchdog runs, at 600 s
+        pass
+    monkeypatch.setenv(watchdog.ENV, "0.3")  # the message gives the limit of the call, not of the watchdog's start
+    start = time.perf_counter()
+    with pytest.raises(watchdog.PluginHung) as info:
+        with watchdog.guarding(), watchdog.watched("merger", _Plugin(), "merge"):
+            while time.perf_counter() - start < 30:
+                time.sleep(0.01)
+    took = time.perf_counter() - start
+    assert 0.3 <= took < 5, took
+    message = str(info.value)
+    assert message.startswith("merger (my-merger) in merge did not return within 0.3 s") and "\n" not in message
+    assert watchdog.longest["merger.merge"] >= 0.3
+    with watchdog.guarding(), watchdog.watched("merger", _Plugin(), "merge"):  # a later run starts clean
+        time.sleep(0.05)
+
+
+def test_calls_within_the_limit_or_unguarded_or_switched_off_are_left_alone(monkeypatch):
+    monkeypatch.setenv(watchdog.ENV, "0.2")
+    with watchdog.guarding(), watchdog.watched("locator", _Plugin(), "register_pairs"):
+        time.sleep(0.05)
+    with watchdog.watched("locator", _Plugin(), "register_pairs"):  # no run around it: not watched
+        time.sleep(0.5)
+    monkeypatch.setenv(watchdog.ENV, "off")
+    assert watchdog.limit_s() is None
+    with watchdog.guarding(), watchdog.watched("locator", _Plugin(), "register_pairs"):
+        time.sleep(0.5)
+    for text, expected in (("", watchdog.HOOK_TIMEOUT_S), ("abc", watchdog.HOOK_TIMEOUT_S), ("0", None),
+                           ("-3", None), ("45", 45.0)):
+        monkeypatch.setenv(watchdog.ENV, text)
+        assert watchdog.limit_s() == expected, text
+
+
+@pytest.mark.slow
+def test_compare_records_a_hanging_locator_and_runs_the_next(tmp_path):
+    """The hung locator's row says so; the comparison goes on with the next locator and completes."""
+    import json
+
+    out = tmp_path / "cmp"
+    result = run_subprocess("compare", "simulate", "-o", out, "-l", "stuck-locator,opencv-orb", *TINY,
+                            "--set", "levels=1", env=_env(tmp_path), timeout=120)
+    assert result.returncode == 0, result.stderr
+    runs = json.loads((out / "compare.json").read_text())["runs"]
+    assert runs[0]["status"].startswith("locator (stuck-locator) in register_pairs did not return within 2 s")
+    assert runs[1]["status"] == "ok"
