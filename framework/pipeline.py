@@ -21,11 +21,10 @@ import json
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import NDArray
-from pydantic import BaseModel
 
 from .errors import PhotonpanoError
 from .hdr import write_flux_tiff
@@ -39,6 +38,10 @@ from .records import Panorama
 from .spec import dump_spec
 from .stages import PhotonSource
 from .watchdog import guarding
+
+if TYPE_CHECKING:
+    from .outputs import Checkpoint, RunFolder
+    from .spec_model import PipelineSpec
 
 __all__ = ["RunResult", "prepare_output", "run_pipeline", "reconstruct"]
 
@@ -61,7 +64,8 @@ class RunResult:
     """What a run produced (the Python API returns it; ``run.json`` holds ``summary``).
 
     Attributes:
-        spec: the validated ``PipelineSpec``.
+        spec: the validated ``PipelineSpec`` (the plain mapping from :func:`photonpano.api.load_run`
+            when the spec's plugins are no longer installed).
         homographies: (T, 3, 3) float64 frame-to-canvas homographies, one per binary
             frame: frame pixel coordinates (x right, y down, pixel centres at integers)
             to panorama canvas pixels (including the super-resolution scale).
@@ -76,7 +80,7 @@ class RunResult:
             evidence for it.
     """
 
-    spec: BaseModel
+    spec: PipelineSpec | dict[str, Any]
     homographies: NDArray[np.float64]
     panorama: NDArray[np.float32]
     summary: dict[str, Any]
@@ -96,7 +100,7 @@ class RunResult:
         show(self)
 
 
-def run_pipeline(spec: BaseModel, out_dir: Path | None, host: PluginHost, *, force: bool = False,
+def run_pipeline(spec: PipelineSpec, out_dir: Path | None, host: PluginHost, *, force: bool = False,
                  resume: bool = False) -> RunResult:
     """Run ``spec`` and, if ``out_dir`` is given, write every output into it.
 
@@ -138,12 +142,12 @@ def run_pipeline(spec: BaseModel, out_dir: Path | None, host: PluginHost, *, for
             return _run_into(spec, folder, host)
 
 
-def _input_paths(spec: BaseModel) -> list[Path]:
+def _input_paths(spec: PipelineSpec) -> list[Path]:
     """The existing files and folders named by the spec's source section."""
     return [value for value in vars(spec.source).values() if isinstance(value, Path) and value.exists()]
 
 
-def _resume_state(folder, spec_text: str):
+def _resume_state(folder: RunFolder, spec_text: str) -> Checkpoint | None:
     """Return the checkpoint to continue from (None: start at level 1); the spec must not change."""
     from .outputs import OutputError
 
@@ -154,7 +158,7 @@ def _resume_state(folder, spec_text: str):
     return folder.last_checkpoint()
 
 
-def _run_into(spec: BaseModel, folder, host: PluginHost) -> RunResult:
+def _run_into(spec: PipelineSpec, folder: RunFolder | None, host: PluginHost) -> RunResult:
     """Run ``spec``, writing into ``folder`` (a :class:`~photonpano.outputs.RunFolder`) unless it is None."""
     from .png import write_panorama_png
 
@@ -226,7 +230,7 @@ def _run_into(spec: BaseModel, folder, host: PluginHost) -> RunResult:
 
         page = report_html(json.loads(json.dumps(summary, default=json_default)), pano.flux, pano.homographies,
                            sigma, trajectory=plot.read_bytes() if plot is not None else None,
-                           title=f"photonpano run: {out_dir.name}")
+                           title=f"photonpano run: {folder.root.name}")
         folder.write_text("report.html", page)
     if folder is not None:
         folder.commit(json.dumps(summary, indent=2, default=json_default))

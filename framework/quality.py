@@ -137,8 +137,7 @@ def assess(plan: GroupPlan, levels: list[dict[str, Any]],
     t = THRESHOLDS
     warnings: list[str] = []
     probe = plan.probe
-    binary = probe is not None and probe.photons_per_pixel_per_frame is not None
-    if binary and probe.speed_px_per_frame is None:
+    if probe is not None and probe.photons_per_pixel_per_frame is not None and probe.speed_px_per_frame is None:
         warnings.append("the motion pre-pass found no scene structure in the photons (median correlation "
                         f"{np.median(probe.correlations):.2f} of blocks {probe.block_frames} frames apart)")
     per_group = plan.photons_per_pixel_per_group
