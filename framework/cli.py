@@ -14,7 +14,7 @@ from __future__ import annotations
 import json
 import sys
 from pathlib import Path
-from typing import Annotated, Any
+from typing import TYPE_CHECKING, Annotated, Any, cast
 
 import typer
 
@@ -31,6 +31,9 @@ from .cli_base import (
     app,
     one_line_errors,
 )
+
+if TYPE_CHECKING:
+    from .plugins.sources.simulate import SimulateConfig
 
 
 def _execute(spec, out: Path, force: bool, host, resume: bool = False) -> dict[str, Any]:
@@ -118,8 +121,9 @@ def demo(output: OutOption, set_: SetOption = None, force: ForceOption = False, 
     host = _host()
     data = apply_overrides({"source": {"plugin": "simulate", "frames": frames}}, set_ or [])
     parsed = validate_spec(data, host, origin="demo")
-    typer.echo(f"simulating {parsed.source.frames} binary frames of {parsed.source.height}x"
-               f"{parsed.source.width} at flux {parsed.source.flux} from the bundled photo ...")
+    simulated = cast("SimulateConfig", parsed.source)  # the demo's spec names the simulate source
+    typer.echo(f"simulating {simulated.frames} binary frames of {simulated.height}x"
+               f"{simulated.width} at flux {simulated.flux} from the bundled photo ...")
     _report(_execute(parsed, output, force, host, resume), output)
 
 

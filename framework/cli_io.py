@@ -74,13 +74,14 @@ def open_log_file(path: Path, header: str) -> LogFileHandler:
         handler = LogFileHandler(path)
     except OSError as exc:
         raise OutputError(f"--log-file {path}: cannot open it ({exc.strerror or exc})") from None
+    stream = handler.stream
+    assert stream is not None  # FileHandler opens its file at construction (delay=False)
     try:
-        assert handler.stream is not None
-        handler.stream.write(f"{time.strftime('%Y-%m-%d %H:%M:%S')} {header}\n")
-        handler.stream.flush()
+        stream.write(f"{time.strftime('%Y-%m-%d %H:%M:%S')} {header}\n")
+        stream.flush()
     except OSError as exc:
         with _suppress():
-            handler.stream.close()  # the unwritten buffer is dropped with the error
+            stream.close()  # the unwritten buffer is dropped with the error
         raise OutputError(f"--log-file {path}: cannot write ({exc.strerror or exc})") from None
     return handler
 
@@ -123,7 +124,8 @@ class GuardedStdout:
 def stdout_name() -> str:
     """Where standard output goes, for messages: ``standard output (/dev/full)`` where it can be told."""
     with _suppress():
-        return f"standard output ({os.readlink(f'/proc/self/fd/{sys.__stdout__.fileno()}')})"
+        if sys.__stdout__ is not None:  # None: Python runs without standard output
+            return f"standard output ({os.readlink(f'/proc/self/fd/{sys.__stdout__.fileno()}')})"
     return "standard output"
 
 
@@ -150,6 +152,8 @@ def stdout_problem() -> str | None:
 def silence_stdout() -> None:
     """Point standard output at the null device, so interpreter exit cannot fail on it again."""
     with _suppress():
+        if sys.__stdout__ is None:  # Python runs without standard output: nothing to silence
+            return
         devnull = os.open(os.devnull, os.O_WRONLY)
         os.dup2(devnull, sys.__stdout__.fileno())
         os.close(devnull)

@@ -5,8 +5,8 @@ After the levels, every binary frame is composited onto one panorama canvas by a
 :func:`compose` streams the capture to it in sub-batches of frames whose canvas warps
 differ by less than a tolerance, in bounded memory, on the executor's threads.
 :func:`assemble_panorama` is the bilinear composite (:class:`BilinearCompositor`) that
-the level loop also registers against; :func:`panorama_views` resamples a panorama into
-frames' pixel grids.
+the level loop also registers against. :func:`~photonpano.views.panorama_views`, which
+resamples a panorama into frames' pixel grids, lives in :mod:`photonpano.views` (re-exported here).
 """
 
 from __future__ import annotations
@@ -19,8 +19,9 @@ from numpy.typing import NDArray
 from . import geometry
 from .errors import StageError
 from .executor import Executor, SerialExecutor, pure_task
-from .records import Canvas, MergedFrames, Panorama
+from .records import Canvas, Panorama
 from .stages import Compositor, PhotonSource
+from .views import panorama_views
 from .watchdog import watched
 
 __all__ = ["FOLD_RUNS", "Panorama", "Canvas", "canvas_homographies", "compose", "BilinearCompositor",
@@ -209,12 +210,14 @@ class BilinearCompositor(Compositor):
 
     def join(self, other: Compositor) -> None:
         """Add a fork's sums (see :meth:`Compositor.join`)."""
+        if not isinstance(other, BilinearCompositor):
+            raise TypeError(f"BilinearCompositor.join: expected a fork of this compositor, got {type(other).__name__}")
         for k, theirs in enumerate(other._accs):
-            if theirs is not None and self._accs[k] is None:
+            mine = self._accs[k]
+            if mine is None:
                 self._accs[k] = theirs
             elif theirs is not None:
-                self._accs[k].merge(theirs)
-        self._acc = self._accs[0]
+                mine.merge(theirs)
 
     def finish(self) -> Panorama:
         """The flux MLE per canvas pixel (see :meth:`Compositor.finish`); robust: the exposures that agree."""
@@ -250,42 +253,3 @@ def assemble_panorama(source: PhotonSource, homographies: NDArray[np.float64], *
     return compose(source, homographies, BilinearCompositor(scale), subbatch_px=subbatch_px,
                    chunk_batches=chunk_batches, progress=progress, canvas_shape=canvas_shape,
                    executor=executor)
-
-
-def panorama_views(panorama: Panorama, to_canvas: NDArray[np.float64], height: int, width: int,
-                   min_frames: float) -> MergedFrames:
-    """Resample a panorama into the pixel grids of some frames, as merged frames.
-
-    Args:
-        panorama: a :class:`Panorama` (flux in photons/s, NaN where unseen).
-        to_canvas: (G, 3, 3) float64 frame-to-canvas homographies of the G frames.
-        height: frame height in pixels.
-        width: frame width in pixels.
-        min_frames: canvas pixels observed by fewer binary frames are not trusted.
-
-    Returns:
-        G :class:`~photonpano.stages.MergedFrames`: bilinear flux (0 where unseen),
-        nearest frame counts, tone-mapped images, and masks of pixels whose bilinear
-        neighbourhood is trusted on the canvas.
-    """
-    import cv2
-
-    from .photons import tone_map
-
-    trusted = (panorama.frames >= min_frames) & np.isfinite(panorama.flux)
-    trusted = cv2.erode(trusted.astype(np.uint8), np.ones((3, 3), np.uint8))
-    flux = np.where(trusted > 0, panorama.flux, 0).astype(np.float32)
-    g = len(to_canvas)
-    shape = (g, height, width)
-    out = MergedFrames(flux=np.empty(shape, np.float32), frames=np.empty(shape, np.float32),
-                       images=np.empty(shape, np.uint8), masks=np.empty(shape, bool))
-    inverse = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
-    for i, h in enumerate(to_canvas):
-        out.flux[i] = cv2.warpPerspective(flux, h, (width, height), flags=inverse, borderValue=0)
-        out.frames[i] = cv2.warpPerspective(panorama.frames, h, (width, height),
-                                            flags=cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP, borderValue=0)
-        out.masks[i] = cv2.warpPerspective(trusted, h, (width, height),
-                                           flags=cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP, borderValue=0) > 0
-        out.flux[i][~out.masks[i]] = np.nan
-        out.images[i] = tone_map(out.flux[i])
-    return out

@@ -17,7 +17,7 @@ from pydantic import BaseModel
 from . import hookspecs
 from .host import PluginHost
 from .spec import spec_model
-from .stages import STAGES
+from .stages import STAGES, StageConfig
 
 __all__ = ["rst_inline_to_markdown", "docstring_markdown", "hooks_markdown", "spec_reference_markdown",
            "main"]
@@ -135,7 +135,7 @@ def spec_reference_markdown(host: PluginHost | None = None) -> str:
     return "\n".join(lines)
 
 
-def _field_rows(model: type[BaseModel], skip: tuple[str, ...] = (), **texts: str) -> list[str]:
+def _field_rows(model: type[BaseModel], skip: tuple[str, ...] = (), texts: dict[str, str] | None = None) -> list[str]:
     """Table rows ``| name | default | meaning |`` of a pydantic model's fields, in order.
 
     ``texts`` gives the meaning of fields without a description.
@@ -148,7 +148,7 @@ def _field_rows(model: type[BaseModel], skip: tuple[str, ...] = (), **texts: str
             default = "required"
         else:
             value = field.get_default(call_default_factory=True)
-            if isinstance(value, BaseModel) and "plugin" in type(value).model_fields:
+            if isinstance(value, StageConfig) and "plugin" in type(value).model_fields:
                 default = f"`{value.plugin}`"
                 changed = value.model_dump(exclude_defaults=True, exclude={"plugin"})
                 default += "".join(f", `{k}: {v!r}`" for k, v in changed.items())
@@ -156,7 +156,7 @@ def _field_rows(model: type[BaseModel], skip: tuple[str, ...] = (), **texts: str
                 default = "see below"
             else:
                 default = f"`{value!r}`"
-        text = rst_inline_to_markdown(" ".join((field.description or texts.get(name, "")).split()))
+        text = rst_inline_to_markdown(" ".join((field.description or (texts or {}).get(name, "")).split()))
         rows.append(f"| `{name}` | {default} | {text} |")
     return rows
 
@@ -169,12 +169,14 @@ def _top_level_markdown(host: PluginHost) -> list[str]:
     sections = []
     for name in ("mosaic", "outputs"):
         section = model.model_fields[name].annotation
+        assert isinstance(section, type) and issubclass(section, BaseModel)  # both sections are models
         sections += ["", f"### `{name}`", "", rst_inline_to_markdown(inspect.cleandoc(section.__doc__ or "")), "",
                      "| field | default | meaning |", "| --- | --- | --- |", *_field_rows(section)]
     return ["## Top level", "", inspect.cleandoc(model.__doc__ or ""), "",
             "| field | default | meaning |", "| --- | --- | --- |",
-            *_field_rows(model, version="Spec format version; 1 is the only one.",
-                         outputs="Optional outputs (see [outputs](#outputs)).", **stages), *sections, ""]
+            *_field_rows(model, texts={"version": "Spec format version; 1 is the only one.",
+                                       "outputs": "Optional outputs (see [outputs](#outputs)).", **stages}),
+            *sections, ""]
 
 
 def main(argv: list[str] | None = None) -> None:

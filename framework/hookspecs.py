@@ -45,6 +45,7 @@ def photonpano_register_sources() -> list[type[SourceConfig]]:
 
     .. versionadded:: 0.1
     """
+    raise NotImplementedError  # a specification: pluggy calls the implementations, never this
 
 
 @hookspec
@@ -56,6 +57,7 @@ def photonpano_register_resamplers() -> list[type[ResamplerConfig]]:
 
     .. versionadded:: 0.1
     """
+    raise NotImplementedError  # a specification: pluggy calls the implementations, never this
 
 
 @hookspec
@@ -67,6 +69,7 @@ def photonpano_register_mergers() -> list[type[MergerConfig]]:
 
     .. versionadded:: 0.1
     """
+    raise NotImplementedError  # a specification: pluggy calls the implementations, never this
 
 
 @hookspec
@@ -78,6 +81,7 @@ def photonpano_register_locators() -> list[type[LocatorConfig]]:
 
     .. versionadded:: 0.1
     """
+    raise NotImplementedError  # a specification: pluggy calls the implementations, never this
 
 
 @hookspec
@@ -89,6 +93,7 @@ def photonpano_register_interpolators() -> list[type[InterpolatorConfig]]:
 
     .. versionadded:: 0.1
     """
+    raise NotImplementedError  # a specification: pluggy calls the implementations, never this
 
 
 @hookspec
@@ -100,6 +105,7 @@ def photonpano_register_compositors() -> list[type[CompositorConfig]]:
 
     .. versionadded:: 0.2
     """
+    raise NotImplementedError  # a specification: pluggy calls the implementations, never this
 
 
 @hookspec
@@ -111,6 +117,7 @@ def photonpano_register_pose_estimators() -> list[type[PoseEstimatorConfig]]:
 
     .. versionadded:: 0.1
     """
+    raise NotImplementedError  # a specification: pluggy calls the implementations, never this
 
 
 @hookspec(firstresult=True)

@@ -119,8 +119,8 @@ def phase_shift_correlation(a: NDArray[np.float32], b: NDArray[np.float32]
     window = cv2.createHanningWindow(a.shape[::-1], cv2.CV_32F)
     (dx, dy), _ = cv2.phaseCorrelate(a - a.mean(), b - b.mean(), window)
     h, w = a.shape
-    moved = cv2.warpAffine(b, np.float32([[1, 0, -dx], [0, 1, -dy]]), (w, h), flags=cv2.INTER_LINEAR,
-                           borderValue=np.nan)
+    moved = np.asarray(cv2.warpAffine(b, np.array([[1, 0, -dx], [0, 1, -dy]], np.float32), (w, h),
+                                      flags=cv2.INTER_LINEAR, borderValue=np.nan), np.float32)  # no copy
     valid = np.isfinite(moved)
     valid[:2], valid[-2:], valid[:, :2], valid[:, -2:] = False, False, False, False
     return np.array([dx, dy]), normalised_correlation(a, moved, valid)
@@ -196,7 +196,7 @@ def binned_frame(flux: NDArray[np.float32], mask: NDArray[np.bool_], factor: int
 
     image, valid = block_mean(np.sqrt(np.maximum(flux, 0)), factor, mask)
     if blur > 1:
-        image = cv2.GaussianBlur(image, (blur, blur), 0)
+        image = np.asarray(cv2.GaussianBlur(image, (blur, blur), 0), np.float32)  # float32 already (no copy)
         weight = cv2.GaussianBlur(valid.astype(np.float32), (blur, blur), 0)
         image = np.where(valid, image / np.maximum(weight, 1e-6), 0).astype(np.float32)
     return image, valid
@@ -252,13 +252,13 @@ def register_binned(a: tuple[NDArray, NDArray], b: tuple[NDArray, NDArray], init
     fill_b = np.where(inside, moved, moved[inside].mean() if inside.any() else 0).astype(np.float32)
     (dx, dy), _ = cv2.phaseCorrelate(fill_a - fill_a.mean(), fill_b - fill_b.mean(), window)
     # moved(x) ~ a(x - d): the correction maps moved's pixels to a's by x - d
-    warp = np.float32([[1, 0, -dx], [0, 1, -dy]])
+    warp = np.array([[1, 0, -dx], [0, 1, -dy]], np.float32)
     criteria = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, iterations, 1e-5)
     try:
-        cc, warp = cv2.findTransformECCWithMask(moved, a[0], inside.astype(np.uint8), a[1].astype(np.uint8),
-                                                warp, cv2.MOTION_AFFINE, criteria, 1)
+        cc, refined = cv2.findTransformECCWithMask(moved, a[0], inside.astype(np.uint8), a[1].astype(np.uint8),
+                                                   warp, cv2.MOTION_AFFINE, criteria, 1)
     except cv2.error:
         return initial, -1.0, 0
-    correction = np.vstack([warp.astype(np.float64), [0, 0, 1]])
+    correction = np.vstack([refined.astype(np.float64), [0, 0, 1]])
     found = geometry.normalize(in_binned_pixels(correction @ start, factor, back=True))
     return found, float(cc), int((inside & a[1]).sum())

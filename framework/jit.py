@@ -48,7 +48,11 @@ def cached_njit(**options: Any) -> Callable[[Callable[..., Any]], Any]:
     Returns:
         A decorator producing a numba dispatcher.
     """
-    from numba import config, njit
+    import numba
+    from numba import njit
+
+    # numba sets its settings on numba.config from NUMBA_* variables at import: attributes mypy cannot see
+    config: Any = numba.config
 
     def decorate(function: Callable[..., Any]) -> Any:
         if config.CACHE_DIR:

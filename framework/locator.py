@@ -7,7 +7,10 @@ their arguments, and kornia's matchers take pre-extracted features as arguments,
 nothing is injected as an attribute):
 
 - :meth:`Locator.register_pairs`: pairs of merged frames of one level (the ``pairwise``
-  scheme, and the held-out cross-check) -> :meth:`Locator._register_pairs`;
+  scheme, and the held-out cross-check), each pair naming its two frames by id
+  (:attr:`MergedFrames.ids <photonpano.records.MergedFrames>`), never by where a scheme
+  buffers them -> :meth:`Locator._register_pairs`, which gets the frames the pairs name
+  and their positions among these;
 - :meth:`Locator.register_to_template`: each merged frame against the panorama
   rendered at its pose (the ``mosaic`` scheme) -> :meth:`Locator._register_to_template`,
   which by default registers the pairs (view g, frame g) of the two stacked.
@@ -29,7 +32,7 @@ from .config import StageConfig
 from .records import MergedFrames, PairRegistrations
 from .watchdog import watched
 
-__all__ = ["LocatorConfig", "Locator", "LocatorContext"]
+__all__ = ["LocatorConfig", "Locator", "LocatorContext", "named_frames"]
 
 
 class LocatorConfig(StageConfig):
@@ -63,25 +66,61 @@ class LocatorContext:
     reuses_frames: bool = True
 
 
-def _checked_pairs(owner: str, merged: MergedFrames, pairs: Any, initial: Any
-                   ) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
-    """``pairs`` as (P, 2) int64 and ``initial`` as (P, 3, 3) float64, or a one-line ValueError naming ``owner``."""
+def _checked_initial(owner: str, initial: Any, count: int) -> NDArray[np.float64]:
+    """``initial`` as (count, 3, 3) finite float64, or a one-line ValueError naming ``owner``."""
+    initial = np.asarray(initial, np.float64)
+    if initial.shape != (count, 3, 3):
+        raise ValueError(f"{owner}: initial must be ({count}, 3, 3) for {count} pairs, got {initial.shape}")
+    if not np.isfinite(initial).all():
+        raise ValueError(f"{owner}: initial holds non-finite homographies")
+    return initial
+
+
+def named_frames(owner: str, merged: MergedFrames, pairs: Any) -> tuple[MergedFrames, NDArray[np.int64]]:
+    """Resolve pairs that name frames by id into the frames they name and positions among these.
+
+    Args:
+        owner: who is calling, for the error message (e.g. ``"OpenCVSiftLocator.register_pairs"``).
+        merged: the call's merged frames; frame i is named ``merged.frame_ids()[i]``
+            (its id, or ``i`` when ``merged`` carries no ids).
+        pairs: (P, 2) integer frame ids ``(a, b)``.
+
+    Returns:
+        ``(frames, positions)``: the frames the pairs name, each once and in ``merged``'s
+        order (``merged`` itself when it names no other frame, or when P = 0; with their
+        ids), and (P, 2) int64 positions of each pair's frames in ``frames``.
+
+    Raises:
+        TypeError: ``merged`` is not :class:`~photonpano.records.MergedFrames`.
+        ValueError: ``pairs`` not (P, 2) integers, duplicate frame ids, or a pair naming
+            a frame that is not in ``merged`` (one line naming ``owner``).
+    """
     if not isinstance(merged, MergedFrames):
         raise TypeError(f"{owner}: merged must be MergedFrames, got {type(merged).__name__}")
     pairs = np.asarray(pairs)
     if pairs.dtype.kind not in "iu" or pairs.ndim != 2 or pairs.shape[1] != 2:
-        raise ValueError(f"{owner}: pairs must be (P, 2) integer indices, got {pairs.dtype} {pairs.shape}")
-    pairs = pairs.astype(np.int64, copy=False)
-    n = len(merged)
-    if len(pairs) and (pairs.min() < 0 or pairs.max() >= n):
-        raise ValueError(f"{owner}: pairs index merged frames 0..{n - 1}, got {pairs.min()}..{pairs.max()}")
-    initial = np.asarray(initial, np.float64)
-    if initial.shape != (len(pairs), 3, 3):
-        raise ValueError(f"{owner}: initial must be ({len(pairs)}, 3, 3) for {len(pairs)} pairs, "
-                         f"got {initial.shape}")
-    if not np.isfinite(initial).all():
-        raise ValueError(f"{owner}: initial holds non-finite homographies")
-    return pairs, initial
+        raise ValueError(f"{owner}: pairs must be (P, 2) integer frame ids, got {pairs.dtype} {pairs.shape}")
+    if not len(pairs):
+        return merged, np.zeros((0, 2), np.int64)
+    ids = merged.frame_ids()
+    order = np.argsort(ids, kind="stable")
+    ordered = ids[order]
+    if len(ids) > 1 and (ordered[1:] == ordered[:-1]).any():
+        raise ValueError(f"{owner}: merged frames must carry distinct ids, frame id "
+                         f"{int(ordered[1:][ordered[1:] == ordered[:-1]][0])} repeats")
+    wanted = pairs.astype(np.int64, copy=False).ravel()
+    at = np.minimum(np.searchsorted(ordered, wanted), max(len(ids) - 1, 0))
+    missing = ~(ordered[at] == wanted) if len(ids) else np.ones(len(wanted), bool)
+    if missing.any():
+        p = int(np.flatnonzero(missing)[0]) // 2
+        raise ValueError(f"{owner}: pair {p} {tuple(int(i) for i in pairs[p])} names a frame that is not among "
+                         f"the {len(ids)} merged frames of this call (pairs name frames by merged.ids, or by "
+                         "position without ids)")
+    positions = order[at].reshape(-1, 2).astype(np.int64, copy=False)
+    used = np.unique(positions)
+    if len(used) == len(merged):
+        return merged, positions
+    return merged.take(used), np.searchsorted(used, positions).astype(np.int64, copy=False)
 
 
 class Locator(abc.ABC):
@@ -94,12 +133,19 @@ class Locator(abc.ABC):
 
     def register_pairs(self, merged: MergedFrames, pairs: NDArray[np.int64], initial: NDArray[np.float64],
                        context: LocatorContext | None = None) -> PairRegistrations:
-        """Register each pair ``(a, b)``: find H mapping frame b's pixels to frame a's.
+        """Register each pair ``(a, b)`` of frames named by id: find H mapping frame b's pixels to frame a's.
+
+        Pairs name frames, not positions in a buffer: ``a`` and ``b`` are frame ids,
+        ``merged.ids`` (or positions ``0..G-1`` when ``merged`` carries no ids,
+        :meth:`~photonpano.records.MergedFrames.frame_ids`). The framework's pairwise
+        scheme gives every merged frame a new id and names each call's pairs by them,
+        whatever it keeps in memory.
 
         Args:
-            merged: merged frames of this level (at pairwise levels the recent ones: the
-                framework streams a level's frames in windows and calls once per window).
-            pairs: (P, 2) integer indices into ``merged``.
+            merged: (G) merged frames of this level with distinct ids (at pairwise levels the
+                recent ones: the framework streams a level's frames in windows and calls
+                once per window); frames no pair names are ignored.
+            pairs: (P, 2) integer frame ids.
             initial: (P, 3, 3) float64 current estimate of each pair's homography (for
                 direct methods or to guide matching; feature methods may ignore it).
             context: how the call may run (None: ``LocatorContext()``).
@@ -109,14 +155,16 @@ class Locator(abc.ABC):
             ``ok=False``; raising is reserved for programming errors.
 
         Raises:
-            TypeError, ValueError: bad arguments (one line naming the locator), or a
-                result of another length than ``pairs``.
+            TypeError, ValueError: bad arguments, e.g. a pair naming a frame not in
+                ``merged`` (one line naming the locator), or a result of another length
+                than ``pairs``.
         """
         owner = f"{type(self).__name__}.register_pairs"
-        pairs, initial = _checked_pairs(owner, merged, pairs, initial)
+        frames, positions = named_frames(owner, merged, pairs)
+        initial = _checked_initial(owner, initial, len(positions))
         with watched("locator", self, "register_pairs"):  # a hung call ends the run (photonpano.watchdog)
-            found = self._register_pairs(merged, pairs, initial, context or LocatorContext())
-        return self._result(owner, found, len(pairs))
+            found = self._register_pairs(frames, positions, initial, context or LocatorContext())
+        return self._result(owner, found, len(positions))
 
     def register_to_template(self, views: MergedFrames, frames: MergedFrames, initial: NDArray[np.float64],
                              context: LocatorContext | None = None) -> PairRegistrations:
@@ -141,10 +189,9 @@ class Locator(abc.ABC):
         if views.flux.shape != frames.flux.shape:
             raise ValueError(f"{owner}: views {views.flux.shape} and frames {frames.flux.shape} differ in shape")
         n = len(frames)
-        _checked_pairs(owner, frames, np.zeros((n, 2), np.int64), initial)
+        initial = _checked_initial(owner, initial, n)
         with watched("locator", self, "register_to_template"):
-            found = self._register_to_template(views, frames, np.asarray(initial, np.float64),
-                                               context or LocatorContext())
+            found = self._register_to_template(views, frames, initial, context or LocatorContext())
         return self._result(owner, found, n)
 
     @staticmethod
@@ -157,7 +204,14 @@ class Locator(abc.ABC):
     @abc.abstractmethod
     def _register_pairs(self, merged: MergedFrames, pairs: NDArray[np.int64], initial: NDArray[np.float64],
                         context: LocatorContext) -> PairRegistrations:
-        """Register validated pairs (see :meth:`register_pairs`; ``pairs`` (P, 2) int64 in range).
+        """Register validated pairs (see :meth:`register_pairs`).
+
+        Args:
+            merged: the frames the pairs name, each once (with the caller's ids, which
+                :meth:`~photonpano.records.MergedFrames.content_key` uses).
+            pairs: (P, 2) int64 positions of each pair's frames in ``merged``.
+            initial: (P, 3, 3) float64 finite starts.
+            context: how the call may run.
 
         Returns:
             (P) results; ``ok=False`` for a pair that cannot be registered.

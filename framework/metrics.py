@@ -59,9 +59,8 @@ def trajectory_error(estimated: NDArray[np.float64], truth: NDArray[np.float64],
     c = geometry.corners(width, height)
     est = geometry.apply(estimated, c)  # (T, 4, 2)
     gt = geometry.apply(truth, c)
-    g, _ = cv2.findHomography(est.reshape(-1, 2), gt.reshape(-1, 2), 0)
-    if g is None:
-        g = np.eye(3)
+    found, _ = cv2.findHomography(est.reshape(-1, 2), gt.reshape(-1, 2), 0)
+    g = np.eye(3) if found is None else np.asarray(found, np.float64)  # float64 already (no copy)
     aligned = geometry.apply(g, est.reshape(-1, 2)).reshape(est.shape)
     per_frame = np.linalg.norm(aligned - gt, axis=-1).mean(axis=-1)
     return TrajectoryError(float(np.sqrt(np.mean(per_frame ** 2))), per_frame, g / g[2, 2])
@@ -131,7 +130,7 @@ def chroma_edge_error(estimate: NDArray, truth: NDArray, mask: NDArray[np.bool_]
     e, t = np.asarray(estimate, np.float64), np.asarray(truth, np.float64)
     if e.shape != t.shape or e.ndim != 3 or e.shape[2] != 3:
         raise ValueError(f"chroma_edge_error: expected two (H, W, 3) images, got {e.shape} and {t.shape}")
-    keep = np.isfinite(e).all(-1) & np.isfinite(t).all(-1)
+    keep = np.asarray(np.isfinite(e).all(-1) & np.isfinite(t).all(-1))  # an array (no copy), typed as one
     if mask is not None:
         keep &= mask
     if not keep.any():
@@ -176,8 +175,9 @@ def scene_on_canvas(source, canvas_from_scene: NDArray[np.float64],
         size = (scene.shape[1] // step, scene.shape[0] // step)
         scene = cv2.resize(scene, size, interpolation=cv2.INTER_AREA)
         to_canvas = to_canvas @ geometry.scale_matrix(step)
-    return cv2.warpPerspective(scene, to_canvas, shape[::-1], flags=cv2.INTER_LANCZOS4,
-                               borderMode=cv2.BORDER_CONSTANT, borderValue=np.nan)
+    warped = cv2.warpPerspective(scene, to_canvas, shape[::-1], flags=cv2.INTER_LANCZOS4,
+                                 borderMode=cv2.BORDER_CONSTANT, borderValue=np.nan)
+    return np.asarray(warped, np.float32)  # scene_flux is float32: no copy
 
 
 def source_trajectory_error(homographies: NDArray[np.float64], source: Any) -> TrajectoryError:

@@ -23,11 +23,10 @@ import json
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import NDArray
-from pydantic import BaseModel
 
 from .errors import PhotonpanoError
 from .hdr import write_flux_tiff
@@ -41,6 +40,10 @@ from .records import Panorama
 from .spec import dump_spec
 from .stages import PhotonSource
 from .watchdog import guarding
+
+if TYPE_CHECKING:
+    from .outputs import Checkpoint, RunFolder
+    from .spec_model import PipelineSpec
 
 __all__ = ["RunResult", "prepare_output", "run_pipeline", "reconstruct"]
 
@@ -63,7 +66,8 @@ class RunResult:
     """What a run produced (the Python API returns it; ``run.json`` holds ``summary``).
 
     Attributes:
-        spec: the validated ``PipelineSpec``.
+        spec: the validated ``PipelineSpec`` (the plain mapping from :func:`photonpano.api.load_run`
+            when the spec's plugins are no longer installed).
         homographies: (T, 3, 3) float64 frame-to-canvas homographies, one per binary
             frame: frame pixel coordinates (x right, y down, pixel centres at integers)
             to panorama canvas pixels (including the super-resolution scale).
@@ -78,7 +82,7 @@ class RunResult:
             evidence for it.
     """
 
-    spec: BaseModel
+    spec: PipelineSpec | dict[str, Any]
     homographies: NDArray[np.float64]
     panorama: NDArray[np.float32]
     summary: dict[str, Any]
@@ -98,7 +102,7 @@ class RunResult:
         show(self)
 
 
-def run_pipeline(spec: BaseModel, out_dir: Path | None, host: PluginHost, *, force: bool = False,
+def run_pipeline(spec: PipelineSpec, out_dir: Path | None, host: PluginHost, *, force: bool = False,
                  resume: bool = False) -> RunResult:
     """Run ``spec`` and, if ``out_dir`` is given, write every output into it.
 
@@ -140,12 +144,12 @@ def run_pipeline(spec: BaseModel, out_dir: Path | None, host: PluginHost, *, for
             return _run_into(spec, folder, host)
 
 
-def _input_paths(spec: BaseModel) -> list[Path]:
+def _input_paths(spec: PipelineSpec) -> list[Path]:
     """The existing files and folders named by the spec's source section."""
     return [value for value in vars(spec.source).values() if isinstance(value, Path) and value.exists()]
 
 
-def _resume_state(folder, spec_text: str):
+def _resume_state(folder: RunFolder, spec_text: str) -> Checkpoint | None:
     """Return the checkpoint to continue from (None: start at level 1); the spec must not change."""
     from .outputs import OutputError
 
@@ -156,7 +160,7 @@ def _resume_state(folder, spec_text: str):
     return folder.last_checkpoint()
 
 
-def _run_into(spec: BaseModel, folder, host: PluginHost) -> RunResult:
+def _run_into(spec: PipelineSpec, folder: RunFolder | None, host: PluginHost) -> RunResult:
     """Run ``spec``, writing into ``folder`` (a :class:`~photonpano.outputs.RunFolder`) unless it is None."""
     from .png import write_mask_png, write_panorama_png
 
@@ -194,8 +198,9 @@ def _run_into(spec: BaseModel, folder, host: PluginHost) -> RunResult:
         folder.write_with("panorama.tif", lambda path: write_flux_tiff(path, pano.flux))
         if spec.outputs.panorama_png:
             folder.write_with("panorama.png", lambda path: write_panorama_png(path, pano.flux))
-        if pano.moving is not None:
-            folder.write_with("moving.png", lambda path: write_mask_png(path, pano.moving))
+        moving = pano.moving
+        if moving is not None:
+            folder.write_with("moving.png", lambda path: write_mask_png(path, moving))
     host.hook.photonpano_panorama_finished(panorama=pano, spec=spec, source=source, out_dir=out_dir)
     if folder is not None:
         folder.adopt_new_files()  # what observers wrote
@@ -231,7 +236,7 @@ def _run_into(spec: BaseModel, folder, host: PluginHost) -> RunResult:
 
         page = report_html(json.loads(json.dumps(summary, default=json_default)), pano.flux, pano.homographies,
                            sigma, trajectory=plot.read_bytes() if plot is not None else None,
-                           title=f"photonpano run: {out_dir.name}")
+                           title=f"photonpano run: {folder.root.name}")
         folder.write_text("report.html", page)
     if folder is not None:
         folder.commit(json.dumps(summary, indent=2, default=json_default))

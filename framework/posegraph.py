@@ -187,8 +187,8 @@ class PairJacobian:
                 rows.append(np.broadcast_to((d * row_block[keep])[:, None, None] + columns[:, None], product.shape))
                 cols.append(np.broadcast_to((d * col_block[keep])[:, None, None] + columns, product.shape))
                 values.append(product)
-        flat = [np.concatenate([x.reshape(-1) for x in part]) for part in (rows, cols, values)]
-        return NormalMatrix(*flat, n), gradient
+        row_index, col_index, entries = (np.concatenate([x.reshape(-1) for x in part]) for part in (rows, cols, values))
+        return NormalMatrix(row_index, col_index, entries, n), gradient
 
 
 class NormalMatrix:
@@ -218,10 +218,12 @@ class NormalMatrix:
         on = rows == cols
         self.diagonal = np.bincount(rows[on], values[on], minlength=self.n)
         self.band = int((cols - rows).max(initial=0))
-        self._ab = self._entries = None
+        self._ab: NDArray[np.float64] | None = None
+        self._entries: tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.float64]] | None = None
         if (self.band + 1) * self.n * 8 <= max_band_bytes:
             index = (self.band + rows - cols) * self.n + cols
-            self._ab = np.bincount(index, values, minlength=(self.band + 1) * self.n).reshape(-1, self.n)
+            sums = np.asarray(np.bincount(index, values, minlength=(self.band + 1) * self.n), np.float64)  # no copy
+            self._ab = sums.reshape(-1, self.n)
         else:
             self._entries = rows, cols, values
 
@@ -238,6 +240,7 @@ class NormalMatrix:
         """``(rows, cols, values)``: (K,) int64, int64 and float64 entries on and above the diagonal."""
         if self._entries is not None:
             return self._entries
+        assert self._ab is not None  # one of the two storages is always set
         k, cols = np.nonzero(self._ab)
         return cols - (self.band - k), cols, self._ab[k, cols]
 

@@ -7,12 +7,13 @@ Every ``run.json`` (``photonpano run``, ``pano``, ``pose``) starts with
 from __future__ import annotations
 
 import platform
-from typing import Any
-
-from pydantic import BaseModel
+from typing import TYPE_CHECKING, Any
 
 from . import __version__
 from .host import PluginHost
+
+if TYPE_CHECKING:
+    from .spec_model import PipelineSpec
 
 __all__ = ["CORE_LIBRARIES", "run_header", "library_versions"]
 
@@ -22,7 +23,7 @@ CORE_LIBRARIES = {"numpy": "numpy", "cv2": "opencv-python-headless", "numba": "n
                   "pluggy": "pluggy", "pydantic": "pydantic"}
 
 
-def run_header(spec: BaseModel, host: PluginHost, source: Any) -> dict[str, Any]:
+def run_header(spec: PipelineSpec, host: PluginHost, source: Any) -> dict[str, Any]:
     """Return the first keys of every ``run.json``: versions, the resolved spec, the capture.
 
     Returns:
@@ -33,7 +34,7 @@ def run_header(spec: BaseModel, host: PluginHost, source: Any) -> dict[str, Any]
             "plugins": host.versions(), "spec": spec.model_dump(mode="json"), "source": source.describe()}
 
 
-def library_versions(spec: BaseModel | None = None) -> dict[str, str]:
+def library_versions(spec: PipelineSpec | None = None) -> dict[str, str]:
     """Return the versions of the core libraries and of the optional backends ``spec`` uses.
 
     Args:

@@ -78,7 +78,7 @@ def panorama_agreement(source, merger, homographies: NDArray[np.float64], panora
 
     ``samples`` groups of ``group_size`` frames spread over the capture are merged with
     the final homographies, the panorama is resampled into each reference frame's grid
-    (:func:`~photonpano.compose.panorama_views`), and both are binned by ``factor``
+    (:func:`~photonpano.views.panorama_views`), and both are binned by ``factor``
     (square-root flux, see :func:`~photonpano.imaging.binned_frame`) and correlated.
 
     Args:
@@ -94,7 +94,7 @@ def panorama_agreement(source, merger, homographies: NDArray[np.float64], panora
         ``{"median", "min", "binning"}``: correlations (1 = identical up to gain and
         offset, about 0 for photon noise).
     """
-    from .compose import panorama_views
+    from .views import panorama_views
 
     n = source.n_frames
     m = min(group_size, n)
@@ -137,8 +137,7 @@ def assess(plan: GroupPlan, levels: list[dict[str, Any]],
     t = THRESHOLDS
     warnings: list[str] = []
     probe = plan.probe
-    binary = probe is not None and probe.photons_per_pixel_per_frame is not None
-    if binary and probe.speed_px_per_frame is None:
+    if probe is not None and probe.photons_per_pixel_per_frame is not None and probe.speed_px_per_frame is None:
         warnings.append("the motion pre-pass found no scene structure in the photons (median correlation "
                         f"{np.median(probe.correlations):.2f} of blocks {probe.block_frames} frames apart)")
     per_group = plan.photons_per_pixel_per_group

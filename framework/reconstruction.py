@@ -9,11 +9,10 @@ Writing the output folder is :mod:`photonpano.pipeline`'s.
 from __future__ import annotations
 
 import time
-from typing import Any, Callable
+from typing import TYPE_CHECKING, Any, Callable
 
 import numpy as np
 from numpy.typing import NDArray
-from pydantic import BaseModel
 
 from .errors import StageError
 from .executor import Executor
@@ -21,10 +20,14 @@ from .records import LevelResult, Panorama
 from .stages import PhotonSource
 from .watchdog import watched
 
+if TYPE_CHECKING:
+    from .schemes import Binned
+    from .spec_model import PipelineSpec
+
 __all__ = ["Stages", "reconstruct"]
 
 
-def _template(mosaic: BaseModel) -> BaseModel:
+def _template(mosaic: Any) -> Any:
     """The mosaic scheme's template compositor config: robust when ``reject_movers`` is on.
 
     A mover that enters the template (its faint ghost along its path) is not caught by
@@ -59,7 +62,7 @@ class Stages:
             too short for even one level.
     """
 
-    def __init__(self, spec: BaseModel, source: PhotonSource) -> None:
+    def __init__(self, spec: PipelineSpec, source: PhotonSource) -> None:
         """Build every stage of ``spec`` for ``source``."""
         from .budget import Budget
         from .budget.grid import in_merged_pixels
@@ -135,7 +138,8 @@ class Stages:
             "start_level": resume.level + 1, "initial": resume.homographies}
         schemes = self.schemes
         if self.budget.register_binning > 1:
-            grid, wrapped = RegistrationGrid(self.source, self.budget.register_binning), {}
+            grid = RegistrationGrid(self.source, self.budget.register_binning)
+            wrapped: dict[int, Binned] = {}
             schemes = [wrapped.setdefault(id(scheme), Binned(scheme, grid)) for scheme in schemes]
         return estimate_motion(self.source, self.resampler, self.merger, self.interpolator, schemes,
                                group_size=self.budget.group_size, executor=executor,
@@ -170,7 +174,7 @@ class Stages:
         return row
 
 
-def reconstruct(spec: BaseModel, source: PhotonSource, *, on_level: Callable[[LevelResult], None] | None = None,
+def reconstruct(spec: PipelineSpec, source: PhotonSource, *, on_level: Callable[[LevelResult], None] | None = None,
                 progress: Any = None, checkpoint: Callable[[Any], None] | None = None, resume: Any = None,
                 report: dict[str, Any] | None = None
                 ) -> tuple[NDArray[np.float64], list[dict[str, Any]], Panorama, dict[str, float]]:

@@ -68,7 +68,8 @@ class MergedFrames:
         ids: optional (G,) int64 content identities from :meth:`new_ids`, given by a
             producer that knows when a frame's content is new (the pairwise scheme's
             ring of merged frames): equal ids mean identical frames, in this process.
-            Without them (None), :meth:`content_key` digests the pixels.
+            Without them (None), :meth:`content_key` digests the pixels. The ids also
+            name the frames for a locator (:meth:`frame_ids`): its pairs are pairs of ids.
     """
 
     flux: NDArray[np.float32]
@@ -87,6 +88,18 @@ class MergedFrames:
         ids = np.concatenate([p.ids for p in parts]) if all(p.ids is not None for p in parts) else None
         flux, frames, images, masks = (np.concatenate([getattr(p, f) for p in parts]) for f in fields)
         return MergedFrames(flux, frames, images, masks, ids=ids)
+
+    def frame_ids(self) -> NDArray[np.int64]:
+        """Return the (G,) int64 names of the frames: :attr:`ids`, or positions ``0..G-1`` without ids.
+
+        A locator's pairs name frames by these (:meth:`~photonpano.locator.Locator.register_pairs`).
+        """
+        return self.ids if self.ids is not None else np.arange(len(self), dtype=np.int64)
+
+    def take(self, index: NDArray[np.int64]) -> MergedFrames:
+        """Return frames ``index`` ((K,) int positions), with their ids when these frames carry ids."""
+        ids = None if self.ids is None else self.ids[index]
+        return MergedFrames(self.flux[index], self.frames[index], self.images[index], self.masks[index], ids=ids)
 
     @staticmethod
     def new_ids(count: int) -> NDArray[np.int64]:

@@ -263,11 +263,12 @@ def summary_html(summary: dict[str, Any], panorama: NDArray, thumbnail_px: int =
     """
     source = summary.get("source", {})
     pano = summary.get("panorama", {"width": panorama.shape[1], "height": panorama.shape[0]})
-    rows = [["frames", f"{source.get('frames', '?')} of {source.get('width', '?')}x{source.get('height', '?')}"],
-            ["panorama", f"{pano.get('width')}x{pano.get('height')} px"],
-            ["levels", len(summary.get("levels") or [])],
-            ["warnings", len(summary.get("warnings") or [])],
-            ["time (s)", f"{sum((summary.get('timings_s') or {}).values()):.1f}"]]
+    rows: list[list[object]] = [
+        ["frames", f"{source.get('frames', '?')} of {source.get('width', '?')}x{source.get('height', '?')}"],
+        ["panorama", f"{pano.get('width')}x{pano.get('height')} px"],
+        ["levels", len(summary.get("levels") or [])],
+        ["warnings", len(summary.get("warnings") or [])],
+        ["time (s)", f"{sum((summary.get('timings_s') or {}).values()):.1f}"]]
     truth = summary.get("ground_truth") or {}
     if "trajectory_rmse_px" in truth:
         rows.append(["RMSE vs truth (px)", f"{truth['trajectory_rmse_px']:.3f}"])

@@ -101,9 +101,10 @@ def load_image(path: Path, what: str = "score") -> NDArray[np.float64]:
     else:
         import cv2
 
-        image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-        if image is None:
+        decoded = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        if decoded is None:
             raise PhotonpanoError(f"{what}: {path} is not an image OpenCV can decode")
+        image = decoded
         if image.ndim == 3:
             image = image[..., 2::-1] if image.shape[2] >= 3 else image  # BGR(A) -> RGB
     image = np.asarray(image)

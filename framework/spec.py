@@ -20,6 +20,7 @@ built at run time from the plugins installed, so third-party plugins validate ex
 from __future__ import annotations
 
 import re
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -47,7 +48,7 @@ from .spec_errors import (
     where,
     without_sections,
 )
-from .spec_model import OutputsConfig, level_schemes, plugin_configs, spec_model
+from .spec_model import OutputsConfig, PipelineSpec, level_schemes, plugin_configs, spec_model
 from .spec_paths import resolve_relative_paths
 from .yaml_guard import control_character, load_yaml
 
@@ -56,7 +57,7 @@ __all__ = ["DEFAULT_PLUGINS", "OutputsConfig", "spec_model", "load_spec", "valid
            "level_schemes", "plugin_configs"]
 
 
-def load_spec(path: Path, host: PluginHost, overrides: list[str] = ()) -> BaseModel:
+def load_spec(path: Path, host: PluginHost, overrides: Sequence[str] = ()) -> PipelineSpec:
     """Read, override and validate a YAML spec file.
 
     Args:
@@ -129,7 +130,7 @@ def read_spec_file(path: Path) -> tuple[Any, Any]:
     return load_yaml(text, str(path))
 
 
-def apply_overrides(data: dict[str, Any], overrides: list[str]) -> dict[str, Any]:
+def apply_overrides(data: dict[str, Any], overrides: Sequence[str]) -> dict[str, Any]:
     """Return a copy of ``data`` with ``"a.b=value"`` overrides applied (value as YAML).
 
     ``stage=key`` selects a plugin and ``stage.field=value`` sets one field.
@@ -168,7 +169,7 @@ def apply_overrides(data: dict[str, Any], overrides: list[str]) -> dict[str, Any
 
 
 def validate_spec(data: dict[str, Any], host: PluginHost, *, origin: str = "spec", node: Any = None,
-                  overridden: list[str] = ()) -> BaseModel:
+                  overridden: Sequence[str] = ()) -> PipelineSpec:
     """Validate a spec mapping against the installed plugins.
 
     Checks unknown or unavailable plugins (with "did you mean" and install hints) and
@@ -234,7 +235,7 @@ def _line_of(problem: str) -> float:
     return int(match.group(1)) if match else float("inf")
 
 
-def check_available(spec: BaseModel) -> None:
+def check_available(spec: PipelineSpec) -> None:
     """Check that every plugin ``spec`` uses (:func:`plugin_configs`) is usable.
 
     Raises:

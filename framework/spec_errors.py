@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import difflib
 import typing
+from collections.abc import Sequence
 from typing import Any
 
 import yaml
@@ -37,7 +38,7 @@ def listing(origin: str, problems: list[str], most: int = 20) -> str:
             + "\n  ".join(problems[:most] + more))
 
 
-def blame_set(overrides: list[str], loc: tuple, data: dict[str, Any]) -> str:
+def blame_set(overrides: Sequence[str], loc: tuple, data: dict[str, Any]) -> str:
     """``"--set 'a.b=v': "`` for the last override that set the field at ``loc`` (or a parent), or ``""``."""
     dotted = ".".join(str(p) for p in strip_tags(loc))
     for item in reversed(list(overrides)):

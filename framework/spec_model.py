@@ -8,7 +8,7 @@ validated spec. Reading YAML and reporting errors is :mod:`photonpano.spec`'s.
 
 from __future__ import annotations
 
-from typing import Annotated, Any, Literal, Union
+from typing import TYPE_CHECKING, Annotated, Any, Literal, Protocol, Union, cast
 
 from pydantic import (
     BaseModel,
@@ -26,7 +26,18 @@ from .spec_compat import move_refine_locator, move_scale
 from .spec_defaults import DEFAULT_PLUGINS, MOSAIC_PLUGINS
 from .stages import STAGES
 
-__all__ = ["OutputsConfig", "spec_model", "level_schemes", "plugin_configs"]
+if TYPE_CHECKING:
+    from .stages import (
+        CompositorConfig,
+        InterpolatorConfig,
+        LocatorConfig,
+        MergerConfig,
+        PoseEstimatorConfig,
+        ResamplerConfig,
+        SourceConfig,
+    )
+
+__all__ = ["OutputsConfig", "PipelineSpec", "MosaicSettings", "spec_model", "level_schemes", "plugin_configs"]
 
 
 class OutputsConfig(BaseModel):
@@ -49,8 +60,46 @@ class OutputsConfig(BaseModel):
     ``photonpano video`` renders them by default (needs the ``video`` extra, PyAV)."""
 
 
+class MosaicSettings(Protocol):
+    """The type of a spec's ``mosaic`` section (the model :func:`_mosaic_model` builds)."""
+
+    locator: LocatorConfig
+    template: CompositorConfig
+    subbatch_px: float
+    reject_movers: float | None
+
+
 class _SpecBase(BaseModel):
+    """The base of every ``PipelineSpec`` model :func:`spec_model` builds.
+
+    The fields are added by :func:`spec_model` (the stage slots depend on the plugins
+    installed); they are declared here for type checkers only, with the base class of
+    each stage's configs.
+    """
+
     model_config = ConfigDict(extra="forbid", frozen=True, use_attribute_docstrings=True)
+
+    if TYPE_CHECKING:
+        version: Literal[1]
+        source: SourceConfig
+        resampler: ResamplerConfig
+        merger: MergerConfig
+        locator: LocatorConfig
+        interpolator: InterpolatorConfig
+        compositor: CompositorConfig
+        pose_estimator: PoseEstimatorConfig | None
+        mosaic: MosaicSettings
+        levels: int
+        group_size: Literal["auto"] | int
+        pair_offsets: list[int]
+        registration_binning: Literal["auto"] | int
+        panorama_subbatch_px: float
+        level_schemes: list[Literal["pairwise", "mosaic"]]
+        uncertainty: bool
+        executor: Literal["serial", "threads", "dask"]
+        workers: int
+        dask_address: str | None
+        outputs: OutputsConfig
 
     @model_validator(mode="before")
     @classmethod
@@ -80,6 +129,10 @@ class _SpecBase(BaseModel):
         return self
 
 
+PipelineSpec = _SpecBase
+"""The type of a validated spec: every model :func:`spec_model` builds subclasses it."""
+
+
 def _group_size(value: Any) -> Any:
     """Accept ``"auto"`` or an integer >= 2 as a group size, with one message for anything else."""
     if value == "auto" or (isinstance(value, int) and not isinstance(value, bool) and value >= 2):
@@ -91,7 +144,7 @@ def _tagged(classes: list[type]) -> Any:
     return Annotated[Union[tuple(classes)], Field(discriminator="plugin")]  # noqa: UP007
 
 
-def spec_model(host: PluginHost) -> type[BaseModel]:
+def spec_model(host: PluginHost) -> type[PipelineSpec]:
     """Build the ``PipelineSpec`` model for the plugins installed in ``host``.
 
     Raises:
@@ -115,47 +168,47 @@ def spec_model(host: PluginHost) -> type[BaseModel]:
     mosaic = _mosaic_model(host)
     slots["mosaic"] = (mosaic, Field(default_factory=mosaic, description="Locator and template of the levels "
                                      "whose scheme is mosaic (see [mosaic](#mosaic))."))
-    model = create_model(
-        "PipelineSpec",
-        __base__=_SpecBase,
-        version=(Literal[1], 1),
+    # the settings as a mapping: mypy reads Annotated[...] values in call arguments as type forms
+    fields: dict[str, Any] = {
+        "version": (Literal[1], 1),
         **slots,
-        levels=(Annotated[int, Field(ge=1, le=8, description="Number of levels (iterations of "
+        "levels": (Annotated[int, Field(ge=1, le=8, description="Number of levels (iterations of "
                                      "re-sample, merge, locate, interpolate).")], 3),
-        group_size=(Annotated[Union[Literal["auto"], Annotated[int, Field(ge=2)]],  # noqa: UP007
+        "group_size": (Annotated[Union[Literal["auto"], Annotated[int, Field(ge=2)]],  # noqa: UP007
                               BeforeValidator(_group_size), Field(
             description="Binary frames per group m (virtual exposure length, in frames); auto: "
             "chosen from the capture's photon rate and apparent speed (photonpano.budget).")], "auto"),
-        pair_offsets=(Annotated[list[Annotated[int, Field(ge=1)]], Field(
+        "pair_offsets": (Annotated[list[Annotated[int, Field(ge=1)]], Field(
             min_length=1, description="Register merged frames g and g+k for each k; [1] is the "
             "paper's chain, more offsets are solved jointly against chaining drift.")], [1, 2, 4, 8, 16, 32, 64]),
-        registration_binning=(Annotated[Union[Literal["auto"], Annotated[int, Field(ge=1, le=8)]],  # noqa: UP007
+        "registration_binning": (Annotated[Union[Literal["auto"], Annotated[int, Field(ge=1, le=8)]],  # noqa: UP007
                                         Field(description="Motion is estimated on merged frames binned k x k "
             "(the photons of k x k sensor pixels summed): 2 gives the locators the half-resolution images they "
             "register anyway for a quarter of the merging work; 1 merges at full resolution (e.g. with "
             "`locator.image_scale: 0.5` for SIFT's former default). auto: 2 where the binned frames keep at "
             "least 100 pixels on their short side, else 1 (photonpano.budget.grid.auto_binning). The panorama is "
             "always composited from the full-resolution photons.")], "auto"),
-        panorama_subbatch_px=(Annotated[float, Field(gt=0, le=2, description="Frames whose canvas "
+        "panorama_subbatch_px": (Annotated[float, Field(gt=0, le=2, description="Frames whose canvas "
                               "warps differ by less than this (canvas pixels) are warped together.")], 0.5),
-        level_schemes=(Annotated[list[Literal["pairwise", "mosaic"]], Field(
+        "level_schemes": (Annotated[list[Literal["pairwise", "mosaic"]], Field(
             min_length=1, description="Scheme of each level, the last repeated for the levels after: pairwise "
             "(the paper's: pairs of merged frames and a pose graph; level 1 is always pairwise) or mosaic (each "
             "merged frame against the panorama of the current estimate: no drift, one registration per "
             "group).")], ["pairwise", "mosaic"]),
-        uncertainty=(bool, Field(True, description="Predict every frame's trajectory error (uncertainty.npy, "
+        "uncertainty": (bool, Field(True, description="Predict every frame's trajectory error (uncertainty.npy, "
                      "run.json `uncertainty`, and `status`) from registrations held out of the fit: the last level "
                      "also registers consecutive merged frames against each other (photonpano.uncertainty).")),
-        executor=(Literal["serial", "threads", "dask"], Field("threads", description="Where independent work "
+        "executor": (Literal["serial", "threads", "dask"], Field("threads", description="Where independent work "
                   "(groups, chunks) runs: the calling thread, a pool of threads, or a Dask cluster (a local one "
                   "of `workers` processes, or the scheduler at `dask_address`; see docs/scaling.md).")),
-        workers=(Annotated[int, Field(ge=0, description="Threads of the executor, or worker processes of a local "
+        "workers": (Annotated[int, Field(ge=0, description="Threads of the executor, or worker processes of a local "
                                       "Dask cluster (0 = one per CPU core).")], 0),
-        dask_address=(Annotated[str | None, Field(
+        "dask_address": (Annotated[str | None, Field(
             pattern=r"^(tcp|tls|inproc|ucx|ws|wss)://\S+$", description="executor dask: address of a running "
             "Dask scheduler, e.g. tcp://10.0.0.5:8786; null starts a local cluster of `workers` processes.")], None),
-        outputs=(OutputsConfig, Field(default_factory=OutputsConfig)),
-    )
+        "outputs": (OutputsConfig, Field(default_factory=OutputsConfig)),
+    }
+    model = create_model("PipelineSpec", __base__=_SpecBase, **fields)
     model.__doc__ = "A photonpano pipeline: one plugin per stage and the method's settings."
     return model
 
@@ -175,25 +228,26 @@ def _mosaic_model(host: PluginHost) -> type[BaseModel]:
         value = {"plugin": value} if isinstance(value, str) else value
         return {"plugin": MOSAIC_PLUGINS["template"], **value} if isinstance(value, dict) else value
 
-    default_locator = locators[MOSAIC_PLUGINS["locator"]]
-    model = create_model(
-        "MosaicSpec", __config__=ConfigDict(extra="forbid", frozen=True),
-        locator=(Annotated[_tagged(list(locators.values())), BeforeValidator(locator), Field(
+    # PluginHost registers under "locator" only subclasses of LocatorConfig (it checks each class's base)
+    default_locator = cast("type[LocatorConfig]", locators[MOSAIC_PLUGINS["locator"]])
+    fields: dict[str, Any] = {  # a mapping: mypy reads Annotated[...] values in call arguments as type forms
+        "locator": (Annotated[_tagged(list(locators.values())), BeforeValidator(locator), Field(
             description="Locator registering each merged frame against the panorama view at its pose.")],
             Field(default_factory=lambda: default_locator(**default_locator.template_defaults))),
-        template=(Annotated[_tagged(list(compositors.values())), BeforeValidator(compositor), Field(
+        "template": (Annotated[_tagged(list(compositors.values())), BeforeValidator(compositor), Field(
             description="Compositor of the panorama registered against, made afresh at each mosaic level "
             "from the photons with that level's starting estimate.")],
             Field(default_factory=compositors[MOSAIC_PLUGINS["template"]])),
-        subbatch_px=(Annotated[float, Field(gt=0, le=2, description="Sub-batch tolerance of that panorama, "
+        "subbatch_px": (Annotated[float, Field(gt=0, le=2, description="Sub-batch tolerance of that panorama, "
                                             "in canvas pixels.")], 0.5),
-        reject_movers=(Annotated[Union[Annotated[float, Field(gt=0)], None], Field(  # noqa: UP007
+        "reject_movers": (Annotated[Union[Annotated[float, Field(gt=0)], None], Field(  # noqa: UP007
             description="Leave out of each registration the pixels of a merged frame that disagree with the "
             "panorama view by more than this many robust standard deviations (a moving object, or its ghost; "
             "e.g. 5); on, it also makes `template` robust (a mover never enters it). null (the default): every "
             "pixel is used. On: a disc crossing the scene 1.20 -> 0.10 px, but a static high-contrast scene "
             "(Hubble field) 0.100 -> 0.116 px (docs/real_scenes.md).")], None),
-    )
+    }
+    model = create_model("MosaicSpec", __config__=ConfigDict(extra="forbid", frozen=True), **fields)
     model.__doc__ = ("The mosaic level scheme registers each merged frame against the panorama of the current "
                      "estimate (frame-to-mosaic alignment): `locator` registers, `template` composites that "
                      "panorama. A locator here starts from its `template_defaults` (opencv-ecc: one pyramid level, "
@@ -203,13 +257,13 @@ def _mosaic_model(host: PluginHost) -> type[BaseModel]:
     return model
 
 
-def level_schemes(spec: BaseModel) -> list[str]:
+def level_schemes(spec: PipelineSpec) -> list[str]:
     """The scheme of each of the spec's levels (``level_schemes``, its last entry repeated)."""
     names = list(spec.level_schemes)
     return [names[min(i, len(names) - 1)] for i in range(spec.levels)]
 
 
-def plugin_configs(spec: BaseModel) -> dict[str, Any]:
+def plugin_configs(spec: PipelineSpec) -> dict[str, Any]:
     """The plugin configs a spec uses: ``{"locator": ..., "mosaic.locator": ..., ...}``.
 
     Every stage slot that is set, and the mosaic scheme's locator and template when a

@@ -49,7 +49,7 @@ def resolve_relative_paths(data: dict[str, Any], host: PluginHost, base_dir: Pat
         section = out.get(stage)
         if not isinstance(section, dict):
             continue
-        config = host.registry(stage).get(section.get("plugin", DEFAULT_PLUGINS.get(stage)))
+        config = host.registry(stage).get(section.get("plugin", DEFAULT_PLUGINS.get(stage, "")))
         if config is None:
             continue
         section = dict(section)

@@ -115,7 +115,7 @@ class PhotonSource(abc.ABC):
     frame_step: int = 1
 
     @abc.abstractmethod
-    def sum_ranges(self, edges: NDArray[np.int64]) -> NDArray[np.uint16]:
+    def sum_ranges(self, edges: NDArray[np.int64]) -> NDArray[np.uint16] | NDArray[np.float32]:
         """Count detections per pixel over consecutive frame ranges.
 
         Args:

@@ -9,7 +9,7 @@ Three renderings, each an H.264 MP4 (PyAV, the ``video`` extra):
   pixel), so the scene stands still and the camera's view moves over it. Canvas pixels
   that fewer than half of an exposure's frames saw are black.
 - ``flythrough``: the panorama as the camera saw it at evenly spaced binary frames (the
-  panorama resampled into each frame's pixel grid, :func:`~photonpano.compose.panorama_views`,
+  panorama resampled into each frame's pixel grid, :func:`~photonpano.views.panorama_views`,
   at the canvas's resolution): a camera window moving over the panorama along the
   estimated path.
 - ``levels``: every merged frame of every level that the run dumped
@@ -165,8 +165,8 @@ def flythrough_frames(panorama: NDArray[np.float32], to_canvas: NDArray[np.float
         (round(H * scale), round(W * scale)) float32 flux, NaN outside the panorama.
     """
     from . import geometry
-    from .compose import panorama_views
     from .records import Panorama
+    from .views import panorama_views
 
     seen = np.isfinite(panorama).astype(np.float32)
     pano = Panorama(flux=panorama, frames=seen, homographies=to_canvas)

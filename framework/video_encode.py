@@ -163,7 +163,8 @@ def encode(path: Path, frames: Iterator[NDArray], count: int, *, fps: float, whi
                 codes = to_codes(flux, white)
                 if size is not None:
                     shrink = size[0] < codes.shape[1]
-                    codes = cv2.resize(codes, size, interpolation=cv2.INTER_AREA if shrink else cv2.INTER_LINEAR)
+                    interpolation = cv2.INTER_AREA if shrink else cv2.INTER_LINEAR
+                    codes = np.asarray(cv2.resize(codes, size, interpolation=interpolation), np.uint8)  # no copy
                 else:
                     codes = np.pad(codes, ((0, info.height - codes.shape[0]), (0, info.width - codes.shape[1])))
                 if labels is not None:

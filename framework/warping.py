@@ -207,10 +207,11 @@ class WarpAccumulator:
             size = (int(x1[b] - x0[b]), int(y1[b] - y0[b]))
             warp, matrix = (cv2.warpAffine, shifted[:2]) if affine[b] else (cv2.warpPerspective, shifted)
             # Two single-channel warps are about 2.5x faster than one two-channel warp.
-            coverage = warp(ones, matrix, size, flags=cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT,
-                            borderValue=0)
-            warped = warp(np.asarray(counts[b], np.float32), matrix, size, flags=cv2.INTER_LINEAR,
-                          borderMode=cv2.BORDER_REPLICATE)
+            # float32 in, float32 out: the asarray calls only type cv2's results (no copy)
+            coverage = np.asarray(warp(ones, matrix, size, flags=cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT,
+                                       borderValue=0), np.float32)
+            warped = np.asarray(warp(np.asarray(counts[b], np.float32), matrix, size, flags=cv2.INTER_LINEAR,
+                                     borderMode=cv2.BORDER_REPLICATE), np.float32)
             warped *= coverage
             self.counts[y0[b]:y1[b], x0[b]:x1[b]] += warped
             coverage *= np.float32(n_frames[b])
@@ -321,8 +322,9 @@ def _merge_two_stage(counts, sizes, to_window, edges, boundaries, starts, stops,
         k0, k1 = np.searchsorted(boundaries, [start, stop])
         total = sum(blocks[k].counts for k in range(k0, k1))
         frames = sum(blocks[k].frames for k in range(k0, k1))
+        assert isinstance(total, np.ndarray) and isinstance(frames, np.ndarray)  # each window spans >= 1 block
         warp = geometry.normalize(to_reference @ inverse)
         flags, size = cv2.INTER_LINEAR, (width, height)
-        out.append((cv2.warpPerspective(total, warp, size, flags=flags, borderValue=0),
-                    cv2.warpPerspective(frames, warp, size, flags=flags, borderValue=0)))
+        out.append((np.asarray(cv2.warpPerspective(total, warp, size, flags=flags, borderValue=0), np.float32),
+                    np.asarray(cv2.warpPerspective(frames, warp, size, flags=flags, borderValue=0), np.float32)))
     return out

@@ -202,8 +202,10 @@ def _watch() -> None:
         message = (f"{stage} ({_plugin_name(plugin, thread)}) in {method} did not return within {limit:g} s "
                    f"(hangs?); {ENV} sets the limit")
         _state["message"] = message
-        with contextlib.suppress(OSError, ValueError):
-            signal.pthread_kill(threading.main_thread().ident, signal.SIGINT)
+        main = threading.main_thread().ident  # None only before the main thread started: never here
+        if main is not None:
+            with contextlib.suppress(OSError, ValueError):
+                signal.pthread_kill(main, signal.SIGINT)
         if not _taken.wait(GRACE_S) and _state["hard_exit"]:
             with contextlib.suppress(Exception):
                 sys.stderr.write(f"error: {message}\n")

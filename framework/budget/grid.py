@@ -304,6 +304,7 @@ class RegistrationGrid:
         self._counted = True
         if self.factor == 1 or self.source.kind != "binary":
             return
+        assert isinstance(self.source, BinnedSource)  # factor > 1
         capture = self.source.source
         block = block_size(np.append(boundaries, capture.n_frames), group_size)
         if block < 4:

@@ -4,7 +4,7 @@ Frame-to-mosaic alignment (Szeliski, "Image Alignment and Stitching", 2006, Sec.
 Sawhney and Kumar, 1999): once an estimate exists, every binary frame is composited onto
 one canvas (the *template*, through a compositor), and each merged frame is registered
 against that panorama resampled into its reference frame's grid
-(:func:`~photonpano.compose.panorama_views`). The template is a low-noise average over
+(:func:`~photonpano.views.panorama_views`). The template is a low-noise average over
 the whole capture, so registrations do not chain (no drift, no pose graph) and each group
 is registered once.
 
@@ -40,13 +40,14 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .. import geometry
-from ..compose import compose, panorama_views
+from ..compose import compose
 from ..errors import StageError
 from ..executor import pure_task
 from ..guards import bridge, plausible
 from ..locator import Locator, LocatorContext
 from ..records import LocateResult, MergedFrames, PairRegistrations, Panorama
 from ..stages import Compositor
+from ..views import panorama_views
 from ..watchdog import watched
 from .base import LevelScheme, LevelTask
 
@@ -128,8 +129,8 @@ class MosaicScheme(LevelScheme):
             found = locator.register_to_template(views, merged, np.repeat(np.eye(3)[None], n, axis=0), once)
             cross = None
             if task.crosscheck and n > 1:  # held out: consecutive merged frames against each other
-                local = np.stack([np.arange(n - 1), np.arange(1, n)], axis=1)
-                cross = locator.register_pairs(merged, local, geometry.normalize(
+                names = merged.frame_ids()
+                cross = locator.register_pairs(merged, np.stack([names[:-1], names[1:]], axis=1), geometry.normalize(
                     np.linalg.inv(current[index[:-1]]) @ current[index[1:]]), once)
             return _WindowResult(found, locator.cache_stats(), merge_s, time.perf_counter() - start,
                                  merged if task.keep_merged else None, cross)
@@ -180,7 +181,7 @@ def mask_disagreement(merged: MergedFrames, views: MergedFrames, sigmas: float =
     Args:
         merged: G merged frames (flux in photons/s, NaN where unobserved).
         views: the panorama resampled into the same G grids
-            (:func:`~photonpano.compose.panorama_views`).
+            (:func:`~photonpano.views.panorama_views`).
         sigmas: threshold in robust standard deviations.
         smooth_px: Gaussian sigma of the smoothing, in pixels.
         margin_px: dilation of the untrusted pixels, in pixels.

@@ -32,8 +32,10 @@ __all__ = ["PairwiseScheme", "locate_keyframes"]
 class _MergedRing:
     """Merged frames of the last ``capacity`` groups, group j in slot ``j % capacity``.
 
-    Each put gives its slots new content ids (:attr:`MergedFrames.ids`), so a locator's
-    per-frame caches know a frame seen by an earlier call without digesting its pixels.
+    Each put gives its slots new content ids (:attr:`MergedFrames.ids`), which name the
+    frames to the locator: a call gets the frames its pairs use, in group order, and
+    pairs of ids, so neither depends on the slots (and a locator's per-frame caches know
+    a frame seen by an earlier call without digesting its pixels).
     """
 
     def __init__(self, capacity: int) -> None:
@@ -54,11 +56,28 @@ class _MergedRing:
     def register(self, locator: Locator, pairs: NDArray[np.int64], initial: NDArray[np.float64],
                  width: int, height: int, context: LocatorContext, check: LevelCheck | None = None
                  ) -> PairRegistrations:
-        """Register group pairs held in the ring (then ``check`` them); implausible results count as failed."""
-        slots = pairs % self.capacity
-        found = locator.register_pairs(self.frames, slots, initial, context)
+        """Register group pairs held in the ring (then ``check`` them); implausible results count as failed.
+
+        The locator gets the frames of the groups ``pairs`` use (group order) and the
+        pairs as their frame ids (:meth:`Locator.register_pairs`).
+
+        Args:
+            locator: the built locator.
+            pairs: (P, 2) int64 group indices, each group among the last ``capacity`` put.
+            initial: (P, 3, 3) float64 starts (b's pixels to a's).
+            width: frame width in pixels.
+            height: frame height in pixels.
+            context: how the locator's call may run.
+            check: the level's check of the registrations, or None.
+
+        Returns:
+            (P) registrations; ``ok`` False where failed, rejected by ``check`` or implausible.
+        """
+        groups = np.unique(pairs)
+        frames = self.frames.take(groups % self.capacity)
+        found = locator.register_pairs(frames, frames.ids[np.searchsorted(groups, pairs)], initial, context)
         if check is not None:
-            found = check(self.frames, slots, initial, found)
+            found = check(frames, np.searchsorted(groups, pairs), initial, found)
         return found.with_ok(found.ok & plausible(found.homographies, width, height))
 
 

@@ -144,6 +144,29 @@ class LocatorContract(PluginContract):
         loop = result.homographies[0] @ result.homographies[1]
         assert corner_error_px(loop, np.eye(3), w, h) <= 2 * self.tolerance_px
 
+    def test_pairs_name_frames_by_id(self, built: Any) -> None:
+        """Pairs name frames by ``merged.ids``: another order, and a frame no pair names, change nothing.
+
+        The frames come as (b, a frame rolled by a quarter, a) with ids (42, 7, 1000) and
+        the pair as ids ``(1000, 42)``: a locator that reads pairs as positions fails here.
+        A pair naming an id that is not in the call is refused in one line naming the locator.
+        """
+        from photonpano.locator import LocatorContext
+
+        truth = self.truth()
+        pair = synthetic_pair(truth, *self.size)
+        plain = self._run(built, pair, [[0, 1]], [self.start(truth)])
+        fields = ("flux", "frames", "images", "masks")
+        mixed = MergedFrames(*(np.stack([getattr(pair, f)[1], np.roll(getattr(pair, f)[0], self.size[1] // 4, 1),
+                                         getattr(pair, f)[0]]) for f in fields), ids=np.array([42, 7, 1000]))
+        once = LocatorContext(reuses_frames=False)  # no cache: the frames are found by id, not remembered
+        named = built.register_pairs(mixed, np.array([[1000, 42]]), self.start(truth)[None], once)
+        assert named.ok[0] == plain.ok[0], "the pair named by ids registered differently from the same frames"
+        np.testing.assert_allclose(named.homographies, plain.homographies, atol=1e-6)
+        with pytest.raises(ValueError, match=type(built).__name__) as raised:
+            built.register_pairs(mixed, np.array([[1000, 1]]), np.eye(3)[None])
+        assert "\n" not in str(raised.value) and "(1000, 1)" in str(raised.value)
+
     def test_no_pairs_gives_empty_typed_result(self, built: Any) -> None:
         """Zero pairs give zero-length arrays of the documented shapes."""
         merged = synthetic_pair(self.truth(), *self.size)

@@ -255,7 +255,7 @@ class ColourPanorama(Compositor):
         without frame indices).
         """
         self._flux.feed_ranges(edges, counts[0], homographies)
-        self._colour.feed(counts[1], np.diff(np.asarray(edges, np.int64)), homographies)
+        self._colour.feed(counts[1], np.diff(np.asarray(edges, np.int64)).astype(np.int64), homographies)
 
     def fork(self) -> ColourPanorama | None:
         """An empty copy on the same canvas, if both compositors fork."""

@@ -140,15 +140,17 @@ class Drizzle(Compositor):
             return super().feed_ranges(edges, counts, homographies)
         edges = np.asarray(edges, np.int64)
         which = exposure_index(edges, len(self._canvas.homographies), self.exposures)
+        first = self._acc
         try:
             for k in np.unique(which):
                 pick = which == k
-                if self._accs[k] is None:
-                    self._accs[k] = np.zeros_like(self._accs[0])
-                self._acc = self._accs[k]
+                acc = self._accs[k]
+                if acc is None:
+                    acc = self._accs[k] = np.zeros_like(first)
+                self._acc = acc
                 self.feed(counts[pick], np.diff(edges)[pick], homographies[pick])
         finally:
-            self._acc = self._accs[0]
+            self._acc = first
 
     def fork(self) -> Drizzle:
         """An empty copy on the same canvas (see :meth:`Compositor.fork`)."""
@@ -158,12 +160,14 @@ class Drizzle(Compositor):
 
     def join(self, other: Compositor) -> None:
         """Add a fork's sums (see :meth:`Compositor.join`)."""
+        if not isinstance(other, Drizzle):
+            raise TypeError(f"Drizzle.join: expected a fork of this compositor, got {type(other).__name__}")
         for k, theirs in enumerate(other._accs):
-            if theirs is not None and self._accs[k] is None:
+            mine = self._accs[k]
+            if mine is None:
                 self._accs[k] = theirs
             elif theirs is not None:
-                self._accs[k] += theirs
-        self._acc = self._accs[0]
+                mine += theirs
 
     def finish(self) -> Panorama:
         """The flux MLE per canvas pixel (see :meth:`Compositor.finish`); robust: the exposures that agree."""

@@ -5,7 +5,9 @@ Not a plugin (it registers nothing). Locators built on it:
 - :class:`CachingLocator` keeps per-merged-frame data (features, prepared images) in a
   cache keyed by the *content* of the frame, so a frame registered by several calls of
   :meth:`~photonpano.stages.Locator.register_pairs` (the framework calls it once per
-  window of groups, and a frame belongs to the pairs of a few consecutive calls) or a
+  window of groups, and a frame belongs to the pairs of a few consecutive calls; its
+  pairs name frames by id and the locator gets the named frames, so a frame's position
+  differs from call to call and the key is its content id, ``merged.ids``) or a
   frame that did not change between levels is described once. :meth:`CachingLocator.cache_stats` reports
   hits and misses.
 - :class:`DirectLocator` adds the direct recipe: prepare each frame once, register each pair
@@ -271,7 +273,9 @@ class FeatureLocator(CachingLocator):
                         context: LocatorContext) -> PairRegistrations:
         """Register each pair (see :meth:`Locator.register_pairs`); ``initial`` is unused.
 
-        Each frame is described once per distinct content, whichever call needs it.
+        ``pairs`` are positions in ``merged``, the frames the call's ids named
+        (:meth:`Locator._register_pairs`). Each frame is described once per distinct
+        content, whichever call needs it and wherever it sits in that call's ``merged``.
         """
         self.begin(merged, pairs, context)
         try:
@@ -331,7 +335,11 @@ class DirectLocator(CachingLocator):
 
     def _register_pairs(self, merged: MergedFrames, pairs: NDArray[np.int64], initial: NDArray[np.float64],
                         context: LocatorContext) -> PairRegistrations:
-        """Register each pair starting from ``initial`` (see :meth:`Locator.register_pairs`)."""
+        """Register each pair starting from ``initial`` (see :meth:`Locator.register_pairs`).
+
+        ``pairs`` are positions in ``merged``, the frames the call's ids named
+        (:meth:`Locator._register_pairs`); each frame is prepared once per distinct content.
+        """
         self.begin(merged, pairs, context)
         try:
             def frame(i: int) -> Any:

@@ -49,6 +49,8 @@ class MeanMerger(WarpMerger):
     detections per frame.
     """
 
+    config: MeanConfig  # built by MeanConfig.build
+
     def tone(self, linear: np.ndarray) -> np.ndarray:
         """Tone-map (H, W) linear values (NaN = unobserved) to a uint8 image."""
         from photonpano.photons import tone_map

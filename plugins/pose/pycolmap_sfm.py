@@ -28,6 +28,7 @@ from photonpano.stages import PhotonSource, PoseEstimator, PoseEstimatorConfig
 from pydantic import Field, field_validator
 
 from ._colmap import (
+    Landmarks,
     camera_intrinsics,
     localise,
     map_exposures,
@@ -155,7 +156,8 @@ class PycolmapSfM(PoseEstimator):
         homographies = np.repeat(np.eye(3)[None], n, axis=0)
         levels: list[dict[str, Any]] = []
         exposures: list[tuple[NDArray[np.int64], NDArray[np.float64]]] = []
-        rec = landmarks = None
+        rec: Any = None  # a pycolmap.Reconstruction (pycolmap is untyped)
+        landmarks: Landmarks | None = None
         final = None  # the model whose points are written: level 1's or the last bundle adjustment's
         for level in range(1, cfg.levels + 1):
             t0 = time.perf_counter()
@@ -173,6 +175,7 @@ class PycolmapSfM(PoseEstimator):
                 poses, inliers, final = model_poses(rec, groups.reference), None, rec
                 current = rec  # the model whose camera the next level uses
             else:
+                assert landmarks is not None  # set at level 1
                 poses, inliers = localise(
                     cfg, merged.images, groups.reference, current, landmarks, progress, level
                 )
@@ -206,8 +209,10 @@ class PycolmapSfM(PoseEstimator):
                         "level-1 virtual exposures registered (too dark, too little texture or "
                         "motion, or wrong intrinsics)",
                     )
+                assert self._database is not None  # None only without a model, and one registered >= 3
                 landmarks = model_landmarks(rec, self._database)
             else:
+                assert inliers is not None  # localise's, at every level after the first
                 found = inliers[np.isfinite(inliers)]
                 row.update(median_inliers=float(np.median(found)) if len(found) else 0.0)
                 if registered < 3:  # keep the previous level's poses
@@ -224,6 +229,7 @@ class PycolmapSfM(PoseEstimator):
                 if cfg.bundle_adjust:
                     final = refined
                     if cfg.relocalise:  # the next level registers against this sharper model
+                        assert self._database is not None  # kept with the level-1 model
                         landmarks = model_landmarks(refined, self._database)
                     if self._calibrate:  # its bundle adjustment refined the camera
                         current, used = refined, camera_intrinsics(refined)
@@ -237,9 +243,11 @@ class PycolmapSfM(PoseEstimator):
             exposures.append((groups.reference.copy(), poses))
             every = interpolate_poses(groups.reference, poses, n)
             reference = poses[np.flatnonzero(np.isfinite(poses[:, 0, 0]))[registered // 2]]
+            assert landmarks is not None  # set at level 1
             normal, distance = dominant_plane(landmarks.xyz, reference)
             homographies = plane_homographies(every, used.matrix(), reference, normal, distance)
         frames, poses = exposures[-1]
+        assert final is not None  # level 1's model at least (or it raised)
         model_dir = work_dir / "model"
         model_dir.mkdir(exist_ok=True)
         final.write(str(model_dir))

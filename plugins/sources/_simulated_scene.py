@@ -125,7 +125,7 @@ def load_scene(photo: Path, scene_width: int, colour: bool = False) -> NDArray[n
     if colour:
         return np.ascontiguousarray(cv2.resize(linear, (scene_width, height), interpolation=cv2.INTER_AREA)[..., ::-1])
     lum = cv2.transform(linear, np.array([[0.0722, 0.7152, 0.2126]], dtype=np.float32))  # BGR order
-    return cv2.resize(lum, (scene_width, height), interpolation=cv2.INTER_AREA)
+    return np.asarray(cv2.resize(lum, (scene_width, height), interpolation=cv2.INTER_AREA), np.float32)  # no copy
 
 
 def lamp_mask(shape: tuple[int, int], region: str, ramp_px: float = LAMP_RAMP_PX) -> NDArray[np.float32]:

@@ -19,6 +19,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from importlib import resources
 from pathlib import Path
 from typing import Literal
@@ -85,7 +86,7 @@ class SwissSpadCorrections(ColourSourceConfig):
 
 
 
-def _resolve(path: Path | str | None, kind: Literal["inpaint_mask", "cfa"]) -> Path | None:
+def _resolve(path: Literal["colorspad"] | Path | None, kind: Literal["inpaint_mask", "cfa"]) -> Path | None:
     if path == "colorspad":
         return bundled_sensor_file(kind)
     return path
@@ -105,7 +106,7 @@ def load_mask(path: Path, shape: tuple[int, int]) -> NDArray[np.bool_]:
         SourceError: unreadable file, or a mask smaller than ``shape``.
     """
     data = _load_2d(path, "inpaint_mask")
-    mask = data.any(axis=-1) if data.ndim == 3 else data.astype(bool)
+    mask = np.asarray(data.any(axis=-1)) if data.ndim == 3 else data.astype(bool)
     return _crop(mask, shape, path, "inpaint_mask")
 
 
@@ -170,7 +171,7 @@ def _crop(arr: NDArray, shape: tuple[int, int], path: Path, what: str) -> NDArra
     return np.ascontiguousarray(arr[:shape[0], :shape[1]])
 
 
-def transform_shape(shape: tuple[int, int], transforms: list[str]) -> tuple[int, int]:
+def transform_shape(shape: tuple[int, int], transforms: Sequence[str]) -> tuple[int, int]:
     """Return ``(H, W)`` after applying ``transforms`` to frames of ``shape``."""
     h, w = shape
     for t in transforms:
@@ -179,7 +180,7 @@ def transform_shape(shape: tuple[int, int], transforms: list[str]) -> tuple[int,
     return h, w
 
 
-def _apply_transforms(arr: NDArray, transforms: list[str]) -> NDArray:
+def _apply_transforms(arr: NDArray, transforms: Sequence[str]) -> NDArray:
     """Rotate/flip the last two axes of ``arr`` (rows, columns)."""
     for t in transforms:
         if t == "rot90":
@@ -195,7 +196,7 @@ def _apply_transforms(arr: NDArray, transforms: list[str]) -> NDArray:
     return np.ascontiguousarray(arr)
 
 
-def transform_matrix(shape: tuple[int, int], transforms: list[str]) -> NDArray[np.float64]:
+def transform_matrix(shape: tuple[int, int], transforms: Sequence[str]) -> NDArray[np.float64]:
     """Return the (3, 3) float64 map from corrected pixel coordinates to transformed ones.
 
     Args:

@@ -12,7 +12,7 @@ corrections of :mod:`photonpano.plugins.sources._swissspad_sensor` (``fix``, ``i
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
 from numpy.typing import NDArray
@@ -22,6 +22,10 @@ from photonpano.plugins.sources._capture_config import BinaryCaptureConfig
 from photonpano.plugins.sources._swissspad_sensor import SwissSpadCorrections
 from photonpano.stages import PhotonSource, SourceConfig
 from photonpano.streaming import ReopenOnPickle
+
+if TYPE_CHECKING:
+    from photonpano.plugins.sources.zarr_cube import ZarrFrames
+    from photonpano.streaming import FrameFiles
 
 
 class NpyCubeConfig(SwissSpadCorrections, BinaryCaptureConfig):
@@ -57,6 +61,7 @@ class NpyCube(ReopenOnPickle, PhotonSource):
 
     label = "npy-cube"
     """The plugin key, as messages name the source."""
+    frames: FrameFiles | ZarrFrames  # ZarrFrames: the zarr-cube source, which subclasses this one
 
     def __init__(self, config: NpyCubeConfig) -> None:
         """Open and check the cube.
@@ -77,6 +82,7 @@ class NpyCube(ReopenOnPickle, PhotonSource):
         from photonpano.streaming import FrameFiles, FrameSegment
 
         frame_bytes = int(np.prod(cube.shape[1:])) * cube.dtype.itemsize
+        assert isinstance(cube, np.memmap)  # loaded with mmap_mode="r"
         self.frames = FrameFiles([FrameSegment(path, int(cube.offset) + config.start * frame_bytes, self.n_frames)],
                                  cube.shape[1:], cube.dtype, chunk_bytes=int(config.chunk_mb * 2**20))
 

@@ -63,6 +63,7 @@ def header_and_data(path: Path) -> tuple[Path, Path]:
         SourceError: if either file is missing.
     """
     suffix = path.suffix.lower()
+    header: Path | None
     if suffix in (".cih", ".cihx"):
         header, mraw = path, path.with_suffix(".mraw")
     else:

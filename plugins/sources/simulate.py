@@ -213,7 +213,7 @@ class SimulatedCapture(PhotonSource):
         to_scene = camera_path(config, scene.shape[:2]) @ scale_matrix(pitch)  # frame pixels -> scene pixels
         self.ground_truth = geometry.normalize(scale_matrix(1.0 / pitch) @ to_scene)
         self.lamp = lamp_factors(config)
-        level = np.float32(1)  # the flickering lamp's mean level over the capture
+        level: np.float32 | NDArray[np.float32] = np.float32(1)  # the flickering lamp's mean level over the capture
         if config.flicker_hz > 0:
             level = 1 + lamp_mask(scene.shape, config.flicker_region) * np.float32(self.lamp.mean() - 1)
             self.scene_flux = (config.flux * (scene * level) / self.exposure_s).astype(np.float32)
@@ -264,7 +264,7 @@ class SimulatedCapture(PhotonSource):
         # the cube file is written under a temporary name and renamed when complete
         with atomic_path(config.cube_path) if config.cube_path is not None else nullcontext() as tmp:
             if tmp is not None:
-                self.cube = np.lib.format.open_memmap(tmp, mode="w+", dtype=np.uint8, shape=shape)
+                self.cube: NDArray[np.uint8] = np.lib.format.open_memmap(tmp, mode="w+", dtype=np.uint8, shape=shape)
             else:
                 self.cube = np.empty(shape, dtype=np.uint8)
             self._render(scene, to_scene)
@@ -342,10 +342,12 @@ class SimulatedCapture(PhotonSource):
 
         pick = None
         if scene.ndim == 3:  # colour filters: each pixel's channel (0 luminance, 1-3 R, G, B)
+            # a colour scene is simulated through the CFA of its corrector (both made in __init__)
+            assert self.corrector is not None and self.corrector.cfa is not None
             pick = (self.corrector.cfa.astype(np.intp) + 1)[..., None]
 
         def intensity(t: int) -> NDArray[np.float32]:
-            image = cv2.warpPerspective(scene, to_scene[t], size, flags=flags)
+            image = np.asarray(cv2.warpPerspective(scene, to_scene[t], size, flags=flags), np.float32)  # no copy
             if pick is not None:
                 image = np.take_along_axis(image, pick, axis=2)[..., 0]
             if split:

@@ -29,7 +29,6 @@ from __future__ import annotations
 
 import warnings
 from pathlib import Path
-from types import SimpleNamespace
 from typing import Annotated, Any, Literal
 
 import numpy as np
@@ -114,7 +113,7 @@ class Spad512(ReopenOnPickle, PhotonSource):
                 masks, or a frame range outside the capture; messages name the file and
                 the size expected.
         """
-        from photonpano.plugins.sources._swissspad_sensor import SensorCorrector
+        from photonpano.plugins.sources._swissspad_sensor import SensorCorrector, SwissSpadCorrections
         from photonpano.streaming import FrameFiles, FrameSegment
 
         self.config = config
@@ -166,8 +165,9 @@ class Spad512(ReopenOnPickle, PhotonSource):
         start, stop = config.frame_range(self.frames.n_frames, label, "whole frames")
         self.offset = start
         self.n_frames = stop - start
-        corrections = SimpleNamespace(fix="none", inpaint_mask=config.inpaint_mask, cfa=None,
-                                      transforms=list(config.transforms))
+        # the corrections this source applies, as the settings SensorCorrector reads (not validated again)
+        corrections = SwissSpadCorrections.model_construct(fix="none", inpaint_mask=config.inpaint_mask, cfa=None,
+                                                           transforms=list(config.transforms))
         self.corrector = SensorCorrector(corrections, (config.height, config.width), None, f"spad512({label})")
         self.height, self.width = self.corrector.shape
         self.frame_rate_hz = config.frame_rate_hz

@@ -117,6 +117,7 @@ def _open_cube(path: Path) -> tuple[tuple[int, ...], int]:
         raise SourceError(f"{what}: {path} is stored in Fortran order; {expected} in C order")
     if cube.shape[0] == 0:
         raise SourceError(f"{what}: {path} holds no frame; {expected}")
+    assert isinstance(cube, np.memmap)  # loaded with mmap_mode="r"
     return tuple(int(d) for d in cube.shape), int(cube.offset)
 
 

@@ -299,6 +299,7 @@ class VideoSource(ReopenOnPickle, IntensitySource):
             else:
                 raise SourceError(f"source (video): no frame rate for {path}: set frame_rate_hz or put the "
                                   "recording's .cih file next to it")
+        assert rate is not None  # each branch above sets it or raises
         self.frame_rate_hz, self.frame_rate_source = float(rate), how
         self.exposure_s = config.exposure_s or 1.0 / self.frame_rate_hz
         start, stop = config.frame_range(self.frames.n_frames, path)

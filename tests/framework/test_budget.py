@@ -103,7 +103,9 @@ class _Checked:
         self.locator, self.level = locator, PairCheck(binning).start_level(SerialExecutor())
 
     def register_pairs(self, merged, pairs, initial):
-        return self.level(merged, pairs, initial, self.locator.register_pairs(merged, pairs, initial))
+        """Pairs of positions in ``merged``: the locator gets them as frame ids, the check as positions."""
+        named = merged.frame_ids()[pairs]
+        return self.level(merged, pairs, initial, self.locator.register_pairs(merged, named, initial))
 
 
 def test_check_rescues_failed_pairs_and_rejects_wrong_ones():

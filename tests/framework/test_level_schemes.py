@@ -154,3 +154,66 @@ def test_merged_frames_content_keys_follow_ids_or_pixels():
     both = MergedFrames.concat(ring.frames, ring.frames)
     assert both.ids is not None and both.content_key(5) == ring.frames.content_key(1)
     assert MergedFrames.concat(ring.frames, plain).ids is None
+
+
+def test_pairwise_calls_name_frames_by_id_whatever_the_ring_holds():
+    """Each locator call gets the frames its pairs name (distinct ids, group order) and pairs of those ids.
+
+    100 groups stream through a ring of 2 x 8 + 3 slots, so slots are reused: a locator
+    that read pairs as slots would see other groups. Every frame carries its group
+    index in its flux, so each call can check that pair (g - k, g) got groups g - k and g.
+    """
+    from photonpano.locator import Locator
+    from photonpano.records import MergedFrames, PairRegistrations
+    from photonpano.schemes.pairwise import locate_keyframes
+
+    calls = []
+
+    class Recording(Locator):
+        def _register_pairs(self, merged, pairs, initial, context):
+            calls.append((merged.ids.copy(), merged.flux[:, 0, 0].astype(int), pairs.copy()))
+            n = len(pairs)
+            return PairRegistrations(np.repeat(np.eye(3)[None], n, 0), np.zeros(n, np.int64),
+                                     np.full(n, 50, np.int64), np.ones(n, bool))
+
+    def merge(index):
+        flux = np.repeat(index.astype(np.float32)[:, None, None], 4 * 6, 1).reshape(-1, 4, 6)
+        return MergedFrames(flux, np.ones_like(flux), np.zeros(flux.shape, np.uint8), np.ones(flux.shape, bool))
+
+    g = 100
+    keyframes, pair_index, found = locate_keyframes(Recording(), merge, np.repeat(np.eye(3)[None], g, 0), (1, 3),
+                                                    6, 4, window=8)
+    assert len(calls) == g // 8 + 2 and found.ok.all()
+    seen = []
+    for ids, groups, pairs in calls:
+        assert len(set(ids)) == len(ids) and (np.diff(groups) > 0).all()  # each frame once, in group order
+        assert sorted(set(pairs.ravel())) == list(range(len(ids)))  # only the frames the pairs name
+        steps = groups[pairs[:, 1]] - groups[pairs[:, 0]]
+        assert set(steps) <= {1, 3}
+        seen.extend(map(tuple, groups[pairs]))
+    assert sorted(seen) == sorted(map(tuple, pair_index))
+
+
+def test_register_pairs_resolves_ids_and_refuses_what_it_cannot():
+    """Ids resolve to positions among the named frames; duplicates and absent ids fail in one line."""
+    from photonpano.locator import named_frames
+    from photonpano.records import MergedFrames
+
+    flux = np.arange(4, dtype=np.float32)[:, None, None] * np.ones((4, 2, 3), np.float32)
+    merged = MergedFrames(flux, np.ones_like(flux), np.zeros(flux.shape, np.uint8), np.ones(flux.shape, bool),
+                          ids=np.array([30, 10, 40, 20]))
+    frames, positions = named_frames("Loc.register_pairs", merged, np.array([[40, 10], [10, 40]]))
+    assert list(frames.ids) == [10, 40] and frames.flux[:, 0, 0].tolist() == [1, 2]
+    assert positions.tolist() == [[1, 0], [0, 1]] and positions.dtype == np.int64
+    same, at = named_frames("Loc.register_pairs", merged, np.array([[30, 10], [40, 20]]))
+    assert same is merged and at.tolist() == [[0, 1], [2, 3]]  # every frame named: no copy
+    plain = MergedFrames(flux, flux, np.zeros(flux.shape, np.uint8), np.ones(flux.shape, bool))
+    assert named_frames("Loc", plain, np.array([[3, 0]]))[1].tolist() == [[1, 0]]  # no ids: positions
+    twice = MergedFrames(flux, flux, np.zeros(flux.shape, np.uint8), np.ones(flux.shape, bool),
+                         ids=np.array([1, 2, 2, 3]))
+    for frames_, pairs, message in ((merged, [[40, 11]], r"Loc\.register_pairs: pair 0 \(40, 11\) names a frame"),
+                                    (twice, [[1, 3]], "distinct ids, frame id 2 repeats"),
+                                    (merged, [[1.0, 2.0]], "integer frame ids")):
+        with pytest.raises(ValueError, match=message) as raised:
+            named_frames("Loc.register_pairs", frames_, np.array(pairs))
+        assert "\n" not in str(raised.value)

@@ -16,7 +16,7 @@ from photonpano.plugins.resamplers.midpoint import MidpointConfig
 from photonpano.plugins.sources.npy_cube import NpyCubeConfig
 from photonpano.plugins.sources.simulate import SimulateConfig
 from photonpano.records import Panorama
-from photonpano.stages import CompositorConfig, Locator, LocatorConfig, PairRegistrations
+from photonpano.stages import CompositorConfig, Locator, LocatorConfig, LocatorContext, PairRegistrations
 from photonpano.testing import (
     CompositorContract,
     InterpolatorContract,
@@ -100,6 +100,26 @@ def test_the_kit_catches_a_swapped_direction():
     check = _SwappedContract()
     with pytest.raises(AssertionError, match="direction swapped"):
         check.test_recovers_a_known_warp_in_the_right_direction(_SwappedConfig().build())
+
+
+class _PositionsLocator(Locator):
+    """A locator of the old contract: it reads pairs as positions in ``merged`` (ring slots), bypassing the ids."""
+
+    def register_pairs(self, merged, pairs, initial, context=None):
+        from photonpano.plugins.locators.opencv_sift import OpenCVSiftConfig
+
+        return OpenCVSiftConfig().build()._register_pairs(merged, np.asarray(pairs, np.int64), initial,
+                                                          LocatorContext())
+
+    def _register_pairs(self, merged, pairs, initial, context):
+        raise AssertionError("not reached: register_pairs is overridden")
+
+
+def test_the_kit_catches_pairs_read_as_positions():
+    """A locator that indexes ``merged`` by the pairs' values (not their frame ids) fails the kit's id check."""
+    check = _SwappedContract()
+    with pytest.raises(IndexError):  # ids 1000 and 42 read as positions among 3 frames
+        check.test_pairs_name_frames_by_id(_PositionsLocator())
 
 
 def test_the_kit_catches_a_half_pixel_centre_convention():

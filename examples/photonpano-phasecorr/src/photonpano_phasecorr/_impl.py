@@ -115,7 +115,11 @@ class PhaseCorrLocator(Locator):
 
     def _register_pairs(self, merged: MergedFrames, pairs: NDArray[np.int64], initial: NDArray[np.float64],
                         context: LocatorContext) -> PairRegistrations:
-        """Register each pair (see :meth:`photonpano.stages.Locator.register_pairs`, which validated them)."""
+        """Register each pair (see :meth:`photonpano.stages.Locator.register_pairs`, which validated them).
+
+        The public method resolved the pairs' frame ids: ``merged`` holds the frames they
+        name and ``pairs`` are (P, 2) int64 positions in it.
+        """
         prepared: dict[int, NDArray[np.float64]] = {}
 
         def image(i: int) -> NDArray[np.float64]:
