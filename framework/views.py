@@ -36,8 +36,8 @@ def panorama_views(panorama: Panorama, to_canvas: NDArray[np.float64], height: i
 
     from .photons import tone_map
 
-    trusted = (panorama.frames >= min_frames) & np.isfinite(panorama.flux)
-    trusted = cv2.erode(trusted.astype(np.uint8), np.ones((3, 3), np.uint8))
+    seen = (panorama.frames >= min_frames) & np.isfinite(panorama.flux)
+    trusted = cv2.erode(seen.astype(np.uint8), np.ones((3, 3), np.uint8))
     flux = np.where(trusted > 0, panorama.flux, 0).astype(np.float32)
     g = len(to_canvas)
     shape = (g, height, width)
