@@ -212,12 +212,9 @@ class BilinearCompositor(Compositor):
         """Add a fork's sums (see :meth:`Compositor.join`)."""
         if not isinstance(other, BilinearCompositor):
             raise TypeError(f"BilinearCompositor.join: expected a fork of this compositor, got {type(other).__name__}")
-        for k, theirs in enumerate(other._accs):
-            mine = self._accs[k]
-            if mine is None:
-                self._accs[k] = theirs
-            elif theirs is not None:
-                mine.merge(theirs)
+        from .robust_merge import join_exposures
+
+        join_exposures(self._accs, other._accs, lambda mine, theirs: mine.merge(theirs))
 
     def finish(self) -> Panorama:
         """The flux MLE per canvas pixel (see :meth:`Compositor.finish`); robust: the exposures that agree."""

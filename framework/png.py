@@ -28,19 +28,12 @@ def write_panorama_png(path: Path, flux: NDArray[np.floating]) -> None:
         ValueError: if ``flux`` is not a non-empty 2-D array.
         PhotonpanoError: if the file cannot be written.
     """
-    import cv2
-
     flux = np.asarray(flux)
     if flux.ndim != 2 or flux.size == 0:
         raise ValueError(f"write_panorama_png: expected a non-empty (H, W) flux image, got shape {flux.shape}")
     grey = tone_map(flux, bits=16)
     alpha = np.where(np.isfinite(flux), np.uint16(65535), np.uint16(0))
-    try:
-        ok = cv2.imwrite(str(path), np.dstack([grey, grey, grey, alpha]), [cv2.IMWRITE_PNG_COMPRESSION, 1])
-    except cv2.error as exc:
-        raise PhotonpanoError(f"cannot write {path}: {exc}") from None
-    if not ok:
-        raise PhotonpanoError(f"cannot write {path}")
+    _imwrite(path, np.dstack([grey, grey, grey, alpha]), 1)
 
 
 def write_mask_png(path: Path, mask: NDArray[np.bool_]) -> None:
@@ -54,13 +47,18 @@ def write_mask_png(path: Path, mask: NDArray[np.bool_]) -> None:
         ValueError: if ``mask`` is not a non-empty 2-D array.
         PhotonpanoError: if the file cannot be written.
     """
-    import cv2
-
     mask = np.asarray(mask)
     if mask.ndim != 2 or mask.size == 0:
         raise ValueError(f"write_mask_png: expected a non-empty (H, W) mask, got shape {mask.shape}")
+    _imwrite(path, np.where(mask, np.uint8(255), np.uint8(0)), 9)
+
+
+def _imwrite(path: Path, image: NDArray, compression: int) -> None:
+    """Write ``image`` as a PNG at ``path`` (zlib level ``compression``); PhotonpanoError on failure."""
+    import cv2
+
     try:
-        ok = cv2.imwrite(str(path), np.where(mask, np.uint8(255), np.uint8(0)), [cv2.IMWRITE_PNG_COMPRESSION, 9])
+        ok = cv2.imwrite(str(path), image, [cv2.IMWRITE_PNG_COMPRESSION, compression])
     except cv2.error as exc:
         raise PhotonpanoError(f"cannot write {path}: {exc}") from None
     if not ok:

@@ -35,10 +35,13 @@ What moves for more than half the frames that see a pixel is the static scene th
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from typing import Any
+
 import numpy as np
 from numpy.typing import NDArray
 
-__all__ = ["DEFAULT_EXPOSURES", "exposure_breaks", "exposure_index", "robust_combine"]
+__all__ = ["DEFAULT_EXPOSURES", "exposure_breaks", "exposure_index", "join_exposures", "robust_combine"]
 
 DEFAULT_EXPOSURES = 16
 """Virtual exposures a robust compositor keeps apart (20 000 frames: 1 250 frames each;
@@ -78,6 +81,21 @@ def exposure_breaks(total_frames: int, exposures: int, frame_step: int = 1) -> N
     at = -(-(k * int(total_frames)) // int(exposures))
     at = -(-at // step) * step
     return np.unique(at[(at > 0) & (at < total_frames)])
+
+
+def join_exposures(mine: list[Any], theirs: list[Any], add: Callable[[Any, Any], None]) -> None:
+    """Add a compositor fork's per-exposure sums into ``mine`` (in place).
+
+    Args:
+        mine: one accumulator per exposure, None where the exposure got no frames.
+        theirs: the fork's, alike.
+        add: ``add(a, b)`` adds accumulator ``b`` into ``a`` in place.
+    """
+    for k, other in enumerate(theirs):
+        if mine[k] is None:
+            mine[k] = other
+        elif other is not None:
+            add(mine[k], other)
 
 
 def _weighted_median(values: NDArray[np.float32], weights: NDArray[np.float32]) -> NDArray[np.float32]:

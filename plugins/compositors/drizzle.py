@@ -34,7 +34,13 @@ import numpy as np
 from numpy.typing import NDArray
 from photonpano import hookimpl
 from photonpano.compose import Canvas, Panorama
-from photonpano.robust_merge import DEFAULT_EXPOSURES, exposure_breaks, exposure_index, robust_combine
+from photonpano.robust_merge import (
+    DEFAULT_EXPOSURES,
+    exposure_breaks,
+    exposure_index,
+    join_exposures,
+    robust_combine,
+)
 from photonpano.stages import Compositor, CompositorConfig, PhotonSource
 from pydantic import Field
 
@@ -162,12 +168,7 @@ class Drizzle(Compositor):
         """Add a fork's sums (see :meth:`Compositor.join`)."""
         if not isinstance(other, Drizzle):
             raise TypeError(f"Drizzle.join: expected a fork of this compositor, got {type(other).__name__}")
-        for k, theirs in enumerate(other._accs):
-            mine = self._accs[k]
-            if mine is None:
-                self._accs[k] = theirs
-            elif theirs is not None:
-                mine += theirs
+        join_exposures(self._accs, other._accs, np.ndarray.__iadd__)
 
     def finish(self) -> Panorama:
         """The flux MLE per canvas pixel (see :meth:`Compositor.finish`); robust: the exposures that agree."""
