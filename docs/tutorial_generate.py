@@ -252,13 +252,18 @@ def _line_drift(before: str, now: str) -> list[str]:
 
 
 def picture_drifts(new: Path, old: Path) -> list[str]:
-    """One line for every picture in ``old`` whose regenerated copy in ``new`` differs."""
+    """One line for every regenerated picture in ``new`` that differs from its copy in ``old``.
+
+    Only the tutorial's own pictures are compared (``old`` is docs/img/, which other
+    pages' pictures share).
+    """
     found = []
-    for path in sorted(old.glob("*.png")):
+    for fresh in sorted(new.glob("*.png")):
+        path = old / fresh.name
         a = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-        b = cv2.imread(str(new / path.name), cv2.IMREAD_UNCHANGED)
-        if b is None or a.shape != b.shape:
-            found.append(f"picture {path.name}: {a.shape} on the page, {None if b is None else b.shape} now")
+        b = cv2.imread(str(fresh), cv2.IMREAD_UNCHANGED)
+        if a is None or a.shape != b.shape:
+            found.append(f"picture {path.name}: {None if a is None else a.shape} on the page, {b.shape} now")
             continue
         difference = float(np.abs(to_8bit(a).astype(float) - to_8bit(b).astype(float)).mean())
         if difference > PICTURE_TOLERANCE:
