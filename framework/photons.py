@@ -17,6 +17,7 @@ from .jit import cached_njit
 
 __all__ = [
     "check_frame_edges",
+    "check_frame_range",
     "sum_packed_ranges",
     "sum_unpacked_ranges",
     "simulate_packed_frames",
@@ -135,6 +136,21 @@ def check_frame_edges(edges, n_frames: int) -> NDArray[np.int64]:
     if len(edges) and (edges[0] < 0 or edges[-1] > n_frames):
         raise ValueError(f"frame ranges {edges[0]}:{edges[-1]} leave the capture of {n_frames} frames")
     return edges
+
+
+def check_frame_range(start: int, stop: int, n_frames: int) -> None:
+    """Check that binary frames ``start:stop`` lie in a capture of ``n_frames`` frames.
+
+    Args:
+        start: first frame index.
+        stop: one past the last frame index (``start <= stop``; equal: no frame).
+        n_frames: frames in the capture.
+
+    Raises:
+        ValueError: if not ``0 <= start <= stop <= n_frames``.
+    """
+    if not 0 <= start <= stop <= n_frames:
+        raise ValueError(f"frames {start}:{stop} leave the capture of {n_frames} frames")
 
 
 def _check_edges(edges, n_frames: int) -> NDArray[np.int64]:

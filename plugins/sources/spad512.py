@@ -188,10 +188,10 @@ class Spad512(ReopenOnPickle, PhotonSource):
         Raises:
             ValueError: if the range leaves the capture.
         """
+        from photonpano.photons import check_frame_range
         from photonpano.plugins.sources._swissspad_readout import reverse_bits
 
-        if not 0 <= start <= stop <= self.n_frames:
-            raise ValueError(f"frames {start}:{stop} leave the capture of {self.n_frames} frames")
+        check_frame_range(start, stop, self.n_frames)
         raw = self.frames.read(self.offset + start, self.offset + stop)
         return reverse_bits(raw) if self.config.bit_order == "lsb" else raw
 

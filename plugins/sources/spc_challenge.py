@@ -181,8 +181,9 @@ class SpcChallenge(ReopenOnPickle, PhotonSource):
         Raises:
             ValueError: if the range leaves the capture.
         """
-        if not 0 <= start <= stop <= self.n_frames:
-            raise ValueError(f"frames {start}:{stop} leave the capture of {self.n_frames} frames")
+        from photonpano.photons import check_frame_range
+
+        check_frame_range(start, stop, self.n_frames)
         return combine_channels(self.frames.read(self.offset + start, self.offset + stop), self.config.channels)
 
     def sum_ranges(self, edges: NDArray[np.int64]) -> NDArray[np.uint16]:

@@ -146,10 +146,10 @@ class SwissSpadBin(ReopenOnPickle, PhotonSource):
         Returns:
             (K, H_raw, W_raw/8) uint8 frames bit-packed MSB first (``np.packbits`` layout).
         """
+        from photonpano.photons import check_frame_range
         from photonpano.plugins.sources._swissspad_readout import decode_frames
 
-        if not 0 <= start <= stop <= self.n_frames:
-            raise ValueError(f"frames {start}:{stop} leave the capture of {self.n_frames} frames")
+        check_frame_range(start, stop, self.n_frames)
         raw = self.frames.read(self.offset + start, self.offset + stop)
         return decode_frames(raw, self.layout)
 

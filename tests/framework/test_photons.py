@@ -123,3 +123,13 @@ def test_counting_kernels_add_into_the_callers_rows():
         np.testing.assert_array_equal(out, expected + 5)
     with pytest.raises(ValueError, match="C-contiguous uint16"):
         sum_packed_ranges(cube, edges, out=np.zeros((2, 6, 16), np.int32))
+
+
+@pytest.mark.parametrize("start, stop", [(-1, 5), (6, 5), (0, 101)])
+def test_check_frame_range_refuses_ranges_outside_the_capture(start, stop):
+    from photonpano.photons import check_frame_range
+
+    check_frame_range(0, 100, 100)
+    check_frame_range(100, 100, 100)  # an empty range at the end is inside
+    with pytest.raises(ValueError, match=f"frames {start}:{stop} leave the capture of 100 frames"):
+        check_frame_range(start, stop, 100)
