@@ -191,16 +191,11 @@ class BilinearCompositor(Compositor):
         """Warp and add a sub-batch into its virtual exposures (see :meth:`Compositor.feed_ranges`)."""
         if self.exposures == 1:
             return super().feed_ranges(edges, counts, homographies)
-        from .robust_merge import exposure_index
+        from .robust_merge import feed_exposures
         from .warping import WarpAccumulator
 
-        edges = np.asarray(edges, np.int64)
-        which = exposure_index(edges, len(self._canvas.homographies), self.exposures)
-        for k in np.unique(which):
-            if self._accs[k] is None:
-                self._accs[k] = WarpAccumulator(self._canvas.height, self._canvas.width)
-            pick = which == k
-            self._accs[k].add_many(counts[pick], np.diff(edges)[pick], homographies[pick])
+        feed_exposures(self._accs, lambda: WarpAccumulator(self._canvas.height, self._canvas.width),
+                       WarpAccumulator.add_many, edges, counts, homographies, len(self._canvas.homographies))
 
     def fork(self) -> BilinearCompositor:
         """An empty copy on the same canvas (see :meth:`Compositor.fork`)."""

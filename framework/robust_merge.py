@@ -41,7 +41,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-__all__ = ["DEFAULT_EXPOSURES", "exposure_breaks", "exposure_index", "join_exposures", "robust_combine"]
+__all__ = ["DEFAULT_EXPOSURES", "exposure_breaks", "exposure_index", "feed_exposures", "join_exposures",
+           "robust_combine"]
 
 DEFAULT_EXPOSURES = 16
 """Virtual exposures a robust compositor keeps apart (20 000 frames: 1 250 frames each;
@@ -81,6 +82,29 @@ def exposure_breaks(total_frames: int, exposures: int, frame_step: int = 1) -> N
     at = -(-(k * int(total_frames)) // int(exposures))
     at = -(-at // step) * step
     return np.unique(at[(at > 0) & (at < total_frames)])
+
+
+def feed_exposures(accs: list[Any], new: Callable[[], Any], add: Callable[..., None], edges: NDArray[np.int64],
+                   counts: NDArray, homographies: NDArray[np.float64], total_frames: int) -> None:
+    """Add a compositor's sub-batch to the accumulators of the virtual exposures its ranges fall in.
+
+    Args:
+        accs: one accumulator per exposure (``len(accs)`` exposures), None until first fed;
+            filled in place with ``new()``.
+        new: makes an empty accumulator.
+        add: ``add(acc, counts, n_frames, homographies)`` adds a sub-batch to ``acc``.
+        edges: (B + 1,) int64 frame-range edges of the sub-batch's B ranges.
+        counts: (B, H, W) counts of the ranges.
+        homographies: (B, 3, 3) float64 frame-to-canvas homographies of the ranges.
+        total_frames: frames in the capture (:func:`exposure_index`).
+    """
+    edges = np.asarray(edges, np.int64)
+    which = exposure_index(edges, total_frames, len(accs))
+    for k in np.unique(which):
+        if accs[k] is None:
+            accs[k] = new()
+        pick = which == k
+        add(accs[k], counts[pick], np.diff(edges)[pick], homographies[pick])
 
 
 def join_exposures(mine: list[Any], theirs: list[Any], add: Callable[[Any, Any], None]) -> None:

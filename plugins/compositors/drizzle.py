@@ -37,7 +37,7 @@ from photonpano.compose import Canvas, Panorama
 from photonpano.robust_merge import (
     DEFAULT_EXPOSURES,
     exposure_breaks,
-    exposure_index,
+    feed_exposures,
     join_exposures,
     robust_combine,
 )
@@ -123,6 +123,11 @@ class Drizzle(Compositor):
     def feed(self, counts: NDArray, n_frames: NDArray[np.int64], homographies: NDArray[np.float64],
              weights: NDArray[np.float32] | None = None) -> None:
         """Splat a sub-batch (see :meth:`Compositor.feed`)."""
+        self._splat_into(self._acc, counts, n_frames, homographies, weights)
+
+    def _splat_into(self, acc: NDArray[np.float32], counts: NDArray, n_frames: NDArray[np.int64],
+                    homographies: NDArray[np.float64], weights: NDArray[np.float32] | None = None) -> None:
+        """Splat a sub-batch into ``acc``, (Hc, Wc, 2) float32 interleaved sums and frames."""
         counts = np.ascontiguousarray(counts)
         if counts.dtype not in (np.uint16, np.float32):
             counts = counts.astype(np.float32)
@@ -133,7 +138,7 @@ class Drizzle(Compositor):
         if not finite.all():
             counts, n_frames, homographies = counts[finite], np.asarray(n_frames)[finite], homographies[finite]
         args = (counts, np.asarray(n_frames, np.int64), np.ascontiguousarray(homographies, np.float64),
-                np.ascontiguousarray(weights, np.float32), self._acc)
+                np.ascontiguousarray(weights, np.float32), acc)
         self._splat(*args) if self.kernel == "point" else self._splat(*args, float(self.pixfrac))
 
     def frame_breaks(self, n_frames: int, frame_step: int = 1) -> NDArray[np.int64] | None:
@@ -144,19 +149,8 @@ class Drizzle(Compositor):
         """Splat a sub-batch into its virtual exposures (see :meth:`Compositor.feed_ranges`)."""
         if self.exposures == 1:
             return super().feed_ranges(edges, counts, homographies)
-        edges = np.asarray(edges, np.int64)
-        which = exposure_index(edges, len(self._canvas.homographies), self.exposures)
-        first = self._acc
-        try:
-            for k in np.unique(which):
-                pick = which == k
-                acc = self._accs[k]
-                if acc is None:
-                    acc = self._accs[k] = np.zeros_like(first)
-                self._acc = acc
-                self.feed(counts[pick], np.diff(edges)[pick], homographies[pick])
-        finally:
-            self._acc = first
+        feed_exposures(self._accs, lambda: np.zeros_like(self._acc), self._splat_into, edges, counts, homographies,
+                       len(self._canvas.homographies))
 
     def fork(self) -> Drizzle:
         """An empty copy on the same canvas (see :meth:`Compositor.fork`)."""
