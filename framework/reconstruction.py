@@ -66,6 +66,7 @@ class Stages:
         """Build every stage of ``spec`` for ``source``."""
         from .budget import Budget
         from .budget.grid import in_merged_pixels
+        from .budget.probe import short_of_light
         from .schemes import MosaicScheme, PairCheck, PairwiseScheme
         from .spec import level_schemes
 
@@ -87,6 +88,8 @@ class Stages:
             self.schemes += [self.schemes[-1]] * plan.extra_levels
             self.notes.append(f"groups span whole flicker periods ({plan.group_size} frames): "
                               f"{plan.extra_levels} more level(s) keep the last level's keyframes as dense")
+        if (note := short_of_light(plan, source.n_frames)) is not None:
+            self.notes.append(note)
         self._fit_levels()
 
     def _fit_levels(self) -> None:

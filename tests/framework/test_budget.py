@@ -231,3 +231,17 @@ def test_budget_with_an_explicit_group_size_runs_no_check_and_counts_the_check_i
     auto = GroupPlan(300, binning=6, auto=True)
     assert [check_binning(auto, k) for k in (1, 2, 3, 4)] == [6, 3, 2, 2]  # round(6 / k), blocks of >= 2 sensor px
     assert check_binning(GroupPlan(300, auto=True), 4) == 1
+
+
+def test_an_explicit_group_size_short_of_light_gets_a_note_naming_the_budgets_choice():
+    """An explicit m gathering clearly fewer photons than the budget wants is noted; enough light is not."""
+    from photonpano.budget.probe import short_of_light
+
+    dark = _capture(flux=0.02, speed_px_per_frame=0.02)
+    note = short_of_light(plan_group_size(200, dark), dark.n_frames)
+    auto = choose_group_size(probe_capture(dark), dark.n_frames)
+    assert note is not None and "group size 200" in note and f"would choose {auto.group_size}" in note
+    assert short_of_light(plan_group_size(int(auto.group_size * 0.9), dark), dark.n_frames) is None
+    bright = _capture(flux=0.5)
+    assert short_of_light(plan_group_size(200, bright), bright.n_frames) is None
+    assert short_of_light(auto, dark.n_frames) is None
