@@ -55,7 +55,7 @@ from typing import Any
 from .errors import PluginError
 
 __all__ = ["HOOK_TIMEOUT_S", "GRACE_S", "ENV", "SIGNAL", "PluginHung", "watched", "guarding", "limit_s", "hung",
-           "longest", "exit_if_stuck", "command_line"]
+           "longest", "exit_if_stuck", "command_line", "running_calls", "wait_futures"]
 
 HOOK_TIMEOUT_S = 600.0
 """Default limit of one plugin stage call, in seconds (10 minutes)."""
@@ -79,6 +79,8 @@ _state: dict[str, Any] = {"armed": 0, "pid": None, "host": None, "message": None
                           "hard_exit": False, "installed": False, "previous": None, "owed": 0}
 # installed: guarding's SIGNAL handler is in place; previous: the handler it replaced;
 # owed: signals sent for hangs whose handler has not run yet
+_running: dict[int, tuple[float, str, Any, str, int]] = {}  # every call in progress: (start, stage, plugin,
+# method, thread id), watched or not: what a Dask worker is doing (running_calls)
 _stuck: set[int] = set()  # tokens of calls reported as hung that have not returned yet
 _taken = threading.Event()
 longest: dict[str, float] = {}
@@ -119,15 +121,18 @@ def watched(stage: str, plugin: Any, method: str) -> Iterator[None]:
     limit = limit_s() if _state["armed"] and _state["pid"] == os.getpid() else None
     start = time.monotonic()
     token = next(_tokens)
-    if limit is not None:
-        with _lock:
+    with _lock:
+        _running[token] = (start, stage, plugin, method, threading.get_ident())
+        if limit is not None:
             _calls[token] = (start + limit, stage, plugin, method, threading.get_ident(), limit)
+    if limit is not None:
         _start_thread()
     try:
         yield
     finally:
         took = time.monotonic() - start
         with _lock:
+            _running.pop(token, None)
             _calls.pop(token, None)
             _stuck.discard(token)
             name = f"{stage}.{method}"
@@ -196,6 +201,64 @@ def exit_if_stuck(code: int) -> None:
 def command_line() -> None:
     """Let the watchdog end the process itself when the main thread does not take the interrupt (CLI only)."""
     _state["hard_exit"] = True
+
+
+def running_calls() -> list[tuple[str, float]]:
+    """The innermost :func:`watched` call of each thread of this process, watched or not, and how long it has run.
+
+    Returns:
+        One ``("stage (plugin) in method", seconds)`` per thread inside such a call
+        (what :func:`wait_futures` asks each Dask worker).
+    """
+    now = time.monotonic()
+    with _lock:
+        innermost = {entry[4]: entry for _, entry in sorted(_running.items())}  # by token: the latest per thread
+    return [(f"{stage} ({_plugin_name(plugin, thread)}) in {method}", now - start)
+            for start, stage, plugin, method, thread in innermost.values()]
+
+
+def wait_futures(client: Any, futures: list[Any]) -> None:
+    """Wait for Dask futures, watching the plugin calls their tasks make on the workers, in a guarded run.
+
+    A task on a Dask worker runs in another process, out of reach of this process's
+    watchdog, so the caller waits here instead: it polls the futures (every 20 ms, no
+    data moved) and, every limit's worth of seconds, asks the workers for their
+    :func:`running_calls` (``client.run``, answered by the worker's event loop while its
+    task thread is stuck); a call running longer than the limit ends the wait with the
+    one line of a hung call in this process, plus ``on a Dask worker``. Outside
+    :func:`guarding`, or with the limit switched off, returns at once.
+
+    Args:
+        client: the ``distributed.Client`` the futures belong to.
+        futures: the tasks' futures.
+
+    Returns:
+        None, once every future is done (finished, failed or cancelled: the caller
+        gathers the results and raises the tasks' errors).
+
+    Raises:
+        PluginHung: a plugin call of a task has not returned within the limit (the
+            caller cancels the tasks; the worker's thread stays stuck in it).
+    """
+    limit = limit_s() if _state["armed"] and _state["pid"] == os.getpid() else None
+    if limit is None:
+        return
+    first, check = 0, time.monotonic() + limit
+    while True:
+        while first < len(futures) and futures[first].done():
+            first += 1
+        if first == len(futures):
+            return
+        if time.monotonic() < check:
+            time.sleep(0.02)
+            continue
+        calls = [call for found in client.run(running_calls, on_error="ignore").values()
+                 if isinstance(found, list) for call in found]
+        name, took = max(calls, key=lambda call: call[1], default=("", 0.0))
+        if took >= limit:
+            raise PluginHung(f"{name} on a Dask worker did not return within {limit:g} s (hangs?); "
+                             f"{ENV} sets the limit")
+        check = time.monotonic() + limit - took  # when the longest call so far would pass the limit
 
 
 def _install_handler() -> None:
