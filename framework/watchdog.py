@@ -63,8 +63,9 @@ GRACE_S = 10.0
 """Seconds the command line waits for a stuck main thread to take the interrupt before it exits anyway."""
 ENV = "PHOTONPANO_HOOK_TIMEOUT_S"
 """Environment variable overriding :data:`HOOK_TIMEOUT_S` (seconds; ``0`` or ``off``: no limit)."""
-SIGNAL = signal.SIGUSR2
-"""The signal that interrupts the main thread when a call hangs (its handler: :func:`guarding`)."""
+SIGNAL = getattr(signal, "SIGUSR2", None)
+"""The signal that interrupts the main thread when a call hangs (its handler: :func:`guarding`); None
+where the platform has none (Windows: calls stay unwatched)."""
 
 
 class PluginHung(PluginError):
@@ -152,7 +153,7 @@ def guarding(host: Any = None) -> Iterator[None]:
         PluginHung: a watched call passed the limit (its interrupt arrived here as
             ``KeyboardInterrupt``); one line naming stage, plugin and method.
     """
-    if threading.current_thread() is not threading.main_thread():
+    if threading.current_thread() is not threading.main_thread() or SIGNAL is None:
         yield  # signal handlers belong to the main thread: calls stay unwatched
         return
     with _lock:
