@@ -88,7 +88,7 @@ def run(spec: Annotated[Path, typer.Argument(help="Pipeline spec (YAML).")], out
     if getattr(parsed, "pose_estimator", None) is not None:  # experimental: camera poses
         from .cli_tools import execute_pose
 
-        execute_pose(parsed, output, force, host)
+        execute_pose(parsed, output, force, host, resume)
         return
     _report(_execute(parsed, output, force, host, resume), output)
 

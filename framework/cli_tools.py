@@ -11,18 +11,29 @@ from typing import Annotated, Any, Optional
 
 import typer
 
-from .cli_base import ForceOption, OutOption, SetOption, _capture_spec, _fail, _host, _observed, app, one_line_errors
+from .cli_base import (
+    ForceOption,
+    OutOption,
+    ResumeOption,
+    SetOption,
+    _capture_spec,
+    _fail,
+    _host,
+    _observed,
+    app,
+    one_line_errors,
+)
 from .errors import PhotonpanoError
 
 __all__ = ["execute_pose", "pose", "convert", "batch", "compare", "score", "video"]
 
 
-def execute_pose(spec: Any, out: Path, force: bool, host: Any) -> None:
-    """Run a spec with a ``pose_estimator`` into ``out`` and print its summary."""
+def execute_pose(spec: Any, out: Path, force: bool, host: Any, resume: bool = False) -> None:
+    """Run a spec with a ``pose_estimator`` into ``out`` (``resume``: continue it) and print its summary."""
     from .pose_run import run_pose
 
     with _observed(host):
-        summary = run_pose(spec, out, host, force=force)[0]
+        summary = run_pose(spec, out, host, force=force, resume=resume)[0]
     _report_pose(summary, out)
 
 
@@ -50,7 +61,7 @@ def pose(input: Annotated[str, typer.Argument(
          intrinsics: Annotated[Optional[Path], typer.Option(
              help="JSON file with fx, fy, cx, cy in pixels (OpenCV convention); omitted: "
                   "self-calibration.")] = None,
-         set_: SetOption = None, force: ForceOption = False) -> None:
+         set_: SetOption = None, force: ForceOption = False, resume: ResumeOption = False) -> None:
     """Experimental: estimate a 6-DoF camera pose for every binary frame (pycolmap-sfm)."""
     from .pose import Intrinsics
     from .spec import apply_overrides, validate_spec
@@ -66,7 +77,7 @@ def pose(input: Annotated[str, typer.Argument(
     if intrinsics is not None:
         data["pose_estimator"]["intrinsics"] = str(intrinsics)
     parsed = validate_spec(apply_overrides(data, set_ or []), host, origin="pose")
-    execute_pose(parsed, output, force, host)
+    execute_pose(parsed, output, force, host, resume)
 
 
 @app.command()

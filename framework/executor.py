@@ -235,11 +235,16 @@ class DaskExecutor(Executor):
 
         ``done`` (see :meth:`Executor.map`) is called here with each result, in order.
         Exceptions raised by a task propagate to the caller (the first in item order);
-        if the caller is interrupted, the tasks not finished are cancelled.
+        if the caller is interrupted, the tasks not finished are cancelled. In a guarded
+        run, a plugin call of a task that does not return within the watchdog's limit
+        raises :class:`~photonpano.watchdog.PluginHung` here
+        (:func:`~photonpano.watchdog.wait_futures`).
         """
         args = list(zip(*items))
         if not args:
             return []
+        from .watchdog import wait_futures
+
         if not process_safe(fn):
             name = getattr(fn, "__qualname__", repr(fn))
             if name not in self._warned:
@@ -252,7 +257,9 @@ class DaskExecutor(Executor):
         try:
             if done is not None:
                 for future in futures:  # in order: progress is as fresh as the slowest task
+                    wait_futures(self.client, [future])  # in a guarded run, a hung plugin call: PluginHung
                     done(future.result())
+            wait_futures(self.client, futures)
             return self.client.gather(futures)
         except _Carried as carried:  # a plugin's BaseException, raised here (not in Dask's event loop)
             self.client.cancel(futures)

@@ -151,20 +151,27 @@ class PoseStages:
         self.spec, self.source = spec, source
         self.estimator = spec.pose_estimator.build()
 
-    def estimate(self, intrinsics: Intrinsics | None, work_dir: Path) -> PoseResult:
+    def estimate(self, intrinsics: Intrinsics | None, work_dir: Path, checkpoints: Any = None) -> PoseResult:
         """Run the estimator on the capture.
 
         Args:
             intrinsics: known intrinsics, or None for self-calibration.
             work_dir: a folder for the estimator's intermediate files (created).
+            checkpoints: a :class:`~photonpano.pose_checkpoints.PoseCheckpoints` for an
+                estimator whose ``estimate`` takes ``checkpoints`` (``pycolmap-sfm``):
+                it saves each level there and resumes after the latest; None: no checkpoints.
 
         Returns:
             The estimator's :class:`PoseResult`.
         """
+        import inspect
+
         from .progress import start_task
 
         work_dir.mkdir(parents=True, exist_ok=True)
-        return self.estimator.estimate(self.source, intrinsics, work_dir, progress=start_task)
+        extra = {"checkpoints": checkpoints} if checkpoints is not None and "checkpoints" in inspect.signature(
+            self.estimator.estimate).parameters else {}
+        return self.estimator.estimate(self.source, intrinsics, work_dir, progress=start_task, **extra)
 
 
 def level_warnings(levels: list[dict[str, Any]]) -> list[str]:
@@ -228,6 +235,7 @@ def run_pose(
     intrinsics: Intrinsics | None = None,
     force: bool = False,
     rpe_gap: int | None = None,
+    resume: bool = False,
 ) -> tuple[dict[str, Any], PoseResult]:
     """Run a spec's ``pose_estimator`` on its source and write the pose outputs.
 
@@ -248,6 +256,9 @@ def run_pose(
             or self-calibration if it names none.
         force: replace the previous run's outputs (the files its manifest lists).
         rpe_gap: frame gap of the relative pose error (default: the group size m).
+        resume: continue the interrupted run in ``out_dir`` (same spec) after its last
+            checkpointed level (:mod:`photonpano.pose_checkpoints`): those levels' results
+            are reused bit for bit, the later ones estimated again.
 
     Returns:
         ``(summary, result)``: the ``run.json`` content and the :class:`PoseResult`.
@@ -263,6 +274,8 @@ def run_pose(
     from .progress import reporting
     from .spec import check_available
 
+    if force and resume:
+        raise SpecError("pose: --force and --resume exclude each other")
     if out_dir is not None:
         refuse_symlink(out_dir, "output folder")  # never written through, --force or not
     if getattr(spec, "pose_estimator", None) is None:
@@ -274,7 +287,7 @@ def run_pose(
         if out_dir is None:
             with tempfile.TemporaryDirectory(prefix="photonpano-pose-") as work:
                 return _pose_into(spec, None, Path(work), host, intrinsics, rpe_gap)
-        with RunFolder(out_dir, force=force, inputs=_input_paths(spec)) as folder:
+        with RunFolder(out_dir, force=force, resume=resume, inputs=_input_paths(spec)) as folder:
             return _pose_into(spec, folder, None, host, intrinsics, rpe_gap)
 
 
@@ -292,14 +305,22 @@ def _pose_into(spec: Any, folder: Any, work: Path | None, host: Any, intrinsics:
     source = spec.source.build()
     timings["source"] = time.perf_counter() - t0
     stages = PoseStages(spec, source)
+    checkpoints = None
     if folder is not None:
+        from .pipeline import _resume_state
+        from .pose_checkpoints import PoseCheckpoints
+
+        spec_text = dump_spec(spec)
+        if folder.resume:
+            _resume_state(folder, spec_text)  # the same spec as the interrupted run's, or one line
         folder.begin()  # the spec is valid and the source open: the folder gets its first files
-        folder.write_text("spec.yaml", dump_spec(spec))
+        folder.write_text("spec.yaml", spec_text)
         work = inside(folder.root, "work", folder=True)
+        checkpoints = PoseCheckpoints(folder)
     assert work is not None  # a temporary folder when there is no run folder
     t0 = time.perf_counter()
     try:
-        result = stages.estimate(intrinsics, work)
+        result = stages.estimate(intrinsics, work, checkpoints)
     except BaseException:
         if folder is not None and work.is_dir() and not any(work.iterdir()):
             work.rmdir()  # the run folder removes the files it lists, not an empty folder

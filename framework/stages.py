@@ -369,6 +369,9 @@ class PoseEstimator(abc.ABC):
             work_dir: an existing folder for intermediate files (images, databases, models).
             progress: optional ``start_task``-like callable (see :mod:`photonpano.progress`).
 
+        An estimator that also takes ``checkpoints`` gets a run's
+        :class:`~photonpano.pose_checkpoints.PoseCheckpoints` (``pose --resume``).
+
         Returns:
             A :class:`photonpano.pose.PoseResult`.
 

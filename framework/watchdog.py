@@ -5,9 +5,23 @@ merger's ``merge``, an interpolator's ``interpolate``, a resampler's ``groups``,
 compositor's ``prepare``/``read``/``feed``/``finish``) through :func:`watched`, which
 records the call and its deadline in a table (a dictionary entry: no thread per call).
 One daemon thread per process checks the table. When a call passes its deadline it
-interrupts the main thread (``SIGINT`` to it, which also wakes a blocking wait), and
-:func:`guarding`, around the run, turns that interrupt into a :class:`PluginHung` error
-whose one line names the stage, the plugin and the method. The command line then exits
+interrupts the main thread, and :func:`guarding`, around the run, turns that interrupt
+into a :class:`PluginHung` error whose one line names the stage, the plugin and the method.
+
+The interrupt is a signal of its own, :data:`SIGNAL` (``SIGUSR2``), sent to the main
+thread (``pthread_kill``) and caught by a handler that :func:`guarding` installs there
+(and unblocks): the handler raises ``KeyboardInterrupt``, so plugin code and the
+executors unwind exactly as on Ctrl-C (a thread pool cancels its queue, a run folder
+keeps its checkpoints). A signal, not an exception set on the thread
+(``PyThreadState_SetAsyncExc``), because a signal also wakes a blocking wait (a sleep,
+``future.result()``, a lock), where a pending exception would wait for the wait to end;
+and a signal of the watchdog's own, not ``SIGINT``, because ``SIGINT``'s disposition is
+not ours to count on: a background job of a non-interactive shell (``photonpano run ...
+&``) starts with it ignored, which left every call unwatched. The handler raises only
+for a hang the watchdog reported; any other ``SIGUSR2`` goes to the handler that was
+there before (``SIG_DFL``: the default action). The previous handler is restored when
+the run ends, unless a signal sent for a hang may still be on its way (then the inert
+handler stays). The command line then exits
 at once even if the hung call sits in a worker thread that cannot be joined; if the
 main thread does not take the interrupt (plugin code that swallows ``KeyboardInterrupt``,
 a C library call that ignores signals), the command line prints the same line and exits
@@ -40,8 +54,8 @@ from typing import Any
 
 from .errors import PluginError
 
-__all__ = ["HOOK_TIMEOUT_S", "GRACE_S", "ENV", "PluginHung", "watched", "guarding", "limit_s", "hung", "longest",
-           "exit_if_stuck", "command_line"]
+__all__ = ["HOOK_TIMEOUT_S", "GRACE_S", "ENV", "SIGNAL", "PluginHung", "watched", "guarding", "limit_s", "hung",
+           "longest", "exit_if_stuck", "command_line", "running_calls", "wait_futures"]
 
 HOOK_TIMEOUT_S = 600.0
 """Default limit of one plugin stage call, in seconds (10 minutes)."""
@@ -49,18 +63,25 @@ GRACE_S = 10.0
 """Seconds the command line waits for a stuck main thread to take the interrupt before it exits anyway."""
 ENV = "PHOTONPANO_HOOK_TIMEOUT_S"
 """Environment variable overriding :data:`HOOK_TIMEOUT_S` (seconds; ``0`` or ``off``: no limit)."""
+SIGNAL = getattr(signal, "SIGUSR2", None)
+"""The signal that interrupts the main thread when a call hangs (its handler: :func:`guarding`); None
+where the platform has none (Windows: calls stay unwatched)."""
 
 
 class PluginHung(PluginError):
     """A plugin stage call did not return within the limit (the message names stage, plugin and method)."""
 
 
-_lock = threading.Lock()
+_lock = threading.RLock()  # re-entrant: the signal handler may run while the main thread holds it
 # calls in progress: token -> (deadline, stage, plugin object, method, thread id, limit in seconds)
 _calls: dict[int, tuple[float, str, Any, str, int, float]] = {}
 _tokens = itertools.count()
 _state: dict[str, Any] = {"armed": 0, "pid": None, "host": None, "message": None, "thread": None,
-                          "hard_exit": False}
+                          "hard_exit": False, "installed": False, "previous": None, "owed": 0}
+# installed: guarding's SIGNAL handler is in place; previous: the handler it replaced;
+# owed: signals sent for hangs whose handler has not run yet
+_running: dict[int, tuple[float, str, Any, str, int]] = {}  # every call in progress: (start, stage, plugin,
+# method, thread id), watched or not: what a Dask worker is doing (running_calls)
 _stuck: set[int] = set()  # tokens of calls reported as hung that have not returned yet
 _taken = threading.Event()
 longest: dict[str, float] = {}
@@ -101,15 +122,18 @@ def watched(stage: str, plugin: Any, method: str) -> Iterator[None]:
     limit = limit_s() if _state["armed"] and _state["pid"] == os.getpid() else None
     start = time.monotonic()
     token = next(_tokens)
-    if limit is not None:
-        with _lock:
+    with _lock:
+        _running[token] = (start, stage, plugin, method, threading.get_ident())
+        if limit is not None:
             _calls[token] = (start + limit, stage, plugin, method, threading.get_ident(), limit)
+    if limit is not None:
         _start_thread()
     try:
         yield
     finally:
         took = time.monotonic() - start
         with _lock:
+            _running.pop(token, None)
             _calls.pop(token, None)
             _stuck.discard(token)
             name = f"{stage}.{method}"
@@ -129,14 +153,14 @@ def guarding(host: Any = None) -> Iterator[None]:
         PluginHung: a watched call passed the limit (its interrupt arrived here as
             ``KeyboardInterrupt``); one line naming stage, plugin and method.
     """
-    if threading.current_thread() is not threading.main_thread() or \
-            signal.getsignal(signal.SIGINT) is not signal.default_int_handler:
-        yield  # the interrupt could not reach this thread: calls stay unwatched
+    if threading.current_thread() is not threading.main_thread() or SIGNAL is None:
+        yield  # signal handlers belong to the main thread: calls stay unwatched
         return
     with _lock:
         if not _state["armed"]:
             _state.update(pid=os.getpid(), host=host, message=None)
             _taken.clear()
+            _install_handler()
         _state["armed"] += 1
     try:
         yield
@@ -149,6 +173,10 @@ def guarding(host: Any = None) -> Iterator[None]:
     finally:
         with _lock:
             _state["armed"] -= 1
+            if not _state["armed"] and not _state["owed"] and _state["installed"] and \
+                    _state["previous"] is not None:  # None: a handler set outside Python, which cannot be put back
+                signal.signal(SIGNAL, _state["previous"])  # no signal of ours on its way: put it back
+                _state["installed"] = False
         if _state["message"] is not None and not _state["armed"]:
             _taken.set()
             _state["message"] = None  # reported: a later run in this process starts clean
@@ -176,6 +204,95 @@ def command_line() -> None:
     _state["hard_exit"] = True
 
 
+def running_calls() -> list[tuple[str, float]]:
+    """The innermost :func:`watched` call of each thread of this process, watched or not, and how long it has run.
+
+    Returns:
+        One ``("stage (plugin) in method", seconds)`` per thread inside such a call
+        (what :func:`wait_futures` asks each Dask worker).
+    """
+    now = time.monotonic()
+    with _lock:
+        innermost = {entry[4]: entry for _, entry in sorted(_running.items())}  # by token: the latest per thread
+    return [(f"{stage} ({_plugin_name(plugin, thread)}) in {method}", now - start)
+            for start, stage, plugin, method, thread in innermost.values()]
+
+
+def wait_futures(client: Any, futures: list[Any]) -> None:
+    """Wait for Dask futures, watching the plugin calls their tasks make on the workers, in a guarded run.
+
+    A task on a Dask worker runs in another process, out of reach of this process's
+    watchdog, so the caller waits here instead: it polls the futures (every 20 ms, no
+    data moved) and, every limit's worth of seconds, asks the workers for their
+    :func:`running_calls` (``client.run``, answered by the worker's event loop while its
+    task thread is stuck); a call running longer than the limit ends the wait with the
+    one line of a hung call in this process, plus ``on a Dask worker``. Outside
+    :func:`guarding`, or with the limit switched off, returns at once.
+
+    Args:
+        client: the ``distributed.Client`` the futures belong to.
+        futures: the tasks' futures.
+
+    Returns:
+        None, once every future is done (finished, failed or cancelled: the caller
+        gathers the results and raises the tasks' errors).
+
+    Raises:
+        PluginHung: a plugin call of a task has not returned within the limit (the
+            caller cancels the tasks; the worker's thread stays stuck in it).
+    """
+    limit = limit_s() if _state["armed"] and _state["pid"] == os.getpid() else None
+    if limit is None:
+        return
+    first, check = 0, time.monotonic() + limit
+    while True:
+        while first < len(futures) and futures[first].done():
+            first += 1
+        if first == len(futures):
+            return
+        if time.monotonic() < check:
+            time.sleep(0.02)
+            continue
+        calls = [call for found in client.run(running_calls, on_error="ignore").values()
+                 if isinstance(found, list) for call in found]
+        name, took = max(calls, key=lambda call: call[1], default=("", 0.0))
+        if took >= limit:
+            raise PluginHung(f"{name} on a Dask worker did not return within {limit:g} s (hangs?); "
+                             f"{ENV} sets the limit")
+        check = time.monotonic() + limit - took  # when the longest call so far would pass the limit
+
+
+def _install_handler() -> None:
+    """Install :func:`_on_signal` for :data:`SIGNAL` and unblock it in this (the main) thread; under ``_lock``."""
+    if not _state["installed"]:
+        _state["previous"] = signal.signal(SIGNAL, _on_signal)
+        _state["installed"] = True
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, {SIGNAL})  # a mask inherited from the parent would keep it pending
+
+
+def _on_signal(signum: int, frame: Any) -> None:
+    """The main thread's :data:`SIGNAL` handler: ``KeyboardInterrupt`` for a reported hang, else the previous one.
+
+    Raises:
+        KeyboardInterrupt: a watched call hung and the run is still guarded
+            (:func:`guarding` turns it into :class:`PluginHung`).
+    """
+    with _lock:
+        ours = _state["owed"] > 0
+        if ours:
+            _state["owed"] -= 1
+        previous = _state["previous"]
+    if ours:
+        if _state["message"] is not None and _state["armed"]:
+            raise KeyboardInterrupt
+        return  # the run ended before the signal arrived: nothing to interrupt
+    if callable(previous):
+        previous(signum, frame)
+    elif previous == signal.SIG_DFL:  # not ours, and nobody else's: the default action (ends the process)
+        signal.signal(SIGNAL, signal.SIG_DFL)
+        os.kill(os.getpid(), SIGNAL)
+
+
 def _start_thread() -> None:
     with _lock:
         thread = _state["thread"]
@@ -201,11 +318,16 @@ def _watch() -> None:
         _, stage, plugin, method, thread, limit = overdue[-1][1]
         message = (f"{stage} ({_plugin_name(plugin, thread)}) in {method} did not return within {limit:g} s "
                    f"(hangs?); {ENV} sets the limit")
-        _state["message"] = message
         main = threading.main_thread().ident  # None only before the main thread started: never here
-        if main is not None:
-            with contextlib.suppress(OSError, ValueError):
-                signal.pthread_kill(main, signal.SIGINT)
+        with _lock:  # while armed, so the handler is in place
+            if not _state["armed"] or main is None:
+                continue
+            _state["message"] = message
+            _state["owed"] += 1
+            try:
+                signal.pthread_kill(main, SIGNAL)
+            except (OSError, ValueError):
+                _state["owed"] -= 1
         if not _taken.wait(GRACE_S) and _state["hard_exit"]:
             with contextlib.suppress(Exception):
                 sys.stderr.write(f"error: {message}\n")

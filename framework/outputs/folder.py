@@ -16,6 +16,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..errors import OutputError
+from ..watchdog import PluginHung
 from .checkpoint import CHECKPOINTS, Checkpoint
 from .disk import lock_is_stale, read_manifest, read_text_lenient, walk_files
 from .files import PARTIAL, atomic_path, inside, oserror, refuse_symlink, regular_file_inside, sha256_file, write_text
@@ -280,7 +281,8 @@ class RunFolder:
     def __exit__(self, kind: type[BaseException] | None, exc: BaseException | None, tb: Any) -> None:
         try:
             if kind is not None and not self._committed:
-                self._abandon(keep_checkpoints=issubclass(kind, KeyboardInterrupt))
+                # a hang seen on a Dask worker arrives as PluginHung, not as an interrupt: kept as on Ctrl-C
+                self._abandon(keep_checkpoints=issubclass(kind, (KeyboardInterrupt, PluginHung)))
         finally:
             self._unlock()
 

@@ -39,6 +39,7 @@ from ._colmap import (
     write_and_match,
 )
 from ._colmap_log import colmap_log
+from ._resume import LevelState, restore, save_level
 
 
 class PycolmapSfMConfig(PoseEstimatorConfig):
@@ -124,19 +125,23 @@ class PycolmapSfM(PoseEstimator):
         self._database: Path | None = None  # the COLMAP database of the kept level-1 model
         self._calibrate = False  # levels >= 2 refine the camera (self-calibration)
 
-    def estimate(self, source: PhotonSource, intrinsics: Any, work_dir: Path, progress: Any = None) -> Any:
+    def estimate(self, source: PhotonSource, intrinsics: Any, work_dir: Path, progress: Any = None,
+                 checkpoints: Any = None) -> Any:
         """Estimate poses level by level (see :meth:`PoseEstimator.estimate`).
 
         COLMAP's log goes to the logger ``photonpano.colmap`` (:func:`colmap_log`), not to stderr.
+        With ``checkpoints`` (a :class:`~photonpano.pose_checkpoints.PoseCheckpoints`),
+        each finished level is saved there and a run starts after the latest level saved
+        (:mod:`._resume`), reusing its results bit for bit.
 
         Raises:
             StageError: capture too short (fewer than 3 m frames) or too dark, or too few
                 exposures registered at level 1.
         """
         with colmap_log():
-            return self._estimate(source, intrinsics, work_dir, progress)
+            return self._estimate(source, intrinsics, work_dir, progress, checkpoints)
 
-    def _estimate(self, source: PhotonSource, intrinsics: Any, work_dir: Path, progress: Any) -> Any:
+    def _estimate(self, source: PhotonSource, intrinsics: Any, work_dir: Path, progress: Any, store: Any) -> Any:
         from photonpano.executor import make_executor
         from photonpano.plugins.mergers.flux_mle import FluxMLEConfig
         from photonpano.plugins.resamplers.midpoint import MidpointConfig
@@ -159,7 +164,11 @@ class PycolmapSfM(PoseEstimator):
         rec: Any = None  # a pycolmap.Reconstruction (pycolmap is untyped)
         landmarks: Landmarks | None = None
         final = None  # the model whose points are written: level 1's or the last bundle adjustment's
-        for level in range(1, cfg.levels + 1):
+        done = restore(store, work_dir)  # a resumed run: the levels finished before it was stopped
+        if done is not None:
+            levels, exposures, homographies, landmarks = done.levels, done.exposures, done.homographies, done.landmarks
+            used, current, final, self._database = done.used, done.current, done.final, done.database
+        for level in range(1 if done is None else done.level + 1, cfg.levels + 1):
             t0 = time.perf_counter()
             groups = resampler.groups(n, cfg.group_size, level)
             advance = progress(f"level {level}: merge", len(groups)) if progress else None
@@ -246,6 +255,8 @@ class PycolmapSfM(PoseEstimator):
             assert landmarks is not None  # set at level 1
             normal, distance = dominant_plane(landmarks.xyz, reference)
             homographies = plane_homographies(every, used.matrix(), reference, normal, distance)
+            save_level(store, LevelState(level, levels, exposures, homographies, landmarks, used, current, final,
+                                         self._database), work_dir)
         frames, poses = exposures[-1]
         assert final is not None  # level 1's model at least (or it raised)
         model_dir = work_dir / "model"

@@ -217,3 +217,49 @@ def test_separately_started_scheduler_and_workers(tmp_path):
             proc.terminate()
         for proc in procs:
             proc.wait(timeout=30)
+
+
+def _hang_in_a_merge(_):
+    """A task whose plugin call never returns (a merger waiting on a licence server)."""
+    from photonpano import watchdog
+
+    class Merger:
+        class config:  # noqa: N801 - mimics a plugin's validated config
+            plugin = "my-merger"
+
+    with watchdog.watched("merger", Merger(), "merge"):
+        while True:
+            time.sleep(0.05)
+
+
+def _two_calls(seconds):
+    """A task of two plugin calls of ``seconds`` each; returns the worker's process id."""
+    import os
+
+    from photonpano import watchdog
+
+    for _ in range(2):
+        with watchdog.watched("locator", object(), "register_to_template"):
+            time.sleep(seconds)
+    return os.getpid()
+
+
+def test_a_plugin_call_hung_on_a_worker_ends_a_guarded_map_naming_it(monkeypatch):
+    """The calling process asks the workers what they run: a call past the limit is one line, within the bound."""
+    import os
+
+    from photonpano import watchdog
+
+    monkeypatch.setenv(watchdog.ENV, "1")
+    with DaskExecutor(workers=1) as executor:  # its own cluster: the hung worker thread is not the module's
+        with watchdog.guarding():  # each call under the limit, the task (1.4 s) over it: not a hang
+            assert executor.map(_two_calls, [0.7]) != [os.getpid()]
+        start = time.perf_counter()
+        with pytest.raises(watchdog.PluginHung) as info:
+            with watchdog.guarding():
+                executor.map(_hang_in_a_merge, [0])
+        took = time.perf_counter() - start
+        message = str(info.value)
+        assert message.startswith("merger (my-merger) in merge on a Dask worker did not return within 1 s")
+        assert watchdog.ENV in message and "\n" not in message
+        assert 1 <= took < 10, took

@@ -5,6 +5,7 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import signal
 import subprocess
 import sys
 import textwrap
@@ -38,10 +39,28 @@ def invoke(*args):
     return CliRunner().invoke(app, ["-q", *(str(a) for a in args)])
 
 
-def run_subprocess(*args, env: dict[str, str] | None = None, timeout: float = 300):
-    """Run ``python -m photonpano.cli -q`` as a user would; ``returncode``, ``stdout``, ``stderr``."""
+def sigint_as(disposition: signal.Handlers = signal.SIG_DFL):
+    """A ``preexec_fn`` that gives a child process ``SIGINT`` as ``disposition``, whatever the test runner's is.
+
+    A child inherits an ignored ``SIGINT``: pytest started as a background job of a
+    non-interactive shell (``pytest ... &``) has it ignored, and so would every command it
+    starts, so a test sending Ctrl-C to a child, or one that expects the child to behave
+    as in a terminal, sets it explicitly (``signal.SIG_DFL``: Python installs its
+    ``KeyboardInterrupt`` handler; ``signal.SIG_IGN``: as in such a background job).
+    """
+    return lambda: signal.signal(signal.SIGINT, disposition)
+
+
+def run_subprocess(*args, env: dict[str, str] | None = None, timeout: float = 300,
+                   sigint: signal.Handlers = signal.SIG_DFL):
+    """Run ``python -m photonpano.cli -q`` as a user would; ``returncode``, ``stdout``, ``stderr``.
+
+    ``sigint``: the child's ``SIGINT`` disposition (see :func:`sigint_as`); by default as
+    in a terminal, whatever pytest's.
+    """
     return subprocess.run([sys.executable, "-m", "photonpano.cli", "-q", *map(str, args)], capture_output=True,
-                          text=True, timeout=timeout, env={**os.environ, **(env or {})})
+                          text=True, timeout=timeout, env={**os.environ, **(env or {})},
+                          preexec_fn=sigint_as(sigint))
 
 
 def digests(*paths: Path) -> dict[str, str]:

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import os
+import signal
+import threading
 import time
 
 import pytest
@@ -29,6 +31,10 @@ HANGING_LOCATOR = """
                 except KeyboardInterrupt:  # a bare `except:` in plugin code swallows the interrupt
                     if self.config.how == "sleep":
                         raise
+
+        def _register_to_template(self, views, frames, initial, context):
+            while True:  # the mosaic levels' call (on a Dask worker in test_a_hang_on_a_dask_worker...)
+                time.sleep(0.1)
 
 
     class StuckConfig(OpenCVOrbConfig):
@@ -64,6 +70,38 @@ def test_a_hanging_locator_ends_the_run_naming_it(tmp_path, executor):
                           watchdog.ENV)
     assert took < 60  # start-up, the simulation and 2 s; the process does not wait for the stuck thread
     assert not (tmp_path / "out" / "run.json").exists()
+
+
+@pytest.mark.slow
+def test_a_run_started_with_sigint_ignored_still_ends_a_hanging_locator(tmp_path):
+    """As a background job of a non-interactive shell (``photonpano demo ... &``): SIGINT ignored from the start."""
+    start = time.perf_counter()
+    result = run_subprocess("demo", "-o", tmp_path / "out", *TINY, "--set", "locator=stuck-locator",
+                            env=_env(tmp_path), timeout=120, sigint=signal.SIG_IGN)
+    took = time.perf_counter() - start
+    assert_one_line_error(result, "locator (stuck-locator) in register_pairs", "did not return within 2 s",
+                          watchdog.ENV)
+    assert took < 60  # the interrupt came in time, not the grace period's hard exit
+    assert not (tmp_path / "out" / "run.json").exists()
+
+
+@pytest.mark.slow
+def test_a_hang_on_a_dask_worker_ends_the_run_naming_it_and_keeps_the_checkpoint(tmp_path):
+    """The mosaic level's locator hangs in a task on a Dask worker: one line, level 1's checkpoint kept."""
+    pytest.importorskip("distributed")
+    from photonpano import outputs
+
+    start = time.perf_counter()
+    result = run_subprocess("demo", "-o", tmp_path / "out", *TINY, "--set", "mosaic.locator=stuck-locator",
+                            "--set", "executor=dask", "--set", "workers=1", env=_env(tmp_path), timeout=180)
+    took = time.perf_counter() - start
+    notes = "executor dask: FeatureLocator._matched"  # level 1's feature locator: its closures run here (logged)
+    result.stderr = "\n".join(line for line in result.stderr.splitlines() if not line.startswith(notes))
+    assert_one_line_error(result, "locator (stuck-locator) in register_to_template on a Dask worker",
+                          "did not return within 2 s", watchdog.ENV)
+    assert took < 90  # start-up, the cluster, level 1 and 2 s (+ the check's period)
+    assert not (tmp_path / "out" / "run.json").exists()
+    assert [p.name for p in (tmp_path / "out" / outputs.CHECKPOINTS).iterdir()] == ["level_1.npz"]
 
 
 @pytest.mark.slow
@@ -128,3 +166,39 @@ def test_compare_records_a_hanging_locator_and_runs_the_next(tmp_path):
     runs = json.loads((out / "compare.json").read_text())["runs"]
     assert runs[0]["status"].startswith("locator (stuck-locator) in register_pairs did not return within 2 s")
     assert runs[1]["status"] == "ok"
+
+
+@pytest.fixture
+def sigint_ignored():
+    """This process with SIGINT ignored, as a background job of a non-interactive shell starts."""
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    yield
+    signal.signal(signal.SIGINT, previous)
+
+
+def test_the_watchdog_does_not_depend_on_sigint_and_wakes_a_blocking_wait(monkeypatch, sigint_ignored):
+    """A main thread blocked on an event that nobody sets (as on a stuck worker's future) is interrupted."""
+    monkeypatch.setenv(watchdog.ENV, "0.3")
+    before = signal.getsignal(watchdog.SIGNAL)
+    start = time.perf_counter()
+    with pytest.raises(watchdog.PluginHung, match=r"^merger \(my-merger\) in merge did not return within 0.3 s"):
+        with watchdog.guarding(), watchdog.watched("merger", _Plugin(), "merge"):
+            threading.Event().wait()  # no timeout: only a signal wakes it
+    assert 0.3 <= time.perf_counter() - start < 5
+    assert signal.getsignal(watchdog.SIGNAL) is before  # the handler is put back once the interrupt was taken
+    assert signal.getsignal(signal.SIGINT) is signal.SIG_IGN
+
+
+def test_a_foreign_signal_goes_to_the_previous_handler(monkeypatch):
+    """SIGUSR2 from elsewhere during a run reaches the handler installed before it; the run goes on."""
+    monkeypatch.setenv(watchdog.ENV, "5")
+    seen = []
+    previous = signal.signal(watchdog.SIGNAL, lambda signum, frame: seen.append(signum))
+    try:
+        with watchdog.guarding(), watchdog.watched("merger", _Plugin(), "merge"):
+            assert signal.getsignal(watchdog.SIGNAL) is not previous  # the watchdog's own, while guarded
+            os.kill(os.getpid(), watchdog.SIGNAL)
+            time.sleep(0.2)  # the handler runs in the main thread at its next bytecode
+        assert seen == [watchdog.SIGNAL]
+    finally:
+        signal.signal(watchdog.SIGNAL, previous)

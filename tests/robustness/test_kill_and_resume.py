@@ -11,7 +11,7 @@ import time
 import numpy as np
 import pytest
 from photonpano import outputs
-from robust import SMALL_SPEC, assert_sound_folder, run_subprocess
+from robust import SMALL_SPEC, assert_sound_folder, run_subprocess, sigint_as
 
 
 @pytest.fixture(scope="module")
@@ -28,7 +28,8 @@ def reference(tmp_path_factory):
 
 def _start(spec, out):
     return subprocess.Popen([sys.executable, "-m", "photonpano.cli", "run", str(spec), "-o", str(out)],
-                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                            preexec_fn=sigint_as(signal.SIG_DFL))  # Ctrl-C works even if pytest ignores SIGINT
 
 
 @pytest.mark.slow

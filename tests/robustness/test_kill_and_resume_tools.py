@@ -351,3 +351,128 @@ def test_convert_resume_refuses_a_part_it_does_not_own(tmp_path, small_cube):
     before = digests(tmp_path)
     assert_one_line_error(invoke("convert", small_cube, "-o", out, "--resume"), owner, "symbolic link")
     assert digests(tmp_path) == before and owner.is_symlink() and not out.exists()
+
+
+# -- pose ------------------------------------------------------------------------------------------------------------
+
+POSE = ["pose", "simulate3d", "--set", "source.height=128", "--set", "source.width=248", "--set",
+        "source.focal_px=210", "--set", "pose_estimator.group_size=500", "--set", "source.frames=3000", "--set",
+        "pose_estimator.levels=3"]
+"""A small pose run (three levels, about 20 s on two busy cores)."""
+
+
+def _pose_sound(out: Path) -> bool:
+    """Every file under a final name is complete; run.json only with a complete manifest. Returns complete."""
+    if not out.exists():
+        return False
+    for path in out.rglob("*"):
+        if path.is_file() and not path.name.startswith(".partial-") and "work" not in path.relative_to(out).parts:
+            if path.suffix == ".npy":
+                np.load(path, allow_pickle=False)
+            elif path.suffix == ".npz":
+                with np.load(path, allow_pickle=False) as data:
+                    [data[k] for k in data.files]
+            elif path.suffix == ".json":
+                json.loads(path.read_text())
+            elif path.suffix == ".ply":
+                head, _, body = path.read_bytes().partition(b"end_header\n")
+                count = int(head.split(b"element vertex ")[1].split()[0])
+                assert len(body) == 15 * count, path  # 3 float32 and 3 uint8 per point
+    if not (out / "run.json").exists():
+        return False
+    manifest = json.loads((out / "manifest.json").read_text())
+    assert manifest["complete"] is True and all((out / name).is_file() for name in manifest["files"])
+    assert not (out / "checkpoints").exists() and not (out / ".photonpano.lock").exists()
+    return True
+
+
+def _checkpointed(out: Path) -> tuple[list[dict], dict[str, np.ndarray]]:
+    """The level rows and arrays of the latest pose checkpoint in ``out`` (empty when none)."""
+    found = sorted(out.glob("checkpoints/pose_*.npz"), key=lambda p: int(p.stem.split("_")[1]))
+    for path in reversed(found):
+        try:
+            with np.load(path, allow_pickle=False) as data:
+                meta = json.loads(data["meta"].tobytes().decode())
+                return meta["record"]["levels"], {k: data[k] for k in data.files if k != "meta"}
+        except (OSError, ValueError, KeyError, EOFError):  # written when the kill came: the one before counts
+            continue
+    return [], {}
+
+
+def _assert_reused(out: Path, rows: list[dict], arrays: dict[str, np.ndarray]) -> None:
+    """The finished run in ``out`` kept the checkpointed levels' figures and poses bit for bit."""
+    levels = json.loads((out / "run.json").read_text())["levels"]
+    for saved, row in zip(rows, levels):
+        assert {k: v for k, v in row.items() if k in saved and k != "timings_s"} == \
+            {k: v for k, v in saved.items() if k != "timings_s"}, row["level"]
+    if rows and len(levels) == len(rows):  # killed after the last level: the result is the checkpoint's
+        assert np.array_equal(np.load(out / "exposure_poses.npy"), arrays[f"array_poses_{len(rows) - 1}"],
+                              equal_nan=True)
+
+
+def test_pose_interrupted_after_level_1_resumes_without_mapping_again(tmp_path, monkeypatch):
+    pytest.importorskip("pycolmap")
+    from photonpano.plugins.pose import pycolmap_sfm
+    from photonpano.pose_checkpoints import PoseCheckpoints
+
+    save = PoseCheckpoints.save
+
+    def interrupt(self, level, *args, **kwargs):
+        save(self, level, *args, **kwargs)
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(PoseCheckpoints, "save", interrupt)
+    out = tmp_path / "out"
+    outside = tmp_path / "outside"
+    outside.mkdir()
+    (outside / "victim.txt").write_text("keep")
+    before = digests(outside)
+    assert invoke(*POSE, "-o", out).exit_code != 0
+    assert not _pose_sound(out) and not (out / ".photonpano.lock").exists()
+    assert sorted(p.name for p in (out / "checkpoints").iterdir()) == ["pose_1", "pose_1.npz"]
+    rows, arrays = _checkpointed(out)
+    assert [row["level"] for row in rows] == [1]
+    assert_one_line_error(invoke(*POSE, "-o", out), out, "--resume")  # not over an interrupted run unasked
+    assert_one_line_error(invoke(*POSE, "-o", out, "--resume", "--set", "pose_estimator.levels=2"),
+                          "the spec differs")
+    monkeypatch.setattr(PoseCheckpoints, "save", save)
+    mapped = []
+    monkeypatch.setattr(pycolmap_sfm, "map_exposures", lambda *a: mapped.append(a))  # level 1 is not redone
+    result = invoke(*POSE, "-o", out, "--resume")
+    assert result.exit_code == 0, result.stderr
+    assert not mapped and _pose_sound(out)
+    _assert_reused(out, rows, arrays)
+    assert digests(outside) == before
+    assert_one_line_error(invoke(*POSE, "-o", out, "--resume"), "already complete")
+    assert_one_line_error(invoke(*POSE, "-o", out, "--resume", "--force"), "exclude each other")
+
+
+@pytest.mark.slow
+def test_pose_killed_at_random_moments_then_resumed(tmp_path):
+    """SIGKILL after level 1's checkpoint and at fractions of a run: --resume completes, reusing what was saved."""
+    pytest.importorskip("pycolmap")
+    start = time.perf_counter()
+    reference = run_subprocess(*POSE, "-o", tmp_path / "reference")
+    duration = time.perf_counter() - start
+    assert reference.returncode == 0, reference.stderr
+    for k, moment in enumerate([None, *(duration * f for f in (0.3, 0.6, 0.9))]):
+        out = tmp_path / f"kill{k}"
+        process = subprocess.Popen([sys.executable, "-m", "photonpano.cli", "-q", *POSE, "-o", str(out)],
+                                   stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        if moment is None:  # right after level 1's checkpoint
+            while not (out / "checkpoints" / "pose_1.npz").exists() and process.poll() is None:
+                time.sleep(0.01)
+        else:
+            time.sleep(moment)
+        process.send_signal(signal.SIGKILL)
+        process.wait()
+        if _pose_sound(out):
+            continue  # it had finished
+        rows, arrays = _checkpointed(out)
+        if moment is None:
+            assert [row["level"] for row in rows] == [1]
+        resume = ["--resume"] if (out / "manifest.json").exists() else []
+        result = run_subprocess(*POSE, "-o", out, *resume)
+        assert result.returncode == 0, (k, result.stderr)
+        assert _pose_sound(out)
+        _assert_reused(out, rows, arrays)

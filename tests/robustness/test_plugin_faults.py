@@ -203,9 +203,14 @@ def test_ctrl_c_stops_the_thread_pool_within_a_second():
             time.sleep(0.05)
 
     executor = ThreadExecutor(2)
-    threading.Timer(0.3, os.kill, (os.getpid(), signal.SIGINT)).start()  # as Ctrl-C does
-    start = time.perf_counter()
-    with pytest.raises(KeyboardInterrupt):
-        with executor:
-            executor.map(task, range(8), [executor] * 8)
+    # Python's Ctrl-C handler, also when pytest runs as a background job (which starts with SIGINT ignored)
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        threading.Timer(0.3, os.kill, (os.getpid(), signal.SIGINT)).start()  # as Ctrl-C does
+        start = time.perf_counter()
+        with pytest.raises(KeyboardInterrupt):
+            with executor:
+                executor.map(task, range(8), [executor] * 8)
+    finally:
+        signal.signal(signal.SIGINT, previous)
     assert time.perf_counter() - start < 1.3
