@@ -34,6 +34,7 @@ SwissSPAD sources (``npy-cube``, ``swissspad-bin``) and ``simulate``, with ``cfa
 from __future__ import annotations
 
 import copy
+import dataclasses
 from typing import Any, Callable
 
 import numpy as np
@@ -41,7 +42,7 @@ from numpy.typing import NDArray
 from photonpano.stages import Compositor, SourceConfig
 from pydantic import model_validator
 
-__all__ = ["CfaChannels", "FrameDemosaic", "ColourPanorama", "ColourSourceConfig", "cfa_corrector"]
+__all__ = ["CfaChannels", "LumaGuided", "FrameDemosaic", "ColourPanorama", "ColourSourceConfig", "cfa_corrector"]
 
 CHANNELS = ("R", "G", "B")
 
@@ -202,6 +203,85 @@ class FrameDemosaic(_PerChannel):
             part.feed(dense, n_frames, homographies, covered if weights is None else covered * weights)
 
 
+class LumaGuided(_PerChannel):
+    """Luminance-guided demosaic through motion: sharp detail from every photon, colour ratios from the planes.
+
+    The planes are merged on their own as in :class:`CfaChannels` (plain ``drizzle``,
+    square drops of one canvas pixel); a fourth ``drizzle`` with point drops
+    (noise-adaptive) merges the luminance of every unfiltered pixel; :meth:`finish`
+    combines them with :func:`._guided.guided_colour` (see :mod:`._guided`). Fed the raw
+    counts (:meth:`read`), like :class:`CfaChannels`.
+
+    Args:
+        scale: super-resolution scale (canvas pixels per frame pixel).
+        corrector: as for :class:`CfaChannels`.
+        sigma_px: standard deviation of the colour ratios' Gaussian in canvas pixels at
+            scale 1 (times ``scale`` on a finer canvas).
+
+    Raises:
+        ValueError: if ``scale`` or ``sigma_px`` is not above 0.
+    """
+
+    def __init__(self, scale: float = 1.0, corrector: Any = None, sigma_px: float | None = None) -> None:
+        """Build the three plane compositors and the luminance one."""
+        from ._adaptive import DETAIL_GAIN
+        from ._guided import CHROMA_SIGMA_PX
+        from .drizzle import Drizzle
+
+        sigma_px = CHROMA_SIGMA_PX if sigma_px is None else sigma_px
+        if not (scale > 0 and sigma_px > 0):
+            raise ValueError(f"LumaGuided: scale and sigma_px must be above 0, got {scale}, {sigma_px}")
+        super().__init__(lambda: Drizzle(scale, "square", 1.0 / scale), corrector)
+        self._luma = Drizzle(scale, "point", wide_px=2.0, detail_gain=DETAIL_GAIN)
+        self.sigma_px = sigma_px
+
+    def prepare(self, canvas: Any, source: Any) -> None:
+        """Prepare the planes and the luminance (see :meth:`Compositor.prepare`).
+
+        Raises:
+            ValueError: if neither the constructor nor ``source`` gives a colour layout.
+        """
+        super().prepare(canvas, source)
+        self._luma.prepare(canvas, source)
+        self._unfiltered = ((self._corrector.cfa < 0) & ~self._corrector.hot).astype(np.float32)
+
+    def feed(self, counts: NDArray, n_frames: NDArray[np.int64], homographies: NDArray[np.float64],
+             weights: NDArray[np.float32] | None = None) -> None:
+        """Feed each plane the pixels behind its filter and the luminance the unfiltered ones."""
+        for part, mask in zip(self._parts, self._masks):
+            part.feed(counts, n_frames, homographies, mask if weights is None else mask * weights)
+        luma = self._unfiltered if weights is None else self._unfiltered * weights
+        self._luma.feed(counts, n_frames, homographies, luma)
+
+    def fork(self) -> LumaGuided | None:
+        """An empty copy on the same canvas."""
+        other = super().fork()
+        if other is not None:
+            other._luma = self._luma.fork()
+        return other
+
+    def join(self, other: Compositor) -> None:
+        """Add a fork's planes and luminance."""
+        super().join(other)
+        self._luma.join(other._luma)
+
+    def finish(self) -> Any:
+        """The colour :class:`~photonpano.compose.Panorama` (flux (Hc, Wc, 3) float32 photons/s, R, G, B).
+
+        Its ``frames`` are the planes' (Hc, Wc, 3) drop-weighted frames.
+        """
+        from ._adaptive import drop_sharpness
+        from ._guided import guided_colour
+
+        planes = super().finish()
+        luma = self._luma.finish().flux
+        binary = getattr(self._source, "kind", "binary") == "binary"
+        flux = guided_colour(luma, planes.flux, planes.frames, float(self._source.exposure_s),
+                             sigma_px=self.sigma_px * self.scale, sharpness=drop_sharpness("square", 1.0),
+                             binary=binary)
+        return dataclasses.replace(planes, flux=flux)
+
+
 class ColourPanorama(Compositor):
     """The panorama and its colour planes in one pass: the panorama stage's colour compositor.
 
@@ -216,8 +296,9 @@ class ColourPanorama(Compositor):
 
     def __init__(self, make: Callable[[], Compositor]) -> None:
         """Build the panorama's and the colour planes' compositors."""
-        self._flux, self._colour = make(), CfaChannels(make)
+        self._flux = make()
         self.scale = self._flux.scale
+        self._colour = LumaGuided(self.scale)
 
     def prepare(self, canvas: Any, source: Any) -> None:
         """Prepare both on ``canvas`` (see :meth:`Compositor.prepare`).
@@ -273,8 +354,6 @@ class ColourPanorama(Compositor):
 
     def finish(self) -> Any:
         """The panorama (see :meth:`Compositor.finish`) with ``colour``: (Hc, Wc, 3) float32 R, G, B."""
-        import dataclasses
-
         return dataclasses.replace(self._flux.finish(), colour=self._colour.finish().flux)
 
 
