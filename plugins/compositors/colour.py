@@ -1,17 +1,21 @@
-"""Colour compositors for colour-filtered sensors: demosaic through motion, and its baseline.
+"""Colour compositors for colour-filtered sensors: demosaic through motion, and its baselines.
 
 A colour-filtered SPAD (the SwissSPAD2 colour half array: red, green or blue filters on
 one pixel in four, on an irregular layout, ``cfa``) samples each colour on a sparse grid.
-Two ways to a colour panorama, both wrapping the spec's compositor once per channel:
+Three ways to a colour panorama, each wrapping compositors once per channel:
 
-- :class:`CfaChannels`, **demosaic through motion**: each detection is composited into
-  its own colour plane at its estimated canvas position (channel c's compositor is fed
-  the raw counts with per-pixel weight 1 behind filter c and 0 elsewhere). With a
-  splatting compositor (``drizzle``: point, square or Gaussian drops) the camera's
-  sub-pixel motion moves the sparse grid of each colour over the canvas, so every canvas
-  pixel of every plane is observed directly and no spatial interpolation is needed:
-  Wronski et al., "Handheld multi-frame super-resolution", SIGGRAPH 2019, which merges
-  raw Bayer bursts the same way.
+- :class:`LumaGuided`, **luminance-guided demosaic through motion** (the panorama
+  stage's, see :mod:`._guided`): the colour planes merged as :class:`CfaChannels` does,
+  a sharp luminance (point drops) from every unfiltered photon, and per channel the
+  plane's colour ratio to the luminance on that luminance, with the plane itself kept
+  where its colour detail stands above its photon noise;
+- :class:`CfaChannels`, the **per-plane merge**: each detection is composited into its
+  own colour plane at its estimated canvas position (channel c's compositor is fed the
+  raw counts with per-pixel weight 1 behind filter c and 0 elsewhere), each plane on its
+  own. With a splatting compositor (``drizzle``) the camera's sub-pixel motion moves the
+  sparse grid of each colour over the canvas, so every canvas pixel of every plane is
+  observed directly: Wronski et al., "Handheld multi-frame super-resolution", SIGGRAPH
+  2019, which merges raw Bayer bursts the same way;
 - :class:`FrameDemosaic`, the conventional **per-frame demosaic, then merge** baseline:
   each sub-batch's sparse plane c is interpolated to every frame pixel first (normalised
   convolution with a separable tent of half-width ``radius_px`` frame pixels: bilinear
@@ -21,8 +25,8 @@ Two ways to a colour panorama, both wrapping the spec's compositor once per chan
 :class:`ColourPanorama` is the panorama stage's compositor when the source asks for
 colour (``colour_panorama: true``, see
 :meth:`~photonpano.stages.SourceConfig.panorama_compositor`): the spec's compositor on
-the inpainted counts (the panorama, unchanged) and :class:`CfaChannels` on the raw
-counts, from one read of the capture.
+the inpainted counts (the panorama, unchanged) and :class:`LumaGuided` (at the spec
+compositor's scale) on the raw counts, from one read of the capture.
 
 Registration never sees the colour: the sources' ``sum_ranges`` inpaint the filtered
 pixels from their unfiltered neighbours, so the motion comes from the luminance of all
@@ -287,8 +291,8 @@ class ColourPanorama(Compositor):
 
     Feeds the spec's compositor the source's corrected counts (filtered pixels inpainted,
     what ``sum_ranges`` returns: the panorama is the one without colour) and a
-    :class:`CfaChannels` of the same compositor the raw counts, from one read of each
-    sub-batch. :meth:`finish` returns the panorama with ``colour`` set.
+    :class:`LumaGuided` at its scale the raw counts, from one read of each sub-batch.
+    :meth:`finish` returns the panorama with ``colour`` set.
 
     Args:
         make: builds the spec's compositor (its config's ``build``).

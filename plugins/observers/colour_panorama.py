@@ -3,15 +3,14 @@
 The SwissSPAD2 colour half array has red, green or blue filters on one pixel in four
 (``cfa``). For registration and the main panorama those pixels are treated as missing
 (inpainted, see :mod:`photonpano.plugins.sources._swissspad_sensor`). With ``source: {colour_panorama: true}``
-(the SwissSPAD sources, or ``simulate`` with ``cfa``) this observer composites the colour
-panorama with the colour compositor :class:`~photonpano.plugins.compositors.colour.CfaChannels`
-(demosaic through motion: each detection splatted into its own colour plane by the
-spec's compositor) on the run's homographies and canvas, from the capture still open
-(``photonpano_panorama_finished``). Hot/dead pixels are left out. In a run the panorama
-stage has already composited the colour planes in the same pass as the panorama
-(:class:`~photonpano.plugins.compositors.colour.ColourPanorama`, ``panorama.colour``);
-this observer then only writes them, and composites them itself only for a panorama
-without them.
+(the SwissSPAD sources, or ``simulate`` with ``cfa``) the panorama stage composites the
+colour panorama in the same pass as the panorama
+(:class:`~photonpano.plugins.compositors.colour.ColourPanorama`: luminance-guided
+demosaic through motion, ``panorama.colour``) and this observer writes it
+(``photonpano_panorama_finished``). Only for a panorama without colour does it composite
+the per-plane merge itself (:class:`~photonpano.plugins.compositors.colour.CfaChannels`:
+each detection splatted into its own colour plane) on the run's homographies and canvas,
+from the capture still open. Hot/dead pixels are left out.
 
 Outputs in the run folder: ``panorama_rgb.npy`` ((Hc, Wc, 3) float32 linear flux in
 photons/s per channel, R, G, B; NaN where a channel saw nothing), the same as a float32
