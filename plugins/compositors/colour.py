@@ -220,7 +220,8 @@ class LumaGuided(_PerChannel):
         scale: super-resolution scale (canvas pixels per frame pixel).
         corrector: as for :class:`CfaChannels`.
         sigma_px: standard deviation of the colour ratios' Gaussian in canvas pixels at
-            scale 1 (times ``scale`` on a finer canvas).
+            scale 1 (times ``scale`` on a finer canvas; the residual's, 1 px, scales too);
+            None: :data:`._guided.CHROMA_SIGMA_PX`.
 
     Raises:
         ValueError: if ``scale`` or ``sigma_px`` is not above 0.
@@ -275,14 +276,14 @@ class LumaGuided(_PerChannel):
         Its ``frames`` are the planes' (Hc, Wc, 3) drop-weighted frames.
         """
         from ._adaptive import drop_sharpness
-        from ._guided import guided_colour
+        from ._guided import RESIDUAL_SIGMA_PX, guided_colour
 
         planes = super().finish()
         luma = self._luma.finish().flux
         binary = getattr(self._source, "kind", "binary") == "binary"
         flux = guided_colour(luma, planes.flux, planes.frames, float(self._source.exposure_s),
-                             sigma_px=self.sigma_px * self.scale, sharpness=drop_sharpness("square", 1.0),
-                             binary=binary)
+                             sigma_px=self.sigma_px * self.scale, residual_px=RESIDUAL_SIGMA_PX * self.scale,
+                             sharpness=drop_sharpness("square", 1.0), binary=binary)
         return dataclasses.replace(planes, flux=flux)
 
 

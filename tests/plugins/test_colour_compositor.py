@@ -83,7 +83,9 @@ def test_a_run_composites_the_colour_panorama_with_the_panorama(capture):
     sub = spec.panorama_subbatch_px
     plain = compose(source, pano.homographies, spec.compositor.build(), canvas_shape=shape, subbatch_px=sub)
     np.testing.assert_allclose(pano.flux, plain.flux, rtol=1e-5)  # the panorama is the one without colour
-    alone = compose(source, pano.homographies, LumaGuided(spec.compositor.scale), canvas_shape=shape, subbatch_px=sub)
+    guided = LumaGuided(spec.compositor.scale)
+    guided.frame_breaks = spec.compositor.build().frame_breaks  # the panorama's sub-batches (its robust merge's)
+    alone = compose(source, pano.homographies, guided, canvas_shape=shape, subbatch_px=sub)
     np.testing.assert_allclose(pano.colour, alone.flux, rtol=1e-5)
 
 
@@ -95,12 +97,12 @@ def _truth_canvas(capture, scale=1.0):
     return to_canvas, shape, truth
 
 
-def _scores(panos, truth):
+def _scores(panos, truth, min_cover=0.6):
     both = np.isfinite(truth).all(-1)
     for pano in panos.values():
         both &= np.isfinite(pano).all(-1)
     mask = cv2.erode(both.astype(np.uint8), np.ones((7, 7), np.uint8)).astype(bool)
-    assert mask.mean() > 0.6
+    assert mask.mean() > min_cover
     db = {key: np.array([psnr(p[..., c], truth[..., c], mask) for c in range(3)]) for key, p in panos.items()}
     return db, {key: 255 * chroma_edge_error(p, truth, mask) for key, p in panos.items()}
 
@@ -114,12 +116,28 @@ def test_luminance_guided_colour_beats_the_per_plane_merge_by_2_db_without_fring
              for key, comp in {"guided": LumaGuided(), "drizzle": CfaChannels(DrizzleConfig().build),
                                "bilinear": CfaChannels(FluxCanvasConfig().build)}.items()}
     db, chroma = _scores(panos, truth)
-    # measured: guided 29.3/30.1/29.3 dB, per-plane drizzle 26.2/26.6/26.5, bilinear 26.4/26.8/26.6 (R/G/B);
-    # chroma 2.46 (guided), 3.50 (drizzle), 3.96 (bilinear) 8-bit codes
+    # measured: guided 29.9/30.7/30.4 dB, per-plane drizzle 26.2/26.6/26.5, bilinear 26.4/26.8/26.6 (R/G/B);
+    # chroma 2.01 (guided), 3.50 (drizzle), 3.96 (bilinear) 8-bit codes
     for baseline in ("drizzle", "bilinear"):
         assert db["guided"].mean() - db[baseline].mean() >= 2.0, (db, baseline)
         assert (db["guided"] > db[baseline] + 1.5).all(), (db, baseline)
         assert chroma["guided"] < 0.8 * chroma[baseline], chroma
+
+
+def test_colour_panorama_at_scale_2(capture):
+    """Super-resolution with colour: the colour is on the panorama's scale-2 canvas, guided beats per-plane."""
+    from photonpano.plugins.compositors.colour import ColourPanorama
+
+    to_canvas, shape, truth = _truth_canvas(capture, scale=2.0)
+    make = DrizzleConfig(scale=2.0).build
+    both = compose(capture, to_canvas, ColourPanorama(make), canvas_shape=shape)
+    assert both.flux.shape == shape and both.colour.shape == (*shape, 3) and both.colour.dtype == np.float32
+    assert np.isfinite(both.colour).all(-1).mean() > 0.95 * np.isfinite(both.flux).mean()
+    plane = compose(capture, to_canvas, CfaChannels(make), canvas_shape=shape).flux
+    db, chroma = _scores({"guided": both.colour, "drizzle": plane}, truth, min_cover=0.5)
+    # measured: guided 30.3/31.0/30.7 dB, per-plane drizzle 26.5/26.8/26.6; chroma 1.75 and 4.04 codes
+    assert db["guided"].mean() - db["drizzle"].mean() >= 2.0, db
+    assert chroma["guided"] < 0.8 * chroma["drizzle"], chroma
 
 
 def test_guided_colour_keeps_a_saturated_colour_edge_and_checks_its_input():
@@ -135,11 +153,11 @@ def test_guided_colour_keeps_a_saturated_colour_edge_and_checks_its_input():
     planes = (-np.log1p(-rng.binomial(int(n), p) / n) / tau).astype(np.float32)
     frames = np.full((h, w, 3), n, np.float32)
     out = guided_colour(luma, planes, frames, tau, sharpness=1.0)
-    # measured 0.049 of full scale; the ratio alone (detail_gain 0) smears the step: 0.26
+    # measured 0.065 of full scale; the ratio alone (detail_gain 0) smears the step: 0.26
     edge_err = np.abs(out[:, 30:34, 0] - truth[:, 30:34, 0]).mean() / truth[..., 0].max()
-    assert edge_err < 0.1, edge_err
+    assert edge_err < 0.12, edge_err
     flat = out[:, 8:24, 0]
-    assert np.std(flat) < 0.5 * np.std(planes[:, 8:24, 0]), (np.std(flat), np.std(planes[:, 8:24, 0]))  # 0.21x
+    assert np.std(flat) < 0.5 * np.std(planes[:, 8:24, 0]), (np.std(flat), np.std(planes[:, 8:24, 0]))  # 0.20x
     with pytest.raises(ValueError, match="guided_colour: expected luma"):
         guided_colour(luma, planes[:, :10], frames, tau)
     with pytest.raises(ValueError, match="sigma_px"):
