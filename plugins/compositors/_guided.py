@@ -33,6 +33,8 @@ noise (Lee's local Wiener weight, as noise-adaptive drizzle does, :mod:`._adapti
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 from numpy.typing import NDArray
 
@@ -69,8 +71,9 @@ def _filter(image: NDArray, kernel: NDArray[np.float32] | float) -> NDArray[np.f
 
     image = np.ascontiguousarray(image, np.float32)
     if isinstance(kernel, np.ndarray):
-        return cv2.sepFilter2D(image, cv2.CV_32F, kernel, kernel, borderType=cv2.BORDER_CONSTANT)
-    return cv2.GaussianBlur(image, (0, 0), float(kernel), borderType=cv2.BORDER_CONSTANT)
+        return np.asarray(cv2.sepFilter2D(image, cv2.CV_32F, kernel, kernel, borderType=cv2.BORDER_CONSTANT),
+                          np.float32)
+    return np.asarray(cv2.GaussianBlur(image, (0, 0), float(kernel), borderType=cv2.BORDER_CONSTANT), np.float32)
 
 
 def footprint_tent(image: NDArray[np.float32]) -> NDArray[np.float32]:
@@ -154,7 +157,7 @@ def guided_colour(luma: NDArray[np.float32], planes: NDArray[np.float32], frames
         coarse_noise = (_filter(wr * wr * np.where(ok, noise, 0), residual_px / np.sqrt(2))
                         / (4 * np.pi * residual_px ** 2) / norm ** 2)
         cover = np.maximum(_filter(ok, sigma_px), 1e-12)
-        out_c = guide.copy()
+        out_c: NDArray[Any] = guide.copy()
         # the coarse residual where its detail beats its noise, then what is left of the
         # plane's own pixels where that beats theirs
         for part, var in ((coarse, coarse_noise), (fine - coarse, np.where(ok, noise, 0))):

@@ -261,12 +261,19 @@ class LumaGuided(_PerChannel):
     def fork(self) -> LumaGuided | None:
         """An empty copy on the same canvas."""
         other = super().fork()
-        if other is not None:
-            other._luma = self._luma.fork()
+        if not isinstance(other, LumaGuided):
+            return None
+        other._luma = self._luma.fork()
         return other
 
     def join(self, other: Compositor) -> None:
-        """Add a fork's planes and luminance."""
+        """Add a fork's planes and luminance.
+
+        Raises:
+            TypeError: if ``other`` is not a fork of a :class:`LumaGuided`.
+        """
+        if not isinstance(other, LumaGuided):
+            raise TypeError(f"LumaGuided.join: expected a fork of this compositor, got {type(other).__name__}")
         super().join(other)
         self._luma.join(other._luma)
 
