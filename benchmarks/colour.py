@@ -1,4 +1,4 @@
-"""Colour benchmark of issue 32: demosaic through motion against per-frame demosaic, then merge.
+"""Colour benchmark of issue 32: luminance-guided colour against per-plane merges and per-frame demosaic.
 
 Each colour photo is simulated as a SwissSPAD2 colour half array (``simulate`` with
 ``cfa: colorspad``: the real filter layout, R, G or B on one pixel in four, filter
@@ -32,7 +32,8 @@ per-frame demosaic's. Target (issue 32): >= 2 dB over the per-plane merge.
 
 Usage::
 
-    python benchmarks/colour.py
+    python benchmarks/colour.py                 # all photos of benchmarks/photos
+    python benchmarks/colour.py --scale 2       # super-resolved colour
     python benchmarks/colour.py --photos city_madison,foliage_dandelions --frames 40000 --flux 1
 """
 
