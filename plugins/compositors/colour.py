@@ -1,17 +1,21 @@
-"""Colour compositors for colour-filtered sensors: demosaic through motion, and its baseline.
+"""Colour compositors for colour-filtered sensors: demosaic through motion, and its baselines.
 
 A colour-filtered SPAD (the SwissSPAD2 colour half array: red, green or blue filters on
 one pixel in four, on an irregular layout, ``cfa``) samples each colour on a sparse grid.
-Two ways to a colour panorama, both wrapping the spec's compositor once per channel:
+Three ways to a colour panorama, each wrapping compositors once per channel:
 
-- :class:`CfaChannels`, **demosaic through motion**: each detection is composited into
-  its own colour plane at its estimated canvas position (channel c's compositor is fed
-  the raw counts with per-pixel weight 1 behind filter c and 0 elsewhere). With a
-  splatting compositor (``drizzle``: point, square or Gaussian drops) the camera's
-  sub-pixel motion moves the sparse grid of each colour over the canvas, so every canvas
-  pixel of every plane is observed directly and no spatial interpolation is needed:
-  Wronski et al., "Handheld multi-frame super-resolution", SIGGRAPH 2019, which merges
-  raw Bayer bursts the same way.
+- :class:`LumaGuided`, **luminance-guided demosaic through motion** (the panorama
+  stage's, see :mod:`._guided`): the colour planes merged as :class:`CfaChannels` does,
+  a sharp luminance (point drops) from every unfiltered photon, and per channel the
+  plane's colour ratio to the luminance on that luminance, with the plane itself kept
+  where its colour detail stands above its photon noise;
+- :class:`CfaChannels`, the **per-plane merge**: each detection is composited into its
+  own colour plane at its estimated canvas position (channel c's compositor is fed the
+  raw counts with per-pixel weight 1 behind filter c and 0 elsewhere), each plane on its
+  own. With a splatting compositor (``drizzle``) the camera's sub-pixel motion moves the
+  sparse grid of each colour over the canvas, so every canvas pixel of every plane is
+  observed directly: Wronski et al., "Handheld multi-frame super-resolution", SIGGRAPH
+  2019, which merges raw Bayer bursts the same way;
 - :class:`FrameDemosaic`, the conventional **per-frame demosaic, then merge** baseline:
   each sub-batch's sparse plane c is interpolated to every frame pixel first (normalised
   convolution with a separable tent of half-width ``radius_px`` frame pixels: bilinear
@@ -21,8 +25,8 @@ Two ways to a colour panorama, both wrapping the spec's compositor once per chan
 :class:`ColourPanorama` is the panorama stage's compositor when the source asks for
 colour (``colour_panorama: true``, see
 :meth:`~photonpano.stages.SourceConfig.panorama_compositor`): the spec's compositor on
-the inpainted counts (the panorama, unchanged) and :class:`CfaChannels` on the raw
-counts, from one read of the capture.
+the inpainted counts (the panorama, unchanged) and :class:`LumaGuided` (at the spec
+compositor's scale) on the raw counts, from one read of the capture.
 
 Registration never sees the colour: the sources' ``sum_ranges`` inpaint the filtered
 pixels from their unfiltered neighbours, so the motion comes from the luminance of all
@@ -34,6 +38,7 @@ SwissSPAD sources (``npy-cube``, ``swissspad-bin``) and ``simulate``, with ``cfa
 from __future__ import annotations
 
 import copy
+import dataclasses
 from typing import Any, Callable
 
 import numpy as np
@@ -41,7 +46,7 @@ from numpy.typing import NDArray
 from photonpano.stages import Compositor, SourceConfig
 from pydantic import model_validator
 
-__all__ = ["CfaChannels", "FrameDemosaic", "ColourPanorama", "ColourSourceConfig", "cfa_corrector"]
+__all__ = ["CfaChannels", "LumaGuided", "FrameDemosaic", "ColourPanorama", "ColourSourceConfig", "cfa_corrector"]
 
 CHANNELS = ("R", "G", "B")
 
@@ -202,13 +207,100 @@ class FrameDemosaic(_PerChannel):
             part.feed(dense, n_frames, homographies, covered if weights is None else covered * weights)
 
 
+class LumaGuided(_PerChannel):
+    """Luminance-guided demosaic through motion: sharp detail from every photon, colour ratios from the planes.
+
+    The planes are merged on their own as in :class:`CfaChannels` (plain ``drizzle``,
+    square drops of one canvas pixel); a fourth ``drizzle`` with point drops
+    (noise-adaptive) merges the luminance of every unfiltered pixel; :meth:`finish`
+    combines them with :func:`._guided.guided_colour` (see :mod:`._guided`). Fed the raw
+    counts (:meth:`read`), like :class:`CfaChannels`.
+
+    Args:
+        scale: super-resolution scale (canvas pixels per frame pixel).
+        corrector: as for :class:`CfaChannels`.
+        sigma_px: standard deviation of the colour ratios' Gaussian in canvas pixels at
+            scale 1 (times ``scale`` on a finer canvas; the residual's, 1 px, scales too);
+            None: :data:`._guided.CHROMA_SIGMA_PX`.
+
+    Raises:
+        ValueError: if ``scale`` or ``sigma_px`` is not above 0.
+    """
+
+    def __init__(self, scale: float = 1.0, corrector: Any = None, sigma_px: float | None = None) -> None:
+        """Build the three plane compositors and the luminance one."""
+        from ._adaptive import DETAIL_GAIN
+        from ._guided import CHROMA_SIGMA_PX
+        from .drizzle import Drizzle
+
+        sigma_px = CHROMA_SIGMA_PX if sigma_px is None else sigma_px
+        if not (scale > 0 and sigma_px > 0):
+            raise ValueError(f"LumaGuided: scale and sigma_px must be above 0, got {scale}, {sigma_px}")
+        super().__init__(lambda: Drizzle(scale, "square", 1.0 / scale), corrector)
+        self._luma = Drizzle(scale, "point", wide_px=2.0, detail_gain=DETAIL_GAIN)
+        self.sigma_px = sigma_px
+
+    def prepare(self, canvas: Any, source: Any) -> None:
+        """Prepare the planes and the luminance (see :meth:`Compositor.prepare`).
+
+        Raises:
+            ValueError: if neither the constructor nor ``source`` gives a colour layout.
+        """
+        super().prepare(canvas, source)
+        self._luma.prepare(canvas, source)
+        self._unfiltered = ((self._corrector.cfa < 0) & ~self._corrector.hot).astype(np.float32)
+
+    def feed(self, counts: NDArray, n_frames: NDArray[np.int64], homographies: NDArray[np.float64],
+             weights: NDArray[np.float32] | None = None) -> None:
+        """Feed each plane the pixels behind its filter and the luminance the unfiltered ones."""
+        for part, mask in zip(self._parts, self._masks):
+            part.feed(counts, n_frames, homographies, mask if weights is None else mask * weights)
+        luma = self._unfiltered if weights is None else self._unfiltered * weights
+        self._luma.feed(counts, n_frames, homographies, luma)
+
+    def fork(self) -> LumaGuided | None:
+        """An empty copy on the same canvas."""
+        other = super().fork()
+        if not isinstance(other, LumaGuided):
+            return None
+        other._luma = self._luma.fork()
+        return other
+
+    def join(self, other: Compositor) -> None:
+        """Add a fork's planes and luminance.
+
+        Raises:
+            TypeError: if ``other`` is not a fork of a :class:`LumaGuided`.
+        """
+        if not isinstance(other, LumaGuided):
+            raise TypeError(f"LumaGuided.join: expected a fork of this compositor, got {type(other).__name__}")
+        super().join(other)
+        self._luma.join(other._luma)
+
+    def finish(self) -> Any:
+        """The colour :class:`~photonpano.compose.Panorama` (flux (Hc, Wc, 3) float32 photons/s, R, G, B).
+
+        Its ``frames`` are the planes' (Hc, Wc, 3) drop-weighted frames.
+        """
+        from ._adaptive import drop_sharpness
+        from ._guided import RESIDUAL_SIGMA_PX, guided_colour
+
+        planes = super().finish()
+        luma = self._luma.finish().flux
+        binary = getattr(self._source, "kind", "binary") == "binary"
+        flux = guided_colour(luma, planes.flux, planes.frames, float(self._source.exposure_s),
+                             sigma_px=self.sigma_px * self.scale, residual_px=RESIDUAL_SIGMA_PX * self.scale,
+                             sharpness=drop_sharpness("square", 1.0), binary=binary)
+        return dataclasses.replace(planes, flux=flux)
+
+
 class ColourPanorama(Compositor):
     """The panorama and its colour planes in one pass: the panorama stage's colour compositor.
 
     Feeds the spec's compositor the source's corrected counts (filtered pixels inpainted,
     what ``sum_ranges`` returns: the panorama is the one without colour) and a
-    :class:`CfaChannels` of the same compositor the raw counts, from one read of each
-    sub-batch. :meth:`finish` returns the panorama with ``colour`` set.
+    :class:`LumaGuided` at its scale the raw counts, from one read of each sub-batch.
+    :meth:`finish` returns the panorama with ``colour`` set.
 
     Args:
         make: builds the spec's compositor (its config's ``build``).
@@ -216,8 +308,9 @@ class ColourPanorama(Compositor):
 
     def __init__(self, make: Callable[[], Compositor]) -> None:
         """Build the panorama's and the colour planes' compositors."""
-        self._flux, self._colour = make(), CfaChannels(make)
+        self._flux = make()
         self.scale = self._flux.scale
+        self._colour = LumaGuided(self.scale)
 
     def prepare(self, canvas: Any, source: Any) -> None:
         """Prepare both on ``canvas`` (see :meth:`Compositor.prepare`).
@@ -273,8 +366,6 @@ class ColourPanorama(Compositor):
 
     def finish(self) -> Any:
         """The panorama (see :meth:`Compositor.finish`) with ``colour``: (Hc, Wc, 3) float32 R, G, B."""
-        import dataclasses
-
         return dataclasses.replace(self._flux.finish(), colour=self._colour.finish().flux)
 
 

@@ -3,15 +3,13 @@
 The SwissSPAD2 colour half array has red, green or blue filters on one pixel in four
 (``cfa``). For registration and the main panorama those pixels are treated as missing
 (inpainted, see :mod:`photonpano.plugins.sources._swissspad_sensor`). With ``source: {colour_panorama: true}``
-(the SwissSPAD sources, or ``simulate`` with ``cfa``) this observer composites the colour
-panorama with the colour compositor :class:`~photonpano.plugins.compositors.colour.CfaChannels`
-(demosaic through motion: each detection splatted into its own colour plane by the
-spec's compositor) on the run's homographies and canvas, from the capture still open
-(``photonpano_panorama_finished``). Hot/dead pixels are left out. In a run the panorama
-stage has already composited the colour planes in the same pass as the panorama
-(:class:`~photonpano.plugins.compositors.colour.ColourPanorama`, ``panorama.colour``);
-this observer then only writes them, and composites them itself only for a panorama
-without them.
+(the SwissSPAD sources, or ``simulate`` with ``cfa``) the panorama stage composites the
+colour panorama in the same pass as the panorama
+(:class:`~photonpano.plugins.compositors.colour.ColourPanorama`: luminance-guided
+demosaic through motion, ``panorama.colour``) and this observer writes it
+(``photonpano_panorama_finished``). Only for a panorama without colour does it composite
+the same colour itself (:func:`colour_panorama`) on the run's homographies and canvas,
+from the capture still open. Hot/dead pixels are left out.
 
 Outputs in the run folder: ``panorama_rgb.npy`` ((Hc, Wc, 3) float32 linear flux in
 photons/s per channel, R, G, B; NaN where a channel saw nothing), the same as a float32
@@ -27,7 +25,7 @@ from typing import Any, Callable
 import numpy as np
 from numpy.typing import NDArray
 from photonpano import hookimpl
-from photonpano.plugins.compositors.colour import CfaChannels, cfa_corrector
+from photonpano.plugins.compositors.colour import CfaChannels, LumaGuided, cfa_corrector
 from photonpano.stages import Compositor
 
 __all__ = ["CfaChannels", "colour_panorama"]
@@ -36,8 +34,8 @@ __all__ = ["CfaChannels", "colour_panorama"]
 def colour_panorama(source: Any, homographies: NDArray[np.float64], canvas_shape: tuple[int, int], *,
                     make: Callable[[], Compositor] | None = None, subbatch_px: float = 0.25,
                     chunk_batches: int = 128, progress: Callable[[int], None] | None = None,
-                    executor: Any = None) -> NDArray[np.float32]:
-    """Composite each colour channel of a colour-filtered capture onto a canvas.
+                    executor: Any = None, guided: bool = True) -> NDArray[np.float32]:
+    """Composite the colour panorama of a colour-filtered capture onto a canvas.
 
     Args:
         source: a colour-filtered source (``npy-cube``, ``swissspad-bin`` or ``simulate``
@@ -45,12 +43,16 @@ def colour_panorama(source: Any, homographies: NDArray[np.float64], canvas_shape
         homographies: (T, 3, 3) float64 frame-to-canvas homographies (the run's
             ``homographies.npy``).
         canvas_shape: ``(Hc, Wc)`` of the canvas.
-        make: builds each channel's compositor (default: the bilinear ``flux-canvas``).
+        make: builds the spec's compositor (default: the bilinear ``flux-canvas``): its
+            scale for ``guided``, else each channel's compositor.
         subbatch_px: frames whose warps differ by less than this (canvas pixels) are
             composited together.
         chunk_batches: sub-batches counted per read of the source.
         progress: called with the number of binary frames done.
         executor: runs chunks in parallel (None: serially).
+        guided: the panorama stage's luminance-guided colour
+            (:class:`~photonpano.plugins.compositors.colour.LumaGuided`); False: the
+            per-plane merge (:class:`~photonpano.plugins.compositors.colour.CfaChannels`).
 
     Returns:
         (Hc, Wc, 3) float32 flux in photons/s (R, G, B); NaN where unobserved.
@@ -61,7 +63,8 @@ def colour_panorama(source: Any, homographies: NDArray[np.float64], canvas_shape
     from photonpano.compose import BilinearCompositor, compose
 
     corrector = cfa_corrector(source, "colour_panorama")
-    channels = CfaChannels(make or BilinearCompositor, corrector)
+    make = make or BilinearCompositor
+    channels = LumaGuided(make().scale, corrector) if guided else CfaChannels(make, corrector)
     return compose(source, homographies, channels, subbatch_px=subbatch_px, chunk_batches=chunk_batches,
                    progress=progress, canvas_shape=canvas_shape, executor=executor).flux
 

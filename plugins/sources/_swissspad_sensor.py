@@ -81,8 +81,8 @@ class SwissSpadCorrections(ColourSourceConfig):
     """Rotations and flips applied in order after the other corrections, e.g.
     ``[rot90, flip-ud]`` for the paper's panorama captures."""
     colour_panorama: bool = False
-    """Also write ``panorama_rgb.npy`` / ``.tif`` / ``.png``: each colour channel merged
-    from the pixels behind that filter only (needs ``cfa``)."""
+    """Also write ``panorama_rgb.npy`` / ``.tif`` / ``.png``: the colour ratios of the pixels
+    behind each filter on the sharp luminance of the unfiltered ones (needs ``cfa``)."""
 
 
 
