@@ -42,6 +42,20 @@ def _robust_template(mosaic: Any) -> Any:
     return template
 
 
+def _movers_record(stats: list[dict[str, Any]]) -> dict[str, Any] | None:
+    """``run.json``'s ``movers``: the level whose mosaic template decided on mover rejection, and what it found.
+
+    ``{"level", "engaged", "template_fraction"}`` from the first level row with a
+    ``movers`` entry (:attr:`~photonpano.records.LocateResult.movers`); None where no
+    level rejects movers (``mosaic.reject_movers: null``, or no mosaic level).
+    """
+    for row in stats:
+        if row.get("movers") is not None:
+            return {"level": row["level"], "engaged": row["movers"]["engaged"],
+                    "template_fraction": row["movers"]["template_fraction"]}
+    return None
+
+
 class Stages:
     """The stages of a spec, built once for one opened capture; used by run, compare and the API.
 
@@ -205,7 +219,8 @@ def reconstruct(spec: PipelineSpec, source: PhotonSource, *, on_level: Callable[
             ``frame_uncertainty`` (the :class:`~photonpano.uncertainty.FrameUncertainty`
             itself, or None; not JSON: a caller writing ``run.json`` takes it out) and
             ``flicker`` (:meth:`~photonpano.flicker.Flicker.record` of the flickering
-            light found in the photon counts, or None).
+            light found in the photon counts, or None) and ``movers`` (the mosaic levels'
+            mover rejection, :func:`_movers_record`; None where it is off).
 
     Returns:
         ``(homographies, level_statistics, panorama, timings_s)``: (T, 3, 3) float64
@@ -249,7 +264,13 @@ def reconstruct(spec: PipelineSpec, source: PhotonSource, *, on_level: Callable[
         uncertainty = frame_uncertainty(last, source.width, source.height) if last is not None else None
         summary = uncertainty.summary(source.frame_rate_hz) if uncertainty is not None else None
         status, warnings = assess(plan, stats, agreement, summary)
-        report.update(status=status, warnings=warnings, notes=list(stages.notes), group_size=plan.record(),
+        movers = _movers_record(stats)
+        notes = list(stages.notes)
+        if movers is not None and movers["engaged"]:
+            notes.append(f"moving objects: the robust template of level {movers['level']} left out "
+                         f"{movers['template_fraction']:.1%} of the canvas; pixels disagreeing with the panorama "
+                         "were left out of the mosaic levels' registrations (mosaic.reject_movers)")
+        report.update(status=status, warnings=warnings, notes=notes, group_size=plan.record(), movers=movers,
                       budget=budget.record(),
                       panorama_agreement=agreement, uncertainty=summary, frame_uncertainty=uncertainty,
                       flicker=plan.flicker.record() if plan.flicker is not None else None)

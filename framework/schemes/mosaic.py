@@ -63,7 +63,7 @@ __all__ = ["MOVERS_MIN_FRACTION", "MOVERS_SIGMAS", "MosaicScheme", "mask_disagre
 MOVERS_SIGMAS = 5.0
 """The disagreement threshold of ``reject_movers: auto``, in robust standard deviations."""
 
-MOVERS_MIN_FRACTION = 0.002
+MOVERS_MIN_FRACTION = 0.05
 """Fraction of the covered canvas the robust template must leave out for mover rejection to engage."""
 
 

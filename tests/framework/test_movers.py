@@ -97,3 +97,47 @@ def test_the_robust_merge_takes_the_falling_ball_out_of_the_real_photron_clip(tm
     assert np.median(plain) > 0.1  # the smear the plain merge leaves
     assert np.median(robust) < 0.01, np.median(robust)
     assert np.percentile(robust, 95) < 0.1, np.percentile(robust, 95)
+
+
+def _run(source: dict, overrides=()):
+    """A default reconstruction of a simulated capture: its trajectory error, level rows and report."""
+    from photonpano.host import PluginHost
+    from photonpano.metrics import source_trajectory_error
+    from photonpano.pipeline import reconstruct
+    from photonpano.spec import apply_overrides, validate_spec
+
+    spec = validate_spec(apply_overrides({"source": {"plugin": "simulate", **source}}, list(overrides)),
+                         PluginHost(), origin="test")
+    capture = spec.source.build()
+    report: dict = {}
+    homographies, stats, _, _ = reconstruct(spec, capture, report=report)
+    return source_trajectory_error(homographies, capture), stats, report
+
+
+SMALL_DISC = {"frames": FRAMES, "mover_radius_px": 30.0, "mover_speed_px_per_frame": SPEED, "mover_intensity": 1.0}
+
+
+def test_a_default_run_detects_a_crossing_disc_and_registers_through_it():
+    """Default settings engage mover rejection on a disc capture; with it off the disc pulls the trajectory.
+
+    MEASURED
+    """
+    error, stats, report = _run(SMALL_DISC)
+    assert report["movers"]["engaged"] and report["movers"]["template_fraction"] > 0.05, report["movers"]
+    assert any("moving objects" in note for note in report["notes"])
+    assert [row["movers"]["engaged"] for row in stats if row["scheme"] == "mosaic"] == [True, True]
+    assert error.rmse_px <= BOUND, error.rmse_px
+    assert report["status"] == "ok", report["warnings"]
+    off, _, off_report = _run(SMALL_DISC, ["mosaic.reject_movers=null"])
+    assert off_report["movers"] is None
+    assert off.rmse_px > 2 * BOUND, off.rmse_px  # what the default now avoids
+
+
+def test_a_static_capture_is_left_exactly_as_with_rejection_off():
+    """No mover, no rejection: the default run's trajectory is bit-identical to ``reject_movers: null``'s."""
+    static = {"frames": FRAMES}
+    error, stats, report = _run(static)
+    assert report["movers"] == {"level": 2, "engaged": False, "template_fraction": 0.0}, report["movers"]
+    assert not any("moving objects" in note for note in report["notes"])
+    off, _, _ = _run(static, ["mosaic.reject_movers=null"])
+    np.testing.assert_array_equal(error.per_frame_px, off.per_frame_px)
