@@ -222,7 +222,7 @@ def moving_fraction(pano: Panorama) -> float | None:
     if pano.moving is None:
         return None
     covered = np.count_nonzero(pano.frames > 0)
-    return round(float(np.count_nonzero(pano.moving & (pano.frames > 0))) / max(covered, 1), 6)
+    return round(float(np.count_nonzero(pano.moving & (pano.frames > 0)) / max(covered, 1)), 6)
 
 
 def mask_disagreement(merged: MergedFrames, views: MergedFrames, sigmas: float = 5.0,

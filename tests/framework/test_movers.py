@@ -114,13 +114,16 @@ def _run(source: dict, overrides=()):
     return source_trajectory_error(homographies, capture), stats, report
 
 
+FRAMES, SPEED, BOUND = 10_000, 0.16, 0.2  # a shorter capture, the disc twice as fast: the same path
 SMALL_DISC = {"frames": FRAMES, "mover_radius_px": 30.0, "mover_speed_px_per_frame": SPEED, "mover_intensity": 1.0}
 
 
 def test_a_default_run_detects_a_crossing_disc_and_registers_through_it():
     """Default settings engage mover rejection on a disc capture; with it off the disc pulls the trajectory.
 
-    MEASURED
+    The office, 10 000 frames, a disc of radius 30 px at 0.16 px/frame: the level-2 robust
+    template leaves out 24 % of the canvas; 0.157 px, `ok` (levels 0.246, 0.164, 0.157 px);
+    ``reject_movers: null`` (the former default): 0.849 px, `degraded`.
     """
     error, stats, report = _run(SMALL_DISC)
     assert report["movers"]["engaged"] and report["movers"]["template_fraction"] > 0.05, report["movers"]
@@ -134,10 +137,17 @@ def test_a_default_run_detects_a_crossing_disc_and_registers_through_it():
 
 
 def test_a_static_capture_is_left_exactly_as_with_rejection_off():
-    """No mover, no rejection: the default run's trajectory is bit-identical to ``reject_movers: null``'s."""
+    """No mover, no rejection: the default run's trajectory is bit-identical to ``reject_movers: null``'s.
+
+    The same capture without the disc: its robust template leaves out 0.27 % of the canvas
+    (a few patches), far below the 5 % that engages rejection; 0.077 px either way.
+    """
+    from photonpano.schemes.mosaic import MOVERS_MIN_FRACTION
+
     static = {"frames": FRAMES}
     error, stats, report = _run(static)
-    assert report["movers"] == {"level": 2, "engaged": False, "template_fraction": 0.0}, report["movers"]
+    assert report["movers"]["level"] == 2 and not report["movers"]["engaged"], report["movers"]
+    assert report["movers"]["template_fraction"] < MOVERS_MIN_FRACTION / 5, report["movers"]
     assert not any("moving objects" in note for note in report["notes"])
     off, _, _ = _run(static, ["mosaic.reject_movers=null"])
     np.testing.assert_array_equal(error.per_frame_px, off.per_frame_px)
