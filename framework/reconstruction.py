@@ -45,14 +45,14 @@ def _robust_template(mosaic: Any) -> Any:
 def _movers_record(stats: list[dict[str, Any]]) -> dict[str, Any] | None:
     """``run.json``'s ``movers``: the level whose mosaic template decided on mover rejection, and what it found.
 
-    ``{"level", "engaged", "template_fraction"}`` from the first level row with a
+    ``{"level", "engaged", "template_fraction", "largest_region"}`` from the first level row with a
     ``movers`` entry (:attr:`~photonpano.records.LocateResult.movers`); None where no
     level rejects movers (``mosaic.reject_movers: null``, or no mosaic level).
     """
     for row in stats:
         if row.get("movers") is not None:
-            return {"level": row["level"], "engaged": row["movers"]["engaged"],
-                    "template_fraction": row["movers"]["template_fraction"]}
+            return {"level": row["level"], **{key: row["movers"][key] for key in
+                                              ("engaged", "template_fraction", "largest_region")}}
     return None
 
 
@@ -267,8 +267,8 @@ def reconstruct(spec: PipelineSpec, source: PhotonSource, *, on_level: Callable[
         movers = _movers_record(stats)
         notes = list(stages.notes)
         if movers is not None and movers["engaged"]:
-            notes.append(f"moving objects: the robust template of level {movers['level']} left out "
-                         f"{movers['template_fraction']:.1%} of the canvas; pixels disagreeing with the panorama "
+            notes.append(f"moving objects: the robust template of level {movers['level']} left out a region of "
+                         f"{movers['largest_region']:.1%} of the canvas; pixels disagreeing with the panorama "
                          "were left out of the mosaic levels' registrations (mosaic.reject_movers)")
         report.update(status=status, warnings=warnings, notes=notes, group_size=plan.record(), movers=movers,
                       budget=budget.record(),

@@ -131,18 +131,19 @@ class MosaicScheme(LevelScheme):
         robust = self.make_robust or self.make_compositor
         if not self.detect_movers:
             pano = build(robust)
-            return pano, {"engaged": True, "detected": None, "template_fraction": moving_fraction(pano)}
+            return pano, {"engaged": True, "detected": None, **_fractions(pano)}
         key = (id(task.source), task.source.n_frames)
         if key in self._engaged:  # decided at the first mosaic level
             pano = build(robust if self._engaged[key] else self.make_compositor)
-            return pano, {"engaged": self._engaged[key], "detected": None,
-                          "template_fraction": moving_fraction(pano) if self._engaged[key] else None}
+            return pano, {"engaged": self._engaged[key], "detected": False,
+                          **(_fractions(pano) if self._engaged[key] else _fractions(None))}
         pano = build(robust)
-        fraction = moving_fraction(pano)
-        engaged = self._engaged[key] = bool(fraction is not None and fraction >= MOVERS_MIN_FRACTION)
+        found = _fractions(pano)
+        engaged = self._engaged[key] = bool(found["largest_region"] is not None
+                                            and found["largest_region"] >= MOVERS_MIN_FRACTION)
         if not engaged:
             pano = build(self.make_compositor)
-        return pano, {"engaged": engaged, "detected": True, "template_fraction": fraction}
+        return pano, {"engaged": engaged, "detected": True, **found}
 
     def locate(self, task: LevelTask) -> LocateResult:
         """Register each merged frame against the template (see the module).
@@ -209,20 +210,35 @@ class MosaicScheme(LevelScheme):
                             crosscheck=cross, crosscheck_index=cross_index, movers=movers)
 
 
-def moving_fraction(pano: Panorama) -> float | None:
-    """Fraction of a panorama's covered canvas pixels where its robust merge left observations out.
+def _fractions(pano: Panorama | None) -> dict[str, float | None]:
+    """``template_fraction`` and ``largest_region`` of :func:`moving_fraction` (None each without a mask)."""
+    found = moving_fraction(pano) if pano is not None else None
+    total, largest = (None, None) if found is None else found
+    return {"template_fraction": total, "largest_region": largest}
+
+
+def moving_fraction(pano: Panorama) -> tuple[float, float] | None:
+    """Fractions of a panorama's covered canvas where its robust merge left observations out.
 
     Args:
         pano: a panorama; its ``moving`` mask is None from a compositor that merges
             every photon.
 
     Returns:
-        ``moving.sum() / (frames > 0).sum()`` in [0, 1], or None without a mask.
+        ``(total, largest)`` in [0, 1]: all left-out covered pixels, and the largest
+        8-connected region of them (a mover's path is one region; a slightly
+        misregistered estimate leaves many small ones, e.g. around stars), over the
+        covered pixels (``frames > 0``); None without a mask.
     """
+    import cv2
+
     if pano.moving is None:
         return None
-    covered = np.count_nonzero(pano.frames > 0)
-    return round(float(np.count_nonzero(pano.moving & (pano.frames > 0)) / max(covered, 1)), 6)
+    covered = max(np.count_nonzero(pano.frames > 0), 1)
+    moving = (pano.moving & (pano.frames > 0)).astype(np.uint8)
+    count, _, stats, _ = cv2.connectedComponentsWithStats(moving, connectivity=8)
+    largest = int(stats[1:, cv2.CC_STAT_AREA].max()) if count > 1 else 0
+    return round(float(np.count_nonzero(moving) / covered), 6), round(float(largest / covered), 6)
 
 
 def mask_disagreement(merged: MergedFrames, views: MergedFrames, sigmas: float = 5.0,

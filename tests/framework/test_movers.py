@@ -127,7 +127,7 @@ def test_a_default_run_detects_a_crossing_disc_and_registers_through_it():
     ``reject_movers: null`` (the former default): 0.849 px, `degraded`.
     """
     error, stats, report = _run(SMALL_DISC)
-    assert report["movers"]["engaged"] and report["movers"]["template_fraction"] > 0.05, report["movers"]
+    assert report["movers"]["engaged"] and report["movers"]["largest_region"] > 0.1, report["movers"]
     assert any("moving objects" in note for note in report["notes"])
     assert [row["movers"]["engaged"] for row in stats if row["scheme"] == "mosaic"] == [True, True]
     assert error.rmse_px <= BOUND, error.rmse_px
@@ -148,7 +148,7 @@ def test_a_static_capture_is_left_exactly_as_with_rejection_off():
     static = {"frames": FRAMES}
     error, stats, report = _run(static)
     assert report["movers"]["level"] == 2 and not report["movers"]["engaged"], report["movers"]
-    assert report["movers"]["template_fraction"] < MOVERS_MIN_FRACTION / 5, report["movers"]
+    assert report["movers"]["largest_region"] < MOVERS_MIN_FRACTION / 5, report["movers"]
     assert not any("moving objects" in note for note in report["notes"])
     off, _, _ = _run(static, ["mosaic.reject_movers=null"])
     np.testing.assert_array_equal(error.per_frame_px, off.per_frame_px)
