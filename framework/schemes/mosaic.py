@@ -30,11 +30,12 @@ SIGGRAPH Asia 2016, Sec. 5, and Wronski et al., "Handheld multi-frame super-reso
 SIGGRAPH 2019, Sec. 5). The disagreement test untrusts bright regions of static
 high-contrast scenes too, so by default (``detect_movers``) it engages only where a mover
 is found: the first mosaic level composites its template robustly and, if the robust
-merge left out exposures over at least :data:`MOVERS_MIN_FRACTION` of the covered canvas
-(:func:`moving_fraction`), rejection engages for that level and the next; otherwise the
-template is composited plainly, as without ``reject_movers``, and so are the next levels'
-(a static scene's run is bit-identical to one with rejection off). The decision and the
-fraction go to :attr:`~photonpano.records.LocateResult.movers` (``run.json``'s ``movers``).
+merge left out exposures over one connected region of at least :data:`MOVERS_MIN_FRACTION`
+of the covered canvas (:func:`moving_fraction`: a mover's path is one region, a slightly
+misregistered estimate leaves many small ones), rejection engages for that level and the
+next; otherwise the template is composited plainly, as without ``reject_movers``, and so
+are the next levels' (a static scene's run is bit-identical to one with rejection off).
+The decision and the fractions go to :attr:`~photonpano.records.LocateResult.movers` (``run.json``'s ``movers``).
 """
 
 from __future__ import annotations
@@ -64,7 +65,9 @@ MOVERS_SIGMAS = 5.0
 """The disagreement threshold of ``reject_movers: auto``, in robust standard deviations."""
 
 MOVERS_MIN_FRACTION = 0.05
-"""Fraction of the covered canvas the robust template must leave out for mover rejection to engage."""
+"""Fraction of the covered canvas that the largest region the robust template left out must reach
+for mover rejection to engage: the suite's static captures reach at most 1.9 % (Hubble field,
+100 000 frames; 0.9 % the others), a disc of radius 30 px crossing at 0.08 px/frame 21-24 %."""
 
 
 @dataclass(frozen=True)
