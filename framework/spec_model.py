@@ -244,8 +244,8 @@ def _mosaic_model(host: PluginHost) -> type[BaseModel]:
             description="Leave out of each registration the pixels of a merged frame that disagree with the "
             "panorama view by more than this many robust standard deviations (a moving object, or its ghost), "
             "and composite `template` robustly (a mover never enters it). auto (the default): 5, engaged only "
-            "where the first mosaic level's robust template leaves out one region of at least 5 % of the canvas (a mover "
-            "was found; run.json `levels[].movers`), else every pixel is used as with null. A number: always "
+            "where the first mosaic level's robust template leaves out one region of at least 5 % of the "
+            "canvas (a mover was found; run.json `movers`), else every pixel is used as with null. A number: always "
             "on (it untrusts bright regions of static high-contrast scenes too: Hubble field 0.100 -> 0.116 "
             "px; docs/real_scenes.md). null: every pixel is used.")], "auto"),
     }
