@@ -152,3 +152,21 @@ def test_a_static_capture_is_left_exactly_as_with_rejection_off():
     assert not any("moving objects" in note for note in report["notes"])
     off, _, _ = _run(static, ["mosaic.reject_movers=null"])
     np.testing.assert_array_equal(error.per_frame_px, off.per_frame_px)
+
+
+def test_moving_fraction_tells_one_region_from_many_small_ones():
+    """The total and the largest connected region, over the covered canvas only."""
+    from photonpano.records import Panorama
+    from photonpano.schemes.mosaic import moving_fraction
+
+    frames = np.ones((100, 200), np.float32)
+    frames[:, 150:] = 0  # not covered: left out of both fractions
+    moving = np.zeros((100, 200), bool)
+    moving[::10, ::10] = True  # 150 covered dots: a misregistered star field
+    moving[42:59, 42:89] = True  # one region of 17 x 47 px, 4 dots inside it, none touching it
+    moving[:, 160:] = True  # uncovered
+    pano = Panorama(flux=frames, frames=frames, homographies=np.eye(3)[None], moving=moving)
+    total, largest = moving_fraction(pano)
+    assert largest == pytest.approx(799 / 15000, abs=1e-6)
+    assert total == pytest.approx((799 + 150 - 4) / 15000, abs=1e-6)
+    assert moving_fraction(Panorama(flux=frames, frames=frames, homographies=np.eye(3)[None])) is None
