@@ -194,7 +194,10 @@ class BilinearCompositor(Compositor):
         from .robust_merge import feed_exposures
         from .warping import WarpAccumulator
 
-        feed_exposures(self._accs, lambda: WarpAccumulator(self._canvas.height, self._canvas.width),
+        from functools import partial
+
+        # a partial, not a lambda: robust_merge calls the accumulator's constructor, not back into this module
+        feed_exposures(self._accs, partial(WarpAccumulator, self._canvas.height, self._canvas.width),
                        WarpAccumulator.add_many, edges, counts, homographies, len(self._canvas.homographies))
 
     def fork(self) -> BilinearCompositor:
