@@ -237,11 +237,11 @@ def moving_fraction(pano: Panorama) -> tuple[float, float] | None:
 
     if pano.moving is None:
         return None
-    covered = max(np.count_nonzero(pano.frames > 0), 1)
+    covered = max(int(np.count_nonzero(pano.frames > 0)), 1)
     moving = (pano.moving & (pano.frames > 0)).astype(np.uint8)
     count, _, stats, _ = cv2.connectedComponentsWithStats(moving, connectivity=8)
     largest = int(stats[1:, cv2.CC_STAT_AREA].max()) if count > 1 else 0
-    return round(float(np.count_nonzero(moving) / covered), 6), round(float(largest / covered), 6)
+    return round(int(np.count_nonzero(moving)) / covered, 6), round(largest / covered, 6)
 
 
 def mask_disagreement(merged: MergedFrames, views: MergedFrames, sigmas: float = 5.0,
