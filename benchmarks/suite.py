@@ -166,7 +166,8 @@ def run_capture(capture: Capture, dump: Path | None = None, overrides: Sequence[
             "seconds": seconds, "confidence_s": timings.get("confidence", 0.0),
             "levels": [{"scheme": st["scheme"], "rmse": st.get("trajectory_rmse_px"),
                         "failed_fraction": st.get("quality", {}).get("failed_fraction"),
-                        "residual_px": st.get("quality", {}).get("pose_graph_residual_px")} for st in stats]}
+                        "residual_px": st.get("quality", {}).get("pose_graph_residual_px"),
+                        "movers": st.get("movers")} for st in stats]}
 
 
 def aggregate(rows: list[dict]) -> dict:

@@ -191,10 +191,13 @@ class BilinearCompositor(Compositor):
         """Warp and add a sub-batch into its virtual exposures (see :meth:`Compositor.feed_ranges`)."""
         if self.exposures == 1:
             return super().feed_ranges(edges, counts, homographies)
+        from functools import partial
+
         from .robust_merge import feed_exposures
         from .warping import WarpAccumulator
 
-        feed_exposures(self._accs, lambda: WarpAccumulator(self._canvas.height, self._canvas.width),
+        # a partial, not a lambda: robust_merge calls the accumulator's constructor, not back into this module
+        feed_exposures(self._accs, partial(WarpAccumulator, self._canvas.height, self._canvas.width),
                        WarpAccumulator.add_many, edges, counts, homographies, len(self._canvas.homographies))
 
     def fork(self) -> BilinearCompositor:

@@ -27,18 +27,33 @@ if TYPE_CHECKING:
 __all__ = ["Stages", "reconstruct"]
 
 
-def _template(mosaic: Any) -> Any:
-    """The mosaic scheme's template compositor config: robust when ``reject_movers`` is on.
+def _robust_template(mosaic: Any) -> Any:
+    """The mosaic scheme's template compositor config made robust, for while ``reject_movers`` is on.
 
     A mover that enters the template (its faint ghost along its path) is not caught by
     the disagreement test and pulls the registrations; the robust merge
-    (:mod:`photonpano.robust_merge`) keeps it out. Compositors without a ``robust`` field
-    are used as configured.
+    (:mod:`photonpano.robust_merge`) keeps it out, and its left-out fraction is the
+    scheme's mover detection. Compositors without a ``robust`` field are used as
+    configured.
     """
     template = mosaic.template
-    if mosaic.reject_movers is not None and "robust" in type(template).model_fields:
+    if "robust" in type(template).model_fields:
         template = template.model_copy(update={"robust": True})
     return template
+
+
+def _movers_record(stats: list[dict[str, Any]]) -> dict[str, Any] | None:
+    """``run.json``'s ``movers``: the level whose mosaic template decided on mover rejection, and what it found.
+
+    ``{"level", "engaged", "template_fraction", "largest_region"}`` from the first level row with a
+    ``movers`` entry (:attr:`~photonpano.records.LocateResult.movers`); None where no
+    level rejects movers (``mosaic.reject_movers: null``, or no mosaic level).
+    """
+    for row in stats:
+        if row.get("movers") is not None:
+            return {"level": row["level"], **{key: row["movers"][key] for key in
+                                              ("engaged", "template_fraction", "largest_region")}}
+    return None
 
 
 class Stages:
@@ -68,6 +83,7 @@ class Stages:
         from .budget.grid import in_merged_pixels
         from .budget.probe import short_of_light
         from .schemes import MosaicScheme, PairCheck, PairwiseScheme
+        from .schemes.mosaic import MOVERS_SIGMAS
         from .spec import level_schemes
 
         self.spec, self.source = spec, source
@@ -75,12 +91,13 @@ class Stages:
         self.locator = in_merged_pixels(spec.locator, budget.register_binning).build()
         check = PairCheck(budget.check_binning) if budget.check_binning is not None else None
         self.resampler, self.merger = spec.resampler.build(), spec.merger.build()
+        reject = MOVERS_SIGMAS if spec.mosaic.reject_movers == "auto" else spec.mosaic.reject_movers
         self.interpolator = spec.interpolator.build()
         built = {"pairwise": PairwiseScheme(self.locator, tuple(spec.pair_offsets), check),
                  "mosaic": MosaicScheme(in_merged_pixels(spec.mosaic.locator, budget.register_binning).build,
-                                        _template(spec.mosaic).build,
-                                        subbatch_px=spec.mosaic.subbatch_px,
-                                        reject_movers=spec.mosaic.reject_movers)}
+                                        spec.mosaic.template.build, subbatch_px=spec.mosaic.subbatch_px,
+                                        reject_movers=reject, make_robust=_robust_template(spec.mosaic).build,
+                                        detect_movers=spec.mosaic.reject_movers == "auto")}
         self.schemes = [built[name] for name in level_schemes(spec)]
         self.notes: list[str] = []
         plan = budget.plan
@@ -172,6 +189,8 @@ class Stages:
         row["quality"] = level_figures(result, self.budget.plan, self.source.width, self.source.height)
         if result.located.check is not None:
             row["registration_check"] = result.located.check
+        if result.located.movers is not None:
+            row["movers"] = result.located.movers
         if self.source.ground_truth is not None:
             row["trajectory_rmse_px"] = source_trajectory_error(result.homographies, self.source).rmse_px
         return row
@@ -200,7 +219,8 @@ def reconstruct(spec: PipelineSpec, source: PhotonSource, *, on_level: Callable[
             ``frame_uncertainty`` (the :class:`~photonpano.uncertainty.FrameUncertainty`
             itself, or None; not JSON: a caller writing ``run.json`` takes it out) and
             ``flicker`` (:meth:`~photonpano.flicker.Flicker.record` of the flickering
-            light found in the photon counts, or None).
+            light found in the photon counts, or None) and ``movers`` (the mosaic levels'
+            mover rejection, :func:`_movers_record`; None where it is off).
 
     Returns:
         ``(homographies, level_statistics, panorama, timings_s)``: (T, 3, 3) float64
@@ -244,7 +264,13 @@ def reconstruct(spec: PipelineSpec, source: PhotonSource, *, on_level: Callable[
         uncertainty = frame_uncertainty(last, source.width, source.height) if last is not None else None
         summary = uncertainty.summary(source.frame_rate_hz) if uncertainty is not None else None
         status, warnings = assess(plan, stats, agreement, summary)
-        report.update(status=status, warnings=warnings, notes=list(stages.notes), group_size=plan.record(),
+        movers = _movers_record(stats)
+        notes = list(stages.notes)
+        if movers is not None and movers["engaged"]:
+            notes.append(f"moving objects: the robust template of level {movers['level']} left out a region of "
+                         f"{movers['largest_region']:.1%} of the canvas; pixels disagreeing with the panorama "
+                         "were left out of the mosaic levels' registrations (mosaic.reject_movers)")
+        report.update(status=status, warnings=warnings, notes=notes, group_size=plan.record(), movers=movers,
                       budget=budget.record(),
                       panorama_agreement=agreement, uncertainty=summary, frame_uncertainty=uncertainty,
                       flicker=plan.flicker.record() if plan.flicker is not None else None)

@@ -250,6 +250,10 @@ class LocateResult:
         check: the figures of the binned check of the scheme's registrations
             (:meth:`~photonpano.schemes.check.LevelCheck.figures`; ``run.json``'s
             ``registration_check``), or None where none ran.
+        movers: the mosaic scheme's mover rejection at this level (``run.json``'s
+            ``movers``: ``engaged``, whether a detection ran here, and the fraction of
+            the template's covered canvas its robust merge left out; see
+            :mod:`photonpano.schemes.mosaic`), or None where it is off.
     """
 
     keyframes: NDArray[np.float64]
@@ -261,6 +265,7 @@ class LocateResult:
     crosscheck: PairRegistrations | None = None
     crosscheck_index: NDArray[np.int64] | None = None
     check: dict[str, Any] | None = None
+    movers: dict[str, Any] | None = None
 
     @property
     def primary(self) -> NDArray[np.bool_]:

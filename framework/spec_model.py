@@ -66,7 +66,7 @@ class MosaicSettings(Protocol):
     locator: LocatorConfig
     template: CompositorConfig
     subbatch_px: float
-    reject_movers: float | None
+    reject_movers: Literal["auto"] | float | None
 
 
 class _SpecBase(BaseModel):
@@ -240,12 +240,14 @@ def _mosaic_model(host: PluginHost) -> type[BaseModel]:
             Field(default_factory=compositors[MOSAIC_PLUGINS["template"]])),
         "subbatch_px": (Annotated[float, Field(gt=0, le=2, description="Sub-batch tolerance of that panorama, "
                                             "in canvas pixels.")], 0.5),
-        "reject_movers": (Annotated[Union[Annotated[float, Field(gt=0)], None], Field(  # noqa: UP007
+        "reject_movers": (Annotated[Union[Literal["auto"], Annotated[float, Field(gt=0)], None], Field(  # noqa: UP007
             description="Leave out of each registration the pixels of a merged frame that disagree with the "
-            "panorama view by more than this many robust standard deviations (a moving object, or its ghost; "
-            "e.g. 5); on, it also makes `template` robust (a mover never enters it). null (the default): every "
-            "pixel is used. On: a disc crossing the scene 1.20 -> 0.10 px, but a static high-contrast scene "
-            "(Hubble field) 0.100 -> 0.116 px (docs/real_scenes.md).")], None),
+            "panorama view by more than this many robust standard deviations (a moving object, or its ghost), "
+            "and composite `template` robustly (a mover never enters it). auto (the default): 5, engaged only "
+            "where the first mosaic level's robust template leaves out one region of at least 5 % of the "
+            "canvas (a mover was found; run.json `movers`), else every pixel is used as with null. A number: always "
+            "on (it untrusts bright regions of static high-contrast scenes too: Hubble field 0.100 -> 0.116 "
+            "px; docs/real_scenes.md). null: every pixel is used.")], "auto"),
     }
     model = create_model("MosaicSpec", __config__=ConfigDict(extra="forbid", frozen=True), **fields)
     model.__doc__ = ("The mosaic level scheme registers each merged frame against the panorama of the current "

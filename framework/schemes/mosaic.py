@@ -19,22 +19,30 @@ landscape_mountains 0.13 -> 0.11, text_handwriting 0.16 -> 0.16).
 Groups go to the executor in windows; each window is a pure task (it builds its own
 locator and returns what it found), so the windows can run on threads or processes.
 
-A scene is rarely static: with ``reject_movers`` (spec ``mosaic.reject_movers``, off by
-default), pixels of a merged frame that disagree with the panorama view by more than that
-many robust standard deviations (a passing object, or the ghost of one that the previous
-estimate's panorama still holds) are left out of its registration and its held-out
-cross-check, and the pipeline makes the template's compositor robust
-(:mod:`photonpano.robust_merge`), so a mover never enters the template (:func:`mask_disagreement`;
-the robustness term of burst merging: Hasinoff et al., "Burst photography for high dynamic
-range and low-light imaging on mobile cameras", SIGGRAPH Asia 2016, Sec. 5, and Wronski et
-al., "Handheld multi-frame super-resolution", SIGGRAPH 2019, Sec. 5).
+A scene is rarely static: with ``reject_movers`` (spec ``mosaic.reject_movers``), pixels
+of a merged frame that disagree with the panorama view by more than that many robust
+standard deviations (a passing object, or the ghost of one that the previous estimate's
+panorama still holds) are left out of its registration and its held-out cross-check, and
+the template is composited robustly (:mod:`photonpano.robust_merge`), so a mover never
+enters it (:func:`mask_disagreement`; the robustness term of burst merging: Hasinoff et
+al., "Burst photography for high dynamic range and low-light imaging on mobile cameras",
+SIGGRAPH Asia 2016, Sec. 5, and Wronski et al., "Handheld multi-frame super-resolution",
+SIGGRAPH 2019, Sec. 5). The disagreement test untrusts bright regions of static
+high-contrast scenes too, so by default (``detect_movers``) it engages only where a mover
+is found: the first mosaic level composites its template robustly and, if the robust
+merge left out exposures over one connected region of at least :data:`MOVERS_MIN_FRACTION`
+of the covered canvas (:func:`moving_fraction`: a mover's path is one region, a slightly
+misregistered estimate leaves many small ones), rejection engages for that level and the
+next; otherwise the template is composited plainly, as without ``reject_movers``, and so
+are the next levels' (a static scene's run is bit-identical to one with rejection off).
+The decision and the fractions go to :attr:`~photonpano.records.LocateResult.movers` (``run.json``'s ``movers``).
 """
 
 from __future__ import annotations
 
 import time
 from dataclasses import dataclass
-from typing import Callable
+from typing import Any, Callable
 
 import numpy as np
 from numpy.typing import NDArray
@@ -51,7 +59,15 @@ from ..views import panorama_views
 from ..watchdog import watched
 from .base import LevelScheme, LevelTask
 
-__all__ = ["MosaicScheme", "mask_disagreement"]
+__all__ = ["MOVERS_MIN_FRACTION", "MOVERS_SIGMAS", "MosaicScheme", "mask_disagreement", "moving_fraction"]
+
+MOVERS_SIGMAS = 5.0
+"""The disagreement threshold of ``reject_movers: auto``, in robust standard deviations."""
+
+MOVERS_MIN_FRACTION = 0.05
+"""Fraction of the covered canvas that the largest region the robust template left out must reach
+for mover rejection to engage: the suite's static captures reach at most 1.9 % (Hubble field,
+100 000 frames; 0.9 % the others), a disc of radius 30 px crossing at 0.08 px/frame 21-24 %."""
 
 
 @dataclass(frozen=True)
@@ -77,28 +93,60 @@ class MosaicScheme(LevelScheme):
         window: groups merged and registered per task.
         reject_movers: robust standard deviations beyond which pixels disagreeing with
             the panorama view are left out (:func:`mask_disagreement`); None: off.
+        make_robust: builds the robust version of the template compositor (used while
+            rejection is on); None: ``make_compositor``'s.
+        detect_movers: engage ``reject_movers`` only where the first mosaic level's robust
+            template finds a mover (see the module); False: always.
     """
 
     name = "mosaic"
     needs_template = True
 
     def __init__(self, make_locator: Callable[[], Locator], make_compositor: Callable[[], Compositor], *,
-                 subbatch_px: float = 0.5, window: int = 16, reject_movers: float | None = None) -> None:
+                 subbatch_px: float = 0.5, window: int = 16, reject_movers: float | None = None,
+                 make_robust: Callable[[], Compositor] | None = None, detect_movers: bool = False) -> None:
         """Create the scheme from factories of its locator and template compositor."""
         self.reject_movers = reject_movers
         self.make_locator = make_locator
         self.make_compositor = make_compositor
+        self.make_robust = make_robust
+        self.detect_movers = detect_movers
         self.subbatch_px = subbatch_px
         self.window = window
+        self._engaged: dict[tuple[int, int], bool] = {}  # detect_movers' decision per capture (first mosaic level)
 
     def template(self, task: LevelTask) -> Panorama:
         """The panorama the task's merged frames are registered against: every binary frame at its current estimate.
 
         Composited in this process, not on the run's executor: from binned photons with
         bilinear warps it is cheap, and a Dask executor would ship the capture to its
-        workers for it.
+        workers for it. Robust where mover rejection is on (see the module).
         """
-        return compose(task.source, task.homographies, self.make_compositor(), subbatch_px=self.subbatch_px)
+        return self._template(task)[0]
+
+    def _template(self, task: LevelTask) -> tuple[Panorama, dict[str, Any] | None]:
+        """The template and the level's mover record (None with ``reject_movers`` off); see the module."""
+        def build(make: Callable[[], Compositor]) -> Panorama:
+            return compose(task.source, task.homographies, make(), subbatch_px=self.subbatch_px)
+
+        if self.reject_movers is None:
+            return build(self.make_compositor), None
+        robust = self.make_robust or self.make_compositor
+        if not self.detect_movers:
+            pano = build(robust)
+            return pano, {"engaged": True, "detected": None, **_fractions(pano)}
+        key = (id(task.source), task.source.n_frames)
+        if key in self._engaged:  # decided at the first mosaic level
+            pano = build(robust if self._engaged[key] else self.make_compositor)
+            return pano, {"engaged": self._engaged[key], "detected": False,
+                          **(_fractions(pano) if self._engaged[key] else _fractions(None))}
+        pano = build(robust)
+        found = _fractions(pano)
+        engaged = self._engaged[key] = bool(found["largest_region"] is not None
+                                            and found["largest_region"] >= MOVERS_MIN_FRACTION)
+        if not engaged:
+            pano = build(self.make_compositor)
+        return pano, {"engaged": engaged, "detected": True, **found}
 
     def locate(self, task: LevelTask) -> LocateResult:
         """Register each merged frame against the template (see the module).
@@ -111,7 +159,8 @@ class MosaicScheme(LevelScheme):
             StageError: if no merged frame could be registered.
         """
         source, groups, current = task.source, task.groups, task.current
-        template = self.template(task)
+        template, movers = self._template(task)
+        reject = self.reject_movers if movers is not None and movers["engaged"] else None
         to_canvas = template.homographies[groups.reference]
 
         @pure_task
@@ -123,8 +172,8 @@ class MosaicScheme(LevelScheme):
                 merged = task.merger.merge(source, task.homographies, groups.select(index))
             merge_s = time.perf_counter() - start
             views = panorama_views(template, to_canvas[index], source.height, source.width, task.group_size)
-            if self.reject_movers is not None:
-                merged = mask_disagreement(merged, views, self.reject_movers)
+            if reject is not None:
+                merged = mask_disagreement(merged, views, reject)
             n = len(index)
             found = locator.register_to_template(views, merged, np.repeat(np.eye(3)[None], n, axis=0), once)
             cross = None
@@ -161,7 +210,38 @@ class MosaicScheme(LevelScheme):
             cross_index = np.concatenate([np.zeros((0, 2), np.int64)] + [
                 np.stack([w[:-1], w[1:]], axis=1) for w in windows if len(w) > 1])
         return LocateResult(keyframes, regs, None, merged=merged, merge_s=merge_s, locator_cache=cache or None,
-                            crosscheck=cross, crosscheck_index=cross_index)
+                            crosscheck=cross, crosscheck_index=cross_index, movers=movers)
+
+
+def _fractions(pano: Panorama | None) -> dict[str, float | None]:
+    """``template_fraction`` and ``largest_region`` of :func:`moving_fraction` (None each without a mask)."""
+    found = moving_fraction(pano) if pano is not None else None
+    total, largest = (None, None) if found is None else found
+    return {"template_fraction": total, "largest_region": largest}
+
+
+def moving_fraction(pano: Panorama) -> tuple[float, float] | None:
+    """Fractions of a panorama's covered canvas where its robust merge left observations out.
+
+    Args:
+        pano: a panorama; its ``moving`` mask is None from a compositor that merges
+            every photon.
+
+    Returns:
+        ``(total, largest)`` in [0, 1]: all left-out covered pixels, and the largest
+        8-connected region of them (a mover's path is one region; a slightly
+        misregistered estimate leaves many small ones, e.g. around stars), over the
+        covered pixels (``frames > 0``); None without a mask.
+    """
+    import cv2
+
+    if pano.moving is None:
+        return None
+    covered = max(int(np.count_nonzero(pano.frames > 0)), 1)
+    moving = (pano.moving & (pano.frames > 0)).astype(np.uint8)
+    count, _, stats, _ = cv2.connectedComponentsWithStats(moving, connectivity=8)
+    largest = int(stats[1:, cv2.CC_STAT_AREA].max()) if count > 1 else 0
+    return round(int(np.count_nonzero(moving)) / covered, 6), round(largest / covered, 6)
 
 
 def mask_disagreement(merged: MergedFrames, views: MergedFrames, sigmas: float = 5.0,

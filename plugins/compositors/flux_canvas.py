@@ -28,8 +28,8 @@ class FluxCanvasConfig(CompositorConfig):
     """Robust merge: keep ``robust_exposures`` runs of frames apart and leave out those that
     disagree with the static scene at a canvas pixel (a moving object; see
     ``photonpano.robust_merge``); the left-out regions go to ``moving.png``. Off by default
-    (``flux-canvas`` is also the mosaic levels' template, made robust by
-    ``mosaic.reject_movers``)."""
+    (``flux-canvas`` is also the mosaic levels' template: ``mosaic.reject_movers`` composites it
+    robustly at the first mosaic level to find movers, and while their rejection is engaged)."""
     robust_exposures: Annotated[int, Field(ge=3, le=64)] = DEFAULT_EXPOSURES
     """Virtual exposures the robust merge compares (memory: that many canvases)."""
 

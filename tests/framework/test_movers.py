@@ -44,16 +44,17 @@ def test_a_global_gain_is_no_disagreement_and_shapes_are_checked():
 
 @pytest.mark.slow
 def test_a_bright_disc_crossing_the_scene_does_not_pull_the_trajectory():
-    """20 000 frames, a disc of radius 30 px crossing at 0.08 px/frame: 1.20 px without the mask, 0.12 with it.
+    """20 000 frames, a disc of radius 30 px crossing at 0.08 px/frame, default settings: 0.103 px, `ok`.
 
-    The option also makes the template robust, so the disc never enters it (0.22 px when
-    the template merged every photon; see docs/real_scenes.md). The static capture: 0.125 px.
+    ``mosaic.reject_movers: auto`` finds the disc in the level-2 robust template (21 % of
+    the canvas left out) and engages: 1.20 px, `degraded` with it off; the static capture
+    0.125 px (docs/real_scenes.md).
     """
     from capture_helpers import reconstruct_simulated
 
     error, report = reconstruct_simulated({"frames": 20_000, "mover_radius_px": 30.0,
-                                           "mover_speed_px_per_frame": 0.08, "mover_intensity": 1.0},
-                                          ["mosaic.reject_movers=5"])
+                                           "mover_speed_px_per_frame": 0.08, "mover_intensity": 1.0})
+    assert report["movers"]["engaged"], report["movers"]
     assert error.rmse_px <= 0.15, error.rmse_px
     assert report["status"] == "ok", report["warnings"]
 
@@ -97,3 +98,75 @@ def test_the_robust_merge_takes_the_falling_ball_out_of_the_real_photron_clip(tm
     assert np.median(plain) > 0.1  # the smear the plain merge leaves
     assert np.median(robust) < 0.01, np.median(robust)
     assert np.percentile(robust, 95) < 0.1, np.percentile(robust, 95)
+
+
+def _run(source: dict, overrides=()):
+    """A default reconstruction of a simulated capture: its trajectory error, level rows and report."""
+    from photonpano.host import PluginHost
+    from photonpano.metrics import source_trajectory_error
+    from photonpano.pipeline import reconstruct
+    from photonpano.spec import apply_overrides, validate_spec
+
+    spec = validate_spec(apply_overrides({"source": {"plugin": "simulate", **source}}, list(overrides)),
+                         PluginHost(), origin="test")
+    capture = spec.source.build()
+    report: dict = {}
+    homographies, stats, _, _ = reconstruct(spec, capture, report=report)
+    return source_trajectory_error(homographies, capture), stats, report
+
+
+FRAMES, SPEED, BOUND = 10_000, 0.16, 0.2  # a shorter capture, the disc twice as fast: the same path
+SMALL_DISC = {"frames": FRAMES, "mover_radius_px": 30.0, "mover_speed_px_per_frame": SPEED, "mover_intensity": 1.0}
+
+
+def test_a_default_run_detects_a_crossing_disc_and_registers_through_it():
+    """Default settings engage mover rejection on a disc capture; with it off the disc pulls the trajectory.
+
+    The office, 10 000 frames, a disc of radius 30 px at 0.16 px/frame: the level-2 robust
+    template leaves out 24 % of the canvas; 0.157 px, `ok` (levels 0.246, 0.164, 0.157 px);
+    ``reject_movers: null`` (the former default): 0.849 px, `degraded`.
+    """
+    error, stats, report = _run(SMALL_DISC)
+    assert report["movers"]["engaged"] and report["movers"]["largest_region"] > 0.1, report["movers"]
+    assert any("moving objects" in note for note in report["notes"])
+    assert [row["movers"]["engaged"] for row in stats if row["scheme"] == "mosaic"] == [True, True]
+    assert error.rmse_px <= BOUND, error.rmse_px
+    assert report["status"] == "ok", report["warnings"]
+    off, _, off_report = _run(SMALL_DISC, ["mosaic.reject_movers=null"])
+    assert off_report["movers"] is None
+    assert off.rmse_px > 2 * BOUND, off.rmse_px  # what the default now avoids
+
+
+def test_a_static_capture_is_left_exactly_as_with_rejection_off():
+    """No mover, no rejection: the default run's trajectory is bit-identical to ``reject_movers: null``'s.
+
+    The same capture without the disc: its robust template leaves out 0.27 % of the canvas
+    (a few patches), far below the 5 % that engages rejection; 0.077 px either way.
+    """
+    from photonpano.schemes.mosaic import MOVERS_MIN_FRACTION
+
+    static = {"frames": FRAMES}
+    error, stats, report = _run(static)
+    assert report["movers"]["level"] == 2 and not report["movers"]["engaged"], report["movers"]
+    assert report["movers"]["largest_region"] < MOVERS_MIN_FRACTION / 5, report["movers"]
+    assert not any("moving objects" in note for note in report["notes"])
+    off, _, _ = _run(static, ["mosaic.reject_movers=null"])
+    np.testing.assert_array_equal(error.per_frame_px, off.per_frame_px)
+
+
+def test_moving_fraction_tells_one_region_from_many_small_ones():
+    """The total and the largest connected region, over the covered canvas only."""
+    from photonpano.records import Panorama
+    from photonpano.schemes.mosaic import moving_fraction
+
+    frames = np.ones((100, 200), np.float32)
+    frames[:, 150:] = 0  # not covered: left out of both fractions
+    moving = np.zeros((100, 200), bool)
+    moving[::10, ::10] = True  # 150 covered dots: a misregistered star field
+    moving[42:59, 42:89] = True  # one region of 17 x 47 px, 4 dots inside it, none touching it
+    moving[:, 160:] = True  # uncovered
+    pano = Panorama(flux=frames, frames=frames, homographies=np.eye(3)[None], moving=moving)
+    total, largest = moving_fraction(pano)
+    assert largest == pytest.approx(799 / 15000, abs=1e-6)
+    assert total == pytest.approx((799 + 150 - 4) / 15000, abs=1e-6)
+    assert moving_fraction(Panorama(flux=frames, frames=frames, homographies=np.eye(3)[None])) is None
