@@ -13,8 +13,12 @@ from the capture in a cheap pre-pass, and :func:`choose_group_size` turns them i
   a group should not smear the scene by more than ``blur_px``, so
   ``m_motion = blur_px / speed``.
 
+- **vibration**: the period of the strongest periodic motion, from the spectrum of
+  the velocity in consecutive blocks (:func:`find_vibration`); level 1 should sample it
+  ``groups_per_period`` times, so ``m_vibration = period / groups_per_period``.
+
 m is ``min(typical, m_motion)``, raised towards ``m_light`` in the dark (up to twice
-the blur budget); any photon deficit left is made up at level 1 by registering
+the blur budget), and at most ``m_vibration``; any photon deficit left is made up at level 1 by registering
 spatially binned merged frames (:class:`~photonpano.schemes.check.PairCheck`, the
 ``binning`` of the plan). Explicit integers bypass all of this.
 """
@@ -46,6 +50,9 @@ class CaptureProbe:
         binning: pixels binned per side in the probe images.
         correlations: normalised cross-correlation of each probe pair after its shift
             (near 0 for a capture without a scene).
+        vibration_period_frames: period of the strongest periodic motion, in binary
+            frames, or None when none stands out (:func:`find_vibration`).
+        vibration_px: amplitude of that motion in frame pixels (None with no vibration).
     """
 
     photons_per_pixel_per_frame: float | None
@@ -53,6 +60,8 @@ class CaptureProbe:
     block_frames: int = 0
     binning: int = 1
     correlations: list[float] = field(default_factory=list)
+    vibration_period_frames: float | None = None
+    vibration_px: float | None = None
 
 
 @dataclass(frozen=True)
@@ -157,11 +166,74 @@ def probe_capture(source, *, probes: int = 8, min_photons: float = 20.0, min_blo
     speed = float(np.percentile(good, 75)) if len(good) >= max(1, len(speeds) // 2) else None
     if binary:  # the rate over every probed block, spread over the capture
         p = detections / counted
-    return CaptureProbe(p, speed, length, binning, [float(c) for c in correlations])
+    found_vibration = find_vibration(source, length, binning, min_correlation=min_correlation)
+    period, amplitude = found_vibration if found_vibration is not None else (None, None)
+    return CaptureProbe(p, speed, length, binning, [float(c) for c in correlations], period, amplitude)
+
+
+def find_vibration(source, length: int, binning: int, *, blocks: int = 48, min_amplitude_px: float = 1.0,
+                   min_prominence: float = 6.0, min_correlation: float = 0.25) -> tuple[float, float] | None:
+    """The strongest periodic motion of a capture (a vibrating mount, a hand's tremor), if one stands out.
+
+    In the middle of the capture, up to ``blocks`` consecutive blocks of ``length``
+    binary frames are summed and binned ``binning`` x ``binning``; the shift between
+    each block and the next (phase correlation) is the velocity, one sample per block.
+    With its mean and linear trend (a pan) removed, the power spectrum of the velocity
+    (Hann window, both axes summed) has its strongest line at frequency ``f`` (at least
+    two cycles in the window, so a slow drift does not count); it is a vibration if its
+    power is ``min_prominence`` times the median of the other lines and its amplitude
+    in position, velocity amplitude / (2 pi f), is at least ``min_amplitude_px``.
+    Vibrations faster than one period per two blocks are not resolved (the blocks
+    average them out). Cost: ``blocks * length`` frames of ``sum_ranges``.
+
+    Args:
+        source: the capture.
+        length: frames per block (the probe's block length).
+        binning: pixels binned per side (the probe's).
+        blocks: most blocks summed.
+        min_amplitude_px: smallest amplitude reported, in frame pixels.
+        min_prominence: power of the line over the median power of the spectrum.
+        min_correlation: a block pair correlating less is a gap (more than a quarter of
+            gaps: nothing reported).
+
+    Returns:
+        ``(period in binary frames, amplitude in frame pixels)``, or None.
+    """
+    n = source.n_frames
+    count = min(blocks, n // max(length, 1))
+    if count < 16:
+        return None
+    start = (n - count * length) // 2
+    sums = source.sum_ranges(start + length * np.arange(count + 1, dtype=np.int64))
+    images = [block_mean(s.astype(np.float32), binning)[0] for s in sums]
+    velocity = np.full((count - 1, 2), np.nan)
+    for i in range(count - 1):
+        shift, cc = phase_shift_correlation(images[i], images[i + 1])
+        if cc >= min_correlation:
+            velocity[i] = shift * binning / length
+    good = np.isfinite(velocity[:, 0])
+    if good.sum() < 0.75 * len(velocity):
+        return None
+    t = np.arange(len(velocity), dtype=np.float64)
+    for axis in range(2):  # gaps bridged linearly, then the pan (mean and trend) removed
+        v = np.interp(t, t[good], velocity[good, axis])
+        velocity[:, axis] = v - np.polyval(np.polyfit(t, v, 1), t)
+    window = np.hanning(len(velocity))
+    spectrum = np.fft.rfft(velocity * window[:, None], axis=0)
+    power = (np.abs(spectrum) ** 2).sum(axis=1)
+    k = 2 + int(np.argmax(power[2:]))
+    others = np.delete(power[1:], k - 1)
+    if power[k] < min_prominence * max(float(np.median(others)), 1e-30):
+        return None
+    frequency = k / (len(velocity) * length)  # cycles per binary frame
+    speed_amplitude = 2 * float(np.sqrt(power[k])) / window.sum()  # px per frame
+    amplitude = speed_amplitude / (2 * np.pi * frequency)
+    return (1.0 / frequency, amplitude) if amplitude >= min_amplitude_px else None
 
 
 def choose_group_size(probe: CaptureProbe, n_frames: int, *, blur_px: float = 10.0, photons: float = 10.0,
-                      typical: int = 500, min_groups: int = 5, max_binning: int = 8) -> GroupPlan:
+                      typical: int = 500, min_groups: int = 5, max_binning: int = 8,
+                      groups_per_period: int = 3) -> GroupPlan:
     """Turn a probe into a group size (and level-1 binning).
 
     Args:
@@ -172,6 +244,12 @@ def choose_group_size(probe: CaptureProbe, n_frames: int, *, blur_px: float = 10
         typical: the paper's group size, used when motion and light allow it.
         min_groups: level 1 gets at least this many groups (if the capture allows 2).
         max_binning: largest level-1 binning.
+        groups_per_period: level-1 groups per period of a vibration the probe found
+            (m is at most its period over this): level 1's keyframes must sample the
+            motion for its interpolation to follow it; at 1.7 groups per period the
+            trajectory aliases (a 45 Hz, 4 px vibration at 100 000 frames in the dark,
+            m = 1300: level 1 6.0 px, level 3 0.60 px; m = 740: 0.38 and 0.10 px), while
+            the suite's 30 Hz captures run 4.4-7.3 groups per period.
 
     Returns:
         The :class:`GroupPlan` (``auto`` True).
@@ -202,6 +280,11 @@ def choose_group_size(probe: CaptureProbe, n_frames: int, *, blur_px: float = 10
         m = min(m_light, 2 * m_motion)
         reason = (f"light: {p:.2e} photons/pixel/frame needs {m_light:.0f} frames "
                   f"for {photons:g} photons/pixel")
+    period = probe.vibration_period_frames
+    if period is not None and m > period / groups_per_period:
+        m = period / groups_per_period
+        reason += (f"; a {probe.vibration_px:.2g} px vibration every {period:.0f} frames: "
+                   f"{groups_per_period} groups per period")
     result = plan(m, 1, reason)
     binning = math.ceil(math.sqrt(photons / max(p * result.group_size, 1e-12)))
     return replace(result, binning=int(min(max_binning, max(1, binning))))
