@@ -245,3 +245,26 @@ def test_an_explicit_group_size_short_of_light_gets_a_note_naming_the_budgets_ch
     bright = _capture(flux=0.5)
     assert short_of_light(plan_group_size(200, bright), bright.n_frames) is None
     assert short_of_light(auto, dark.n_frames) is None
+
+
+def test_probe_finds_a_vibration_and_its_period_but_not_in_a_pan():
+    """The velocity spectrum of consecutive blocks gives a vibration's period (and none for a steady pan)."""
+    vibrating = probe_capture(_capture(frames=12_000, flux=0.5, speed_px_per_frame=0.006, vibration_px=4.0,
+                                       vibration_hz=45.0))
+    assert vibrating.vibration_period_frames == pytest.approx(100_000 / 45, rel=0.12)
+    assert 2.0 <= vibrating.vibration_px <= 8.0
+    steady = probe_capture(_capture(frames=12_000, flux=0.5, speed_px_per_frame=0.02))
+    assert steady.vibration_period_frames is None and steady.vibration_px is None
+
+
+def test_group_size_samples_a_vibration_three_times_per_period():
+    """Level 1 keeps at least three groups per vibration period, in the dark as in daylight."""
+    dark = CaptureProbe(0.0075, 0.0135)
+    free = choose_group_size(dark, 100_000)
+    assert free.group_size == 1300  # light: up to twice the smear budget
+    shaken = choose_group_size(CaptureProbe(0.0075, 0.0135, vibration_period_frames=2350.0, vibration_px=4.1),
+                               100_000)
+    assert shaken.group_size == 780 and "vibration every 2350 frames" in shaken.reason
+    assert shaken.binning >= free.binning  # binning makes up the photons the shorter groups lose
+    slow = choose_group_size(CaptureProbe(0.2, 0.01, vibration_period_frames=3333.0, vibration_px=5.0), 20_000)
+    assert slow.group_size == 500 and "vibration" not in slow.reason  # 6.7 groups per period already
