@@ -21,7 +21,7 @@ from numpy.typing import NDArray
 from . import geometry
 from .budget.probe import GroupPlan
 from .imaging import binned_frame, normalised_correlation
-from .stages import Groups
+from .stages import Groups, MergedFrames
 from .watchdog import watched
 
 __all__ = ["level_figures", "panorama_agreement", "assess", "THRESHOLDS"]
@@ -101,8 +101,9 @@ def panorama_agreement(source, merger, homographies: NDArray[np.float64], panora
     refs = np.unique(np.linspace(m // 2, n - 1 - (m - 1) // 2, samples).astype(np.int64))
     start = np.clip(refs - m // 2, 0, n - m)
     groups = Groups(start=start, stop=start + m, reference=refs)
-    with watched("merger", merger, "merge"):
-        merged = merger.merge(source, homographies, groups)
+    with watched("merger", merger, "merge"):  # one group at a time: a window would count the frames between them
+        merged = MergedFrames.concat(*(merger.merge(source, homographies, groups.select(np.array([i])))
+                                       for i in range(len(groups))))
     views = panorama_views(panorama, panorama.homographies[refs], source.height, source.width, min_frames=m)
     values = []
     for i in range(len(refs)):

@@ -256,7 +256,7 @@ def mask_disagreement(merged: MergedFrames, views: MergedFrames, sigmas: float =
     what is left is untrusted with a margin of ``margin_px``. The test assumes the
     difference's spread is the same everywhere, which the flux estimate's noise is not
     (it grows with the flux): on static high-contrast scenes it untrusts bright regions
-    too, which is why the scheme leaves it off by default.
+    too, which is why by default the scheme applies it only where a mover was found.
 
     Args:
         merged: G merged frames (flux in photons/s, NaN where unobserved).
