@@ -119,6 +119,7 @@ FRAMES, SPEED, BOUND = 10_000, 0.16, 0.2  # a shorter capture, the disc twice as
 SMALL_DISC = {"frames": FRAMES, "mover_radius_px": 30.0, "mover_speed_px_per_frame": SPEED, "mover_intensity": 1.0}
 
 
+@pytest.mark.slow
 def test_a_default_run_detects_a_crossing_disc_and_registers_through_it():
     """Default settings engage mover rejection on a disc capture; with it off the disc pulls the trajectory.
 
@@ -137,6 +138,7 @@ def test_a_default_run_detects_a_crossing_disc_and_registers_through_it():
     assert off.rmse_px > 2 * BOUND, off.rmse_px  # what the default now avoids
 
 
+@pytest.mark.slow
 def test_a_static_capture_is_left_exactly_as_with_rejection_off():
     """No mover, no rejection: the default run's trajectory is bit-identical to ``reject_movers: null``'s.
 
