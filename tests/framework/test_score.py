@@ -3,8 +3,8 @@
 MS-SSIM and PSNR are checked against values computed with torchmetrics 1.9.0
 (``MultiScaleStructuralSimilarityIndexMeasure(data_range=(0, 1))`` and
 ``PeakSignalNoiseRatio(data_range=(0, 1))``, what the challenge's evaluation server uses)
-on the images :func:`_pair` makes; when torchmetrics is installed the same comparison also
-runs live. Known properties and a hand computation cover the rest.
+on the images :func:`_pair` makes, and live (torchmetrics and scikit-image are test
+dependencies: PSNR against both). Known properties and a hand computation cover the rest.
 """
 
 import json
@@ -49,6 +49,20 @@ def test_ms_ssim_matches_torchmetrics_live():
     t = [torch.tensor(a, dtype=torch.float32).permute(2, 0, 1)[None] for a in (est, ref)]
     want = float(tm.MultiScaleStructuralSimilarityIndexMeasure(data_range=(0, 1))(*t))
     assert ms_ssim(est, ref) == pytest.approx(want, abs=2e-4)
+
+
+def test_psnr_matches_scikit_image_and_torchmetrics_live():
+    """PSNR against scikit-image's and torchmetrics' (both test dependencies), grey and colour."""
+    from skimage.metrics import peak_signal_noise_ratio
+
+    torch = pytest.importorskip("torch")
+    tm = pytest.importorskip("torchmetrics.image")
+    for args in ((120, 150, 0.05, 5), (200, 230, 0.2, 6)):
+        est, ref = _pair(*args)
+        for e, r in ((est, ref), (est[..., 0], ref[..., 0])):
+            assert psnr(e, r) == pytest.approx(peak_signal_noise_ratio(r, e, data_range=1.0), abs=1e-9)
+        t = [torch.tensor(a, dtype=torch.float64).permute(2, 0, 1)[None] for a in (est, ref)]
+        assert psnr(est, ref) == pytest.approx(float(tm.PeakSignalNoiseRatio(data_range=(0, 1))(*t)), abs=1e-5)  # float32 result
 
 
 def test_psnr_by_hand_and_ms_ssim_properties():
