@@ -84,9 +84,9 @@ class PoseCheckpoints:
         meta = json.dumps({"level": level, "record": record, "files": names}, default=json_default)
 
         def write(tmp: Path) -> None:
+            payload: dict[str, Any] = {f"array_{k}": np.asarray(v) for k, v in arrays.items()}
             with open(tmp, "wb") as handle:
-                np.savez(handle, meta=np.frombuffer(meta.encode(), np.uint8),
-                         **{f"array_{k}": np.asarray(v) for k, v in arrays.items()})
+                np.savez(handle, meta=np.frombuffer(meta.encode(), np.uint8), **payload)
 
         self.folder.write_with(f"{CHECKPOINTS}/pose_{level}.npz", write)
 

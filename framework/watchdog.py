@@ -264,6 +264,7 @@ def wait_futures(client: Any, futures: list[Any]) -> None:
 
 def _install_handler() -> None:
     """Install :func:`_on_signal` for :data:`SIGNAL` and unblock it in this (the main) thread; under ``_lock``."""
+    assert SIGNAL is not None  # guarding() installs nothing on a platform without it
     if not _state["installed"]:
         _state["previous"] = signal.signal(SIGNAL, _on_signal)
         _state["installed"] = True
@@ -288,7 +289,7 @@ def _on_signal(signum: int, frame: Any) -> None:
         return  # the run ended before the signal arrived: nothing to interrupt
     if callable(previous):
         previous(signum, frame)
-    elif previous == signal.SIG_DFL:  # not ours, and nobody else's: the default action (ends the process)
+    elif previous == signal.SIG_DFL and SIGNAL is not None:  # not ours, nor anyone's: the default action
         signal.signal(SIGNAL, signal.SIG_DFL)
         os.kill(os.getpid(), SIGNAL)
 
@@ -320,7 +321,7 @@ def _watch() -> None:
                    f"(hangs?); {ENV} sets the limit")
         main = threading.main_thread().ident  # None only before the main thread started: never here
         with _lock:  # while armed, so the handler is in place
-            if not _state["armed"] or main is None:
+            if not _state["armed"] or main is None or SIGNAL is None:
                 continue
             _state["message"] = message
             _state["owed"] += 1

@@ -62,7 +62,7 @@ def test_psnr_matches_scikit_image_and_torchmetrics_live():
         for e, r in ((est, ref), (est[..., 0], ref[..., 0])):
             assert psnr(e, r) == pytest.approx(peak_signal_noise_ratio(r, e, data_range=1.0), abs=1e-9)
         t = [torch.tensor(a, dtype=torch.float64).permute(2, 0, 1)[None] for a in (est, ref)]
-        assert psnr(est, ref) == pytest.approx(float(tm.PeakSignalNoiseRatio(data_range=(0, 1))(*t)), abs=1e-5)  # float32 result
+        assert psnr(est, ref) == pytest.approx(float(tm.PeakSignalNoiseRatio(data_range=(0, 1))(*t)), abs=1e-5)
 
 
 def test_psnr_by_hand_and_ms_ssim_properties():
