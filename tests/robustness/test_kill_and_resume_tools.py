@@ -41,12 +41,10 @@ def _compare_outputs(out: Path) -> tuple[dict[str, np.ndarray], list]:
     return {name: np.load(out / name / "homographies.npy") for name in NAMES}, _without_times(runs)
 
 
-def _assert_compare_sound(out: Path) -> bool:
-    """Every file under a final name is complete; compare.json only with a complete manifest. Returns complete."""
-    if not out.exists():
-        return False
+def _assert_files_complete(out: Path, skip: str | None = None) -> None:
+    """Every file under a final name in ``out`` (but those under a folder named ``skip``) loads completely."""
     for path in out.rglob("*"):
-        if path.is_file() and not path.name.startswith(".partial-"):
+        if path.is_file() and not path.name.startswith(".partial-") and skip not in path.relative_to(out).parts:
             if path.suffix == ".npy":
                 np.load(path, allow_pickle=False)
             elif path.suffix == ".npz":
@@ -54,6 +52,17 @@ def _assert_compare_sound(out: Path) -> bool:
                     [data[k] for k in data.files]
             elif path.suffix == ".json":
                 json.loads(path.read_text())
+            elif path.suffix == ".ply":
+                head, _, body = path.read_bytes().partition(b"end_header\n")
+                count = int(head.split(b"element vertex ")[1].split()[0])
+                assert len(body) == 15 * count, path  # 3 float32 and 3 uint8 per point
+
+
+def _assert_compare_sound(out: Path) -> bool:
+    """Every file under a final name is complete; compare.json only with a complete manifest. Returns complete."""
+    if not out.exists():
+        return False
+    _assert_files_complete(out)
     if not (out / "compare.json").exists():
         return False
     manifest = json.loads((out / "manifest.json").read_text())
@@ -365,19 +374,7 @@ def _pose_sound(out: Path) -> bool:
     """Every file under a final name is complete; run.json only with a complete manifest. Returns complete."""
     if not out.exists():
         return False
-    for path in out.rglob("*"):
-        if path.is_file() and not path.name.startswith(".partial-") and "work" not in path.relative_to(out).parts:
-            if path.suffix == ".npy":
-                np.load(path, allow_pickle=False)
-            elif path.suffix == ".npz":
-                with np.load(path, allow_pickle=False) as data:
-                    [data[k] for k in data.files]
-            elif path.suffix == ".json":
-                json.loads(path.read_text())
-            elif path.suffix == ".ply":
-                head, _, body = path.read_bytes().partition(b"end_header\n")
-                count = int(head.split(b"element vertex ")[1].split()[0])
-                assert len(body) == 15 * count, path  # 3 float32 and 3 uint8 per point
+    _assert_files_complete(out, skip="work")
     if not (out / "run.json").exists():
         return False
     manifest = json.loads((out / "manifest.json").read_text())
