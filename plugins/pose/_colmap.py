@@ -8,6 +8,12 @@ from typing import Any, NamedTuple
 import numpy as np
 from numpy.typing import NDArray
 
+THREADS = 1
+"""Threads COLMAP's extraction, matching, mapping and triangulation may use. One: with more, the
+order in which threads finish changes the matches and the mapper's choices, and two runs of the
+same spec differed (level 2 of a 3000-frame simulate3d run registered 0 and 10 of 13 exposures);
+with one, a run is reproducible, which ``pose --resume`` needs to equal an uninterrupted run."""
+
 
 class Landmarks(NamedTuple):
     """Level-1 model observations: (K,) int64 frames, (K, 128) float32 unit descriptors, (K, 3) points."""
@@ -97,6 +103,9 @@ def write_and_match(
         reader.camera_params = ",".join(f"{v:.12g}" for v in camera_params)
     extraction = pycolmap.FeatureExtractionOptions()
     extraction.sift.max_num_features = cfg.max_features
+    extraction.num_threads = THREADS
+    matching = pycolmap.FeatureMatchingOptions()
+    matching.num_threads = THREADS
     advance = progress(f"level {level}: features and matches", 2) if progress else (lambda k: None)
     pycolmap.extract_features(
         database,
@@ -109,12 +118,14 @@ def write_and_match(
     )
     advance(1)
     if cfg.matching == "exhaustive" or (cfg.matching == "auto" and len(names) <= cfg.exhaustive_max):
-        pycolmap.match_exhaustive(database, verification_options=verification, device=pycolmap.Device.cpu)
+        pycolmap.match_exhaustive(database, matching_options=matching, verification_options=verification,
+                                  device=pycolmap.Device.cpu)
     else:
         pairing = pycolmap.SequentialPairingOptions()
         pairing.overlap = cfg.overlap
         pycolmap.match_sequential(
             database,
+            matching_options=matching,
             pairing_options=pairing,
             verification_options=verification,
             device=pycolmap.Device.cpu,
@@ -247,6 +258,7 @@ def map_exposures(config: Any, images: NDArray[np.uint8], references: NDArray[np
         ("PINHOLE", intrinsics.colmap_params()) if intrinsics is not None else ("SIMPLE_RADIAL", None)
     )
     options = pycolmap.IncrementalPipelineOptions()
+    options.num_threads = THREADS
     # a sideways path of a few decimetres at metres' depth: small triangulation angles
     options.mapper.init_min_tri_angle = cfg.min_angle_deg
     if intrinsics is not None:
@@ -310,7 +322,9 @@ def localise(config: Any, images: NDArray[np.uint8], references: NDArray[np.int6
         rec: the level-1 ``pycolmap.Reconstruction`` (its camera is used).
         landmarks: the level-1 model's observations (:func:`model_landmarks`).
         progress: ``progress(task, total)`` returning ``advance(n)``, or None.
-        level: the level number (for the progress label).
+        level: the level number (for the progress label, and the random seed ``seed + level``
+            COLMAP starts it from, so that a level's result does not depend on whether the
+            levels before it ran in this process or were restored by ``--resume``).
 
     Returns:
         ``(poses, inliers)``: (G, 4, 4) camera-to-world poses (NaN where it failed) and
@@ -320,9 +334,11 @@ def localise(config: Any, images: NDArray[np.uint8], references: NDArray[np.int6
     import pycolmap
 
     cfg = config
+    pycolmap.set_random_seed(cfg.seed + level)
     camera = next(iter(rec.cameras.values()))
     extraction = pycolmap.FeatureExtractionOptions()
     extraction.sift.max_num_features = cfg.max_features
+    extraction.num_threads = THREADS
     sift = pycolmap.FeatureExtractor.create(extraction, device=pycolmap.Device.cpu)
     matcher = cv2.BFMatcher(cv2.NORM_L2)
     model_frames = np.unique(landmarks.frames)

@@ -28,6 +28,7 @@ from photonpano.stages import PhotonSource, PoseEstimator, PoseEstimatorConfig
 from pydantic import Field, field_validator
 
 from ._colmap import (
+    THREADS,
     Landmarks,
     camera_intrinsics,
     localise,
@@ -344,6 +345,7 @@ class PycolmapSfM(PoseEstimator):
         finally:
             db.close()
         options = pycolmap.IncrementalPipelineOptions()
+        options.num_threads = THREADS
         options.ba_refine_focal_length = False
         options.ba_refine_principal_point = False
         options.ba_refine_extra_params = False
