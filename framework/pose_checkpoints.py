@@ -7,8 +7,9 @@ next level starts from: arrays (poses, homographies, landmarks), a JSON-able rec
 ``checkpoints/pose_<k>/`` of the run folder, each written atomically and recorded in
 the manifest; ``checkpoints/pose_<k>.npz`` comes last and marks level ``k`` complete.
 A resumed run reads the latest complete checkpoint back and continues after it, so
-everything checkpointed is reused bit for bit (COLMAP's own results vary from run to
-run, which is why each level's result is kept rather than recomputed). The checkpoints
+everything checkpointed is reused bit for bit, and (``pycolmap-sfm`` running COLMAP
+single-threaded and reseeding each level) the levels after it come out as in an
+uninterrupted run. The checkpoints
 go with the run's other checkpoints when the run completes.
 """
 
