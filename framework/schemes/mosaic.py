@@ -115,17 +115,20 @@ class MosaicScheme(LevelScheme):
         self.window = window
         self._engaged: dict[tuple[int, int], bool] = {}  # detect_movers' decision per capture (first mosaic level)
 
-    def template(self, task: LevelTask) -> Panorama:
-        """The panorama the task's merged frames are registered against: every binary frame at its current estimate.
+    def template(self, task: LevelTask) -> tuple[Panorama, dict[str, Any] | None]:
+        """The panorama the task's merged frames are registered against, and the level's mover record.
 
-        Composited in this process, not on the run's executor: from binned photons with
-        bilinear warps it is cheap, and a Dask executor would ship the capture to its
-        workers for it. Robust where mover rejection is on (see the module).
+        Every binary frame at its current estimate, composited in this process, not on
+        the run's executor: from binned photons with bilinear warps it is cheap, and a
+        Dask executor would ship the capture to its workers for it. Robust where mover
+        rejection is on; with ``detect_movers`` the first call for a capture decides
+        that for the later ones (see the module).
+
+        Returns:
+            ``(template, movers)``: the :class:`Panorama` and the record that goes to
+            :attr:`~photonpano.records.LocateResult.movers` (``engaged``, ``detected``,
+            ``template_fraction``, ``largest_region``), None with ``reject_movers`` off.
         """
-        return self._template(task)[0]
-
-    def _template(self, task: LevelTask) -> tuple[Panorama, dict[str, Any] | None]:
-        """The template and the level's mover record (None with ``reject_movers`` off); see the module."""
         def build(make: Callable[[], Compositor]) -> Panorama:
             return compose(task.source, task.homographies, make(), subbatch_px=self.subbatch_px)
 
@@ -159,7 +162,7 @@ class MosaicScheme(LevelScheme):
             StageError: if no merged frame could be registered.
         """
         source, groups, current = task.source, task.groups, task.current
-        template, movers = self._template(task)
+        template, movers = self.template(task)
         reject = self.reject_movers if movers is not None and movers["engaged"] else None
         to_canvas = template.homographies[groups.reference]
 
