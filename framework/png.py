@@ -28,9 +28,7 @@ def write_panorama_png(path: Path, flux: NDArray[np.floating]) -> None:
         ValueError: if ``flux`` is not a non-empty 2-D array.
         PhotonpanoError: if the file cannot be written.
     """
-    flux = np.asarray(flux)
-    if flux.ndim != 2 or flux.size == 0:
-        raise ValueError(f"write_panorama_png: expected a non-empty (H, W) flux image, got shape {flux.shape}")
+    flux = _image_2d(flux, "write_panorama_png", "flux image")
     grey = tone_map(flux, bits=16)
     alpha = np.where(np.isfinite(flux), np.uint16(65535), np.uint16(0))
     _imwrite(path, np.dstack([grey, grey, grey, alpha]), 1)
@@ -47,10 +45,16 @@ def write_mask_png(path: Path, mask: NDArray[np.bool_]) -> None:
         ValueError: if ``mask`` is not a non-empty 2-D array.
         PhotonpanoError: if the file cannot be written.
     """
-    mask = np.asarray(mask)
-    if mask.ndim != 2 or mask.size == 0:
-        raise ValueError(f"write_mask_png: expected a non-empty (H, W) mask, got shape {mask.shape}")
+    mask = _image_2d(mask, "write_mask_png", "mask")
     _imwrite(path, np.where(mask, np.uint8(255), np.uint8(0)), 9)
+
+
+def _image_2d(image: NDArray, writer: str, what: str) -> NDArray:
+    """``image`` as an array; ValueError naming ``writer`` unless it is a non-empty (H, W) array."""
+    image = np.asarray(image)
+    if image.ndim != 2 or image.size == 0:
+        raise ValueError(f"{writer}: expected a non-empty (H, W) {what}, got shape {image.shape}")
+    return image
 
 
 def _imwrite(path: Path, image: NDArray, compression: int) -> None:
