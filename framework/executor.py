@@ -259,7 +259,8 @@ class DaskExecutor(Executor):
                 for future in futures:  # in order: progress is as fresh as the slowest task
                     wait_futures(self.client, [future])  # in a guarded run, a hung plugin call: PluginHung
                     done(future.result())
-            wait_futures(self.client, futures)
+            else:
+                wait_futures(self.client, futures)
             return self.client.gather(futures)
         except _Carried as carried:  # a plugin's BaseException, raised here (not in Dask's event loop)
             self.client.cancel(futures)
