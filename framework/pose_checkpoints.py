@@ -9,8 +9,8 @@ the manifest; ``checkpoints/pose_<k>.npz`` comes last and marks level ``k`` comp
 A resumed run reads the latest complete checkpoint back and continues after it, so
 everything checkpointed is reused bit for bit, and (``pycolmap-sfm`` running COLMAP
 single-threaded and reseeding each level) the levels after it come out as in an
-uninterrupted run. The checkpoints
-go with the run's other checkpoints when the run completes.
+uninterrupted run. The checkpoints go with the run's other checkpoints when the run
+completes.
 """
 
 from __future__ import annotations

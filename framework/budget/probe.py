@@ -18,9 +18,10 @@ from the capture in a cheap pre-pass, and :func:`choose_group_size` turns them i
   ``groups_per_period`` times, so ``m_vibration = period / groups_per_period``.
 
 m is ``min(typical, m_motion)``, raised towards ``m_light`` in the dark (up to twice
-the blur budget), and at most ``m_vibration``; any photon deficit left is made up at level 1 by registering
-spatially binned merged frames (:class:`~photonpano.schemes.check.PairCheck`, the
-``binning`` of the plan). Explicit integers bypass all of this.
+the blur budget), and at most ``m_vibration``; any photon deficit left is made up at
+level 1 by registering spatially binned merged frames
+(:class:`~photonpano.schemes.check.PairCheck`, the ``binning`` of the plan). Explicit
+integers bypass all of this.
 """
 
 from __future__ import annotations
