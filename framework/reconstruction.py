@@ -21,7 +21,7 @@ from .stages import PhotonSource
 from .watchdog import watched
 
 if TYPE_CHECKING:
-    from .schemes import Binned
+    from .schemes import LevelScheme
     from .spec_model import PipelineSpec
 
 __all__ = ["Stages", "reconstruct"]
@@ -94,7 +94,7 @@ class Stages:
         reject = MOVERS_SIGMAS if spec.mosaic.reject_movers == "auto" else spec.mosaic.reject_movers
         self.interpolator = spec.interpolator.build()
         built = {"pairwise": PairwiseScheme(self.locator, tuple(spec.pair_offsets), check),
-                 "mosaic": MosaicScheme(in_merged_pixels(spec.mosaic.locator, budget.register_binning).build,
+                 "mosaic": MosaicScheme(in_merged_pixels(spec.mosaic.locator, budget.mosaic_binning).build,
                                         spec.mosaic.template.build, subbatch_px=spec.mosaic.subbatch_px,
                                         reject_movers=reject, make_robust=_robust_template(spec.mosaic).build,
                                         detect_movers=spec.mosaic.reject_movers == "auto")}
@@ -138,8 +138,10 @@ class Stages:
                         progress: Any = None, resume: Any = None) -> NDArray[np.float64]:
         """Run the levels (:func:`photonpano.levels.estimate_motion`).
 
-        With a registration binning k > 1 every scheme runs on the capture binned k x k
-        (:class:`~photonpano.schemes.Binned`, one grid per call).
+        A scheme whose registration binning k is above 1 (the budget's
+        ``register_binning`` for pairwise levels, ``mosaic_binning`` for mosaic ones) runs
+        on the capture binned k x k (:class:`~photonpano.schemes.Binned`, one grid per k
+        and call).
 
         Args:
             executor: where independent work runs.
@@ -156,11 +158,18 @@ class Stages:
 
         start = {} if resume is None else {
             "start_level": resume.level + 1, "initial": resume.homographies}
-        schemes = self.schemes
-        if self.budget.register_binning > 1:
-            grid = RegistrationGrid(self.source, self.budget.register_binning)
-            wrapped: dict[int, Binned] = {}
-            schemes = [wrapped.setdefault(id(scheme), Binned(scheme, grid)) for scheme in schemes]
+        grids: dict[int, RegistrationGrid] = {}
+        wrapped: dict[int, LevelScheme] = {}
+
+        def binned(scheme: LevelScheme) -> LevelScheme:
+            k = self.budget.mosaic_binning if scheme.needs_template else self.budget.register_binning
+            if k == 1:
+                return scheme
+            if k not in grids:
+                grids[k] = RegistrationGrid(self.source, k)
+            return wrapped.setdefault(id(scheme), Binned(scheme, grids[k]))
+
+        schemes = [binned(scheme) for scheme in self.schemes]
         return estimate_motion(self.source, self.resampler, self.merger, self.interpolator, schemes,
                                group_size=self.budget.group_size, executor=executor,
                                keep_merged=self.spec.outputs.merged_frames, on_level=on_level, progress=progress,

@@ -45,7 +45,8 @@ def test_a_good_capture_ends_ok_and_records_its_group_size(tmp_path):
     assert budget["agreement_binning"] == summary["panorama_agreement"]["binning"]
     assert "registration_check" not in summary["levels"][1]  # the mosaic level has no pair check
     assert all(isinstance(why, str) and why for why in budget["reasons"].values())
-    assert set(budget["reasons"]) == {"group_size", "register_binning", "check_binning", "agreement_binning"}
+    assert set(budget["reasons"]) == {"group_size", "register_binning", "mosaic_binning", "check_binning",
+                                      "agreement_binning"}
 
 
 def test_uniform_photons_never_end_ok(tmp_path):

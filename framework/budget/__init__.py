@@ -9,8 +9,9 @@ four choices of one capture and why each was made, and is recorded in ``run.json
   (:func:`~photonpano.budget.probe.plan_group_size`: set in the spec, or chosen from the
   capture's light and speed);
 - **registration binning** k: sensor pixels per side summed into a merged-frame pixel
-  before the schemes merge and register (spec ``registration_binning``;
-  :mod:`photonpano.budget.grid`);
+  before the pairwise levels merge and register (spec ``registration_binning``;
+  :mod:`photonpano.budget.grid`), and its value at the mosaic levels (spec
+  ``mosaic.registration_binning``: full resolution where the capture is short enough);
 - **check binning** c: merged-frame pixels per side of the binned images on which the
   pairwise scheme checks, and rescues, its level-1 pairs (:class:`~photonpano.schemes.check.PairCheck`;
   with ``group_size: auto`` only);
@@ -26,7 +27,7 @@ import math
 from dataclasses import dataclass
 from typing import Any
 
-from .grid import auto_binning, registration_binning
+from .grid import auto_binning, mosaic_binning, registration_binning
 from .probe import CaptureProbe, GroupPlan, plan_group_size
 
 __all__ = ["Budget", "GroupPlan", "CaptureProbe", "agreement_binning", "check_binning", "auto_binning"]
@@ -64,16 +65,19 @@ def check_binning(plan: GroupPlan, register_binning: int) -> int | None:
 
 @dataclass(frozen=True)
 class Budget:
-    """The photon budget of one capture (see the module): frames per group and three binnings.
+    """The photon budget of one capture (see the module): frames per group and four binnings.
 
     Attributes:
         plan: the :class:`~photonpano.budget.probe.GroupPlan` (group size m, why, the
             pre-pass's figures, the flicker found); ``run.json``'s ``group_size`` entry.
-        register_binning: sensor pixels per side of a merged-frame pixel (>= 1).
+        register_binning: sensor pixels per side of a merged-frame pixel at the pairwise
+            levels (>= 1).
+        mosaic_binning: the same at the mosaic levels (>= 1).
         check_binning: merged-frame pixels per side of the level-1 pair check's images,
             or None when no check runs.
         agreement_binning: pixels per side of the panorama agreement's images (2 to 8).
         register_reason: one line saying why ``register_binning`` was chosen.
+        mosaic_reason: one line saying why ``mosaic_binning`` was chosen.
         check_reason: one line saying why ``check_binning`` was chosen.
         agreement_reason: one line saying why ``agreement_binning`` was chosen.
     """
@@ -82,7 +86,9 @@ class Budget:
     register_binning: int = 1
     check_binning: int | None = None
     agreement_binning: int = 2
+    mosaic_binning: int = 1
     register_reason: str = "set in the spec"
+    mosaic_reason: str = "set in the spec"
     check_reason: str = "group size set in the spec: pairs are not checked"
     agreement_reason: str = "intensity frames"
 
@@ -102,10 +108,12 @@ class Budget:
 
         Raises:
             ValueError: for a ``group_size`` that is neither an integer >= 2 nor ``"auto"``.
-            StageError: if ``registration_binning`` leaves frames smaller than 16 pixels.
+            StageError: if ``registration_binning`` or ``mosaic.registration_binning``
+                leaves frames smaller than 16 pixels.
         """
         plan = plan_group_size(spec.group_size, source)
         register = registration_binning(spec, source)
+        mosaic, mosaic_reason = mosaic_binning(spec, source, register)
         if spec.registration_binning != "auto":
             register_reason = "set in the spec"
         elif register > 1:
@@ -123,17 +131,20 @@ class Budget:
         agreement_reason = cls.agreement_reason if per_group is None else (
             f"{per_group:.3g} photons per pixel per group: blocks of {agreement}x{agreement} gather about 20 "
             "(2 to 8)")
-        return cls(plan, register, check, agreement, register_reason, check_reason, agreement_reason)
+        return cls(plan, register, check, agreement, mosaic, register_reason, mosaic_reason, check_reason,
+                   agreement_reason)
 
     def record(self) -> dict[str, Any]:
         """Return the JSON-ready ``budget`` entry of ``run.json``.
 
-        ``{"group_size", "register_binning", "check_binning", "agreement_binning",
-        "reasons": {one line per entry}}``; the plan's details stay in the ``group_size``
+        ``{"group_size", "register_binning", "mosaic_binning", "check_binning",
+        "agreement_binning", "reasons": {one line per entry}}``; the plan's details stay in the ``group_size``
         entry (:meth:`~photonpano.budget.probe.GroupPlan.record`).
         """
         return {"group_size": self.group_size, "register_binning": self.register_binning,
-                "check_binning": self.check_binning, "agreement_binning": self.agreement_binning,
+                "mosaic_binning": self.mosaic_binning, "check_binning": self.check_binning,
+                "agreement_binning": self.agreement_binning,
                 "reasons": {"group_size": self.plan.reason, "register_binning": self.register_reason,
-                            "check_binning": self.check_reason, "agreement_binning": self.agreement_reason}}
+                            "mosaic_binning": self.mosaic_reason, "check_binning": self.check_reason,
+                            "agreement_binning": self.agreement_reason}}
 

@@ -105,6 +105,26 @@ def test_binned_registration_is_as_accurate_as_full_resolution(host):
     assert errors[2] < 1.5 * errors[1] + 0.03, errors
 
 
+def test_full_resolution_mosaic_levels_beat_binned_ones(host):
+    """The mosaic levels at full resolution (the default on short captures) track better than binned 2x2."""
+    from photonpano.executor import SerialExecutor
+    from photonpano.metrics import trajectory_error
+    from photonpano.plugins.sources.simulate import SimulateConfig
+    from photonpano.reconstruction import Stages
+    from photonpano.spec import validate_spec
+
+    source = SimulateConfig(frames=8000, height=220, width=360, flux=0.5, speed_px_per_frame=0.015,
+                            vibration_px=3.0, seed=3).build()
+    errors = {}
+    for binning in ("auto", 2):
+        spec = validate_spec({"source": "simulate", "mosaic": {"registration_binning": binning}}, host)
+        stages = Stages(spec, source)
+        assert (stages.budget.register_binning, stages.budget.mosaic_binning) == (2, 1 if binning == "auto" else 2)
+        homographies = stages.estimate_motion(SerialExecutor())
+        errors[binning] = trajectory_error(homographies, source.ground_truth, source.width, source.height).rmse_px
+    assert errors["auto"] < 0.8 * errors[2], errors
+
+
 def test_binned_levels_report_registrations_in_sensor_pixels(host):
     """What observers and run.json get is in sensor pixels: the pairs agree with the solved keyframes."""
     from photonpano.executor import SerialExecutor
