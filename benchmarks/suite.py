@@ -121,8 +121,9 @@ def run_capture(capture: Capture, dump: Path | None = None, overrides: Sequence[
 
     With ``dump``, the per-frame actual error and predicted sigma go to
     ``dump/<photo>--<variant>.npz`` (``error``, ``sigma``, ``unverified`` per frame, the
-    final ``homographies``, ``width`` and ``height``, and the last level's evidence pairs
-    ``middle``, ``residual``, ``ok``; for recalibrating offline).
+    final ``homographies``, ``width`` and ``height``, the last level's evidence pairs
+    ``middle``, ``residual``, ``ok``, and level 1's as ``first_middle``, ``first_residual``,
+    ``first_ok``; for recalibrating offline).
     """
     from photonpano.host import PluginHost
     from photonpano.metrics import ground_truth_report, source_trajectory_error
@@ -155,6 +156,9 @@ def run_capture(capture: Capture, dump: Path | None = None, overrides: Sequence[
         dump.mkdir(parents=True, exist_ok=True)
         evidence = held_out_residuals(levels[-1], source.width, source.height)
         pairs = dict(zip(("middle", "residual", "ok"), evidence[1:4])) if evidence is not None else {}
+        first = held_out_residuals(levels[0], source.width, source.height) if len(levels) > 1 else None
+        if first is not None:
+            pairs.update(zip(("first_middle", "first_residual", "first_ok"), first[1:4]))
         unverified = unc.unverified if unc is not None else np.zeros(len(error), bool)
         np.savez(dump / f"{capture.name.replace('/', '--')}.npz", error=error, sigma=sigma, unverified=unverified,
                  homographies=homographies, width=source.width, height=source.height, **pairs)
