@@ -270,7 +270,8 @@ def reconstruct(spec: PipelineSpec, source: PhotonSource, *, on_level: Callable[
         plan = budget.plan
         agreement = panorama_agreement(source, stages.merger, homographies, pano, plan.group_size,
                                        budget.agreement_binning)
-        uncertainty = frame_uncertainty(last, source.width, source.height) if last is not None else None
+        chain = stats[0].get("quality", {}).get("pose_graph_residual_px") if stats else None
+        uncertainty = frame_uncertainty(last, source.width, source.height, chain) if last is not None else None
         summary = uncertainty.summary(source.frame_rate_hz) if uncertainty is not None else None
         status, warnings = assess(plan, stats, agreement, summary)
         movers = _movers_record(stats)

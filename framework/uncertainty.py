@@ -20,10 +20,14 @@ binary frame from two terms:
   the part of the error that neighbours share, a slow drift of the whole chain of
   registrations (which the mosaic levels keep: their template is made from the same
   chain), does not show in it. It grows with how far the camera travelled from the
-  middle frame (the panorama's reference): :data:`DRIFT_PER_FRAME_EXTENT` times the
-  capture's median local sigma per frame extent travelled (the frame's width or height
-  along the displacement). A fast pan across three frame widths drifted by 1-2 px at its
-  ends while its local residuals predicted 0.4 px.
+  middle frame (the panorama's reference), per frame extent travelled (the frame's width
+  or height along the displacement), in proportion to how precise the registrations
+  were: :data:`DRIFT_PER_FRAME_EXTENT` times the capture's median local sigma, and
+  :data:`CHAIN_DRIFT_PER_FRAME_EXTENT` times level 1's pose-graph residual (the chain
+  itself was registered there; at full resolution the mosaic levels' local residuals are
+  far smaller than the chain's error they inherit), added in quadrature. A fast pan
+  across three frame widths drifted by 1-2 px at its ends while its local residuals
+  predicted 0.4 px.
 
 The two add in quadrature. The constants and :data:`NEIGHBOURS` were set on the
 evaluation suite (``benchmarks/suite.py``: 48 captures of its 16 photographs, paths,
@@ -51,7 +55,8 @@ from . import geometry
 from .records import LevelResult
 
 __all__ = ["FrameUncertainty", "frame_uncertainty", "held_out_residuals", "frame_extents_travelled",
-           "RESIDUAL_TO_SIGMA", "DRIFT_PER_FRAME_EXTENT", "NEIGHBOURS", "LIMIT_PX"]
+           "RESIDUAL_TO_SIGMA", "DRIFT_PER_FRAME_EXTENT", "CHAIN_DRIFT_PER_FRAME_EXTENT", "NEIGHBOURS",
+           "LIMIT_PX"]
 
 RESIDUAL_TO_SIGMA = 1.4
 """Local term of the predicted per-frame sigma over the local RMS of held-out pair
@@ -60,6 +65,11 @@ residuals (calibrated on the evaluation suite, see the module)."""
 DRIFT_PER_FRAME_EXTENT = 2.5
 """Drift term of the predicted sigma per frame extent travelled from the middle frame, in
 units of the capture's median local sigma (calibrated on the evaluation suite)."""
+
+CHAIN_DRIFT_PER_FRAME_EXTENT = 0.0
+"""Drift term of the predicted sigma per frame extent travelled from the middle frame, in
+units of level 1's pose-graph residual (``levels[0].quality.pose_graph_residual_px``;
+calibrated on the evaluation suite)."""
 
 NEIGHBOURS = 8
 """Residuals on each side of a pair that enter its local RMS."""
@@ -114,7 +124,8 @@ class FrameUncertainty:
         }
 
 
-def frame_uncertainty(result: LevelResult, width: int, height: int) -> FrameUncertainty | None:
+def frame_uncertainty(result: LevelResult, width: int, height: int,
+                      chain_residual_px: float | None = None) -> FrameUncertainty | None:
     """Predict every frame's trajectory error from the last level's held-out evidence.
 
     Args:
@@ -122,6 +133,9 @@ def frame_uncertainty(result: LevelResult, width: int, height: int) -> FrameUnce
             ``homographies`` are the run's final frame-to-panorama homographies).
         width: frame width in pixels.
         height: frame height in pixels.
+        chain_residual_px: level 1's pose-graph residual in pixels (median mean-corner
+            distance of its pairs from the solved keyframes,
+            :func:`~photonpano.quality.level_figures`), or None (no chain term).
 
     Returns:
         The :class:`FrameUncertainty`, or None if the level holds no evidence (a mosaic
@@ -137,8 +151,9 @@ def frame_uncertainty(result: LevelResult, width: int, height: int) -> FrameUnce
     known = np.isfinite(sigma_pairs)
     if known.any():
         local = np.interp(frames, middle[known], sigma_pairs[known])
-        drift = DRIFT_PER_FRAME_EXTENT * float(np.median(local)) * frame_extents_travelled(result.homographies,
-                                                                                           width, height)
+        per_extent = np.hypot(DRIFT_PER_FRAME_EXTENT * float(np.median(local)),
+                              CHAIN_DRIFT_PER_FRAME_EXTENT * (chain_residual_px or 0.0))
+        drift = per_extent * frame_extents_travelled(result.homographies, width, height)
         sigma = np.hypot(local, drift)
     else:
         sigma = np.full(n, np.inf)

@@ -11,7 +11,8 @@ four choices of one capture and why each was made, and is recorded in ``run.json
 - **registration binning** k: sensor pixels per side summed into a merged-frame pixel
   before the pairwise levels merge and register (spec ``registration_binning``;
   :mod:`photonpano.budget.grid`), and its value at the mosaic levels (spec
-  ``mosaic.registration_binning``: full resolution where the capture is short enough);
+  ``mosaic.registration_binning``: full resolution where the capture is short enough and
+  a group gathers enough light);
 - **check binning** c: merged-frame pixels per side of the binned images on which the
   pairwise scheme checks, and rescues, its level-1 pairs (:class:`~photonpano.schemes.check.PairCheck`;
   with ``group_size: auto`` only);
@@ -113,7 +114,7 @@ class Budget:
         """
         plan = plan_group_size(spec.group_size, source)
         register = registration_binning(spec, source)
-        mosaic, mosaic_reason = mosaic_binning(spec, source, register)
+        mosaic, mosaic_reason = mosaic_binning(spec, source, register, plan.photons_per_pixel_per_group)
         if spec.registration_binning != "auto":
             register_reason = "set in the spec"
         elif register > 1:

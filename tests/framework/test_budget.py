@@ -233,18 +233,21 @@ def test_budget_with_an_explicit_group_size_runs_no_check_and_counts_the_check_i
     assert check_binning(GroupPlan(300, auto=True), 4) == 1
 
 
-def test_mosaic_levels_register_at_full_resolution_while_the_capture_is_short(monkeypatch):
-    """mosaic.registration_binning auto: 1 up to the pixel-frame limit, level 1's binning beyond or when set."""
+def test_mosaic_levels_register_at_full_resolution_on_short_well_lit_captures(monkeypatch):
+    """mosaic.registration_binning auto: 1 within the pixel-frame and light limits, else level 1's binning."""
     from photonpano.budget import grid
 
     capture = _capture(frames=1000, height=224, width=320)  # 7.2e7 pixel-frames, binned 2x2 at level 1
     auto = _budget(capture, group_size=200)
+    assert auto.plan.photons_per_pixel_per_group >= grid.FULL_RESOLUTION_MOSAIC_PHOTONS
     assert (auto.register_binning, auto.mosaic_binning) == (2, 1)
-    assert "within" in auto.mosaic_reason and auto.record()["mosaic_binning"] == 1
+    assert "full resolution" in auto.mosaic_reason and auto.record()["mosaic_binning"] == 1
     assert auto.record()["reasons"]["mosaic_binning"] == auto.mosaic_reason
+    dim = _budget(capture, group_size=20)  # a tenth of the photons per group
+    assert dim.mosaic_binning == 2 and "photons per pixel per group, under 10" in dim.mosaic_reason
     monkeypatch.setattr(grid, "FULL_RESOLUTION_MOSAIC_MAX", 7e7)  # a longer capture, in effect
     long = _budget(capture, group_size=200)
-    assert long.mosaic_binning == 2 and "exceed" in long.mosaic_reason
+    assert long.mosaic_binning == 2 and "pixel-frames exceed" in long.mosaic_reason
     monkeypatch.undo()
     assert _budget(capture, group_size=200, registration_binning=2).mosaic_binning == 2  # one binning, as set
     assert _budget(capture, group_size=200, mosaic={"registration_binning": 3}).mosaic_binning == 3
