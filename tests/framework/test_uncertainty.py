@@ -6,6 +6,7 @@ from photonpano import geometry
 from photonpano.quality import _uncertainty_warnings
 from photonpano.records import Groups, LevelResult, LocateResult, PairRegistrations
 from photonpano.uncertainty import (
+    CHAIN_DRIFT_PER_FRAME_EXTENT,
     DRIFT_PER_FRAME_EXTENT,
     LIMIT_PX,
     NEIGHBOURS,
@@ -64,6 +65,18 @@ def test_sigma_grows_with_the_frame_extents_travelled_from_the_middle():
     assert wide.sigma_px[n // 2] == pytest.approx(local)
     assert wide.sigma_px[0] == pytest.approx(np.hypot(local, DRIFT_PER_FRAME_EXTENT * local * 1.5))
     assert np.all(np.diff(wide.sigma_px[n // 2:]) >= 0)
+
+
+def test_level_one_chain_residual_adds_drift_away_from_the_middle_only():
+    """The chain term: level 1's pose-graph residual per frame extent travelled, in quadrature."""
+    n = 1000
+    level = _level(n_frames=n, shift=np.full(18, 0.02), speed=3 * W / n)
+    plain, chained = frame_uncertainty(level, W, H), frame_uncertainty(level, W, H, chain_residual_px=0.4)
+    local = RESIDUAL_TO_SIGMA * 0.02
+    assert chained.sigma_px[n // 2] == pytest.approx(plain.sigma_px[n // 2]) == pytest.approx(local)
+    per_extent = np.hypot(DRIFT_PER_FRAME_EXTENT * local, CHAIN_DRIFT_PER_FRAME_EXTENT * 0.4)
+    assert chained.sigma_px[0] == pytest.approx(np.hypot(local, per_extent * 1.5))
+    assert chained.sigma_px[0] > 3 * plain.sigma_px[0]  # precise local residuals no longer hide the chain
 
 
 def test_a_jump_is_located_and_named_by_frames_and_seconds():
