@@ -13,7 +13,7 @@ from photonpano.plugins.sources.simulate import SimulateConfig
 
 def _blurred_texture(rng, shape=(96, 128)):
     """A sharp random texture in [0.1, 0.9] and its [1/6, 2/3, 1/6] x 2 blur."""
-    sharp = cv2.GaussianBlur(rng.uniform(0, 1, shape).astype(np.float32), (0, 0), 0.8)
+    sharp = cv2.GaussianBlur(rng.uniform(0, 1, shape).astype(np.float32), (0, 0), 1.2)
     sharp = 0.1 + 0.8 * (sharp - sharp.min()) / (sharp.max() - sharp.min())
     taps = np.array([1, 4, 1], np.float32) / 6
     return sharp, cv2.sepFilter2D(sharp, -1, taps, taps, borderType=cv2.BORDER_REFLECT)
@@ -25,17 +25,21 @@ def _db(estimate, truth):
 
 
 def test_dct_wiener_denoises_and_deblurs_a_texture():
-    """A blurred texture in binomial-like noise: > 4 dB above the noisy input, and the deblur beats denoising alone."""
+    """A blurred texture in noise: the estimate beats the noisy input by > 4 dB and the noise-free blurred image by > 2 dB.
+
+    Measured: noisy 34.9 dB, blurred without noise 36.4, denoised only 34.9, restored 39.4.
+    """
     rng = np.random.default_rng(3)
     sharp, blurred = _blurred_texture(rng)
-    variance = np.full(sharp.shape, 4e-4, np.float32)
-    noisy = (blurred + rng.normal(0, 0.02, sharp.shape)).astype(np.float32)
+    variance = np.full(sharp.shape, 1e-4, np.float32)
+    noisy = (blurred + rng.normal(0, 0.01, sharp.shape)).astype(np.float32)
     deblurred = dct_wiener(noisy, variance)
     denoised = dct_wiener(noisy, variance, deblur=0.0)
     print(f"noisy {_db(noisy, sharp):.2f} dB, denoised {_db(denoised, sharp):.2f}, deblurred {_db(deblurred, sharp):.2f}")
     assert deblurred.shape == sharp.shape and deblurred.dtype == np.float32
     assert _db(deblurred, sharp) > _db(noisy, sharp) + 4
-    assert _db(deblurred, sharp) > _db(denoised, sharp) + 1
+    assert _db(deblurred, sharp) > _db(blurred, sharp) + 2
+    assert _db(deblurred, sharp) > _db(denoised, sharp) + 3
 
 
 def test_dct_wiener_flattens_a_flat_field_and_keeps_its_mean():
@@ -71,7 +75,7 @@ def undersampled():
 def test_wiener_restoration_gains_over_the_bilinear_merge_at_scale_2(undersampled):
     """True motion, ``scale: 2``: the default >= +2.5 dB above ``flux-canvas`` and >= 1 dB above the blend.
 
-    Measured: wiener +3.5 dB, blend +1.6 dB, plain drizzle -1.6 dB (this capture).
+    Measured: wiener +3.80 dB, blend +2.41 dB (this capture, seeded).
     """
     source = undersampled
     to_canvas, shape = canvas_homographies(source.ground_truth, source.width, source.height, 2.0)
