@@ -107,22 +107,50 @@ def dct_wiener(noisy: NDArray[np.float32], variance: NDArray[np.float32], deblur
         y = np.pad(y, ((0, BLOCK - min(y.shape[0], BLOCK)), (0, BLOCK - min(y.shape[1], BLOCK))), mode="edge")
         v = np.pad(v, ((0, y.shape[0] - v.shape[0]), (0, y.shape[1] - v.shape[1])), mode="edge")
     c = _dct_matrix(BLOCK)
-    coeffs = np.matmul(np.matmul(c, _blocks(y)), c.T)  # (By, Bx, 8, 8)
-    sigma2 = (_blocks(v).mean(axis=(2, 3)) * np.float32(NOISE_FACTOR))[..., None, None]
-    # step 1: hard-thresholded pilot
-    pilot = np.where(coeffs * coeffs > np.float32(hard_threshold ** 2) * sigma2, coeffs, np.float32(0))
-    pilot[..., 0, 0] = coeffs[..., 0, 0]
-    pilot_image = _put_back(np.matmul(np.matmul(c.T, pilot), c), _block_weights(pilot != 0, sigma2), y.shape)
-    pilot_coeffs = np.matmul(np.matmul(c, _blocks(pilot_image)), c.T)
-    # step 2: Wiener deconvolution with the pilot's power
     k = np.arange(BLOCK)
     axis = (1 - 2 * deblur + 2 * deblur * np.cos(np.pi * k / BLOCK)).astype(np.float32)
     gain = np.outer(axis, axis)
-    power = (pilot_coeffs / gain) ** 2
-    filt = gain * power / (gain * gain * power + sigma2)
-    filt[..., 0, 0] = 1 / gain[0, 0]
-    out = _put_back(np.matmul(np.matmul(c.T, coeffs * filt), c), _block_weights(filt, sigma2), y.shape)
-    return out[:h, :w]
+    strips = _strips(y.shape[0])
+    # step 1: hard-thresholded pilot
+    pilot_sum, pilot_weight = np.zeros(y.shape, np.float32), np.zeros(y.shape, np.float32)
+    for rows in strips:
+        coeffs, sigma2 = _coefficients(y[rows], v[rows], c)
+        pilot = np.where(coeffs * coeffs > np.float32(hard_threshold ** 2) * sigma2, coeffs, np.float32(0))
+        pilot[..., 0, 0] = coeffs[..., 0, 0]
+        _put_back(np.matmul(np.matmul(c.T, pilot), c), _block_weights(pilot != 0, sigma2),
+                  pilot_sum[rows], pilot_weight[rows])
+    pilot_image = pilot_sum / np.maximum(pilot_weight, np.float32(1e-30))
+    # step 2: Wiener deconvolution with the pilot's power
+    out_sum, out_weight = pilot_sum, pilot_weight  # reused: the pilot is in ``pilot_image``
+    out_sum[:], out_weight[:] = 0, 0
+    for rows in strips:
+        coeffs, sigma2 = _coefficients(y[rows], v[rows], c)
+        power = (np.matmul(np.matmul(c, _blocks(pilot_image[rows])), c.T) / gain) ** 2
+        filt = gain * power / (gain * gain * power + sigma2)
+        filt[..., 0, 0] = 1 / gain[0, 0]
+        _put_back(np.matmul(np.matmul(c.T, coeffs * filt), c), _block_weights(filt, sigma2),
+                  out_sum[rows], out_weight[rows])
+    return (out_sum / np.maximum(out_weight, np.float32(1e-30)))[:h, :w]
+
+
+STRIP_BLOCK_ROWS = 32
+"""Rows of blocks transformed at once (bounds the memory to about 1.5 KB per block of a
+strip: 64 float32 coefficients in a few arrays)."""
+
+
+def _strips(height: int) -> list[slice]:
+    """Row slices of the padded image, each holding :data:`STRIP_BLOCK_ROWS` rows of blocks (the last fewer)."""
+    rows = (height - BLOCK) // STRIDE + 1
+    return [slice(r * STRIDE, (min(rows, r + STRIP_BLOCK_ROWS) - 1) * STRIDE + BLOCK)
+            for r in range(0, rows, STRIP_BLOCK_ROWS)]
+
+
+def _coefficients(y: NDArray[np.float32], v: NDArray[np.float32],
+                  c: NDArray[np.float32]) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
+    """(By, Bx, 8, 8) DCT coefficients of a strip's blocks and (By, Bx, 1, 1) their noise variance."""
+    coeffs = np.matmul(np.matmul(c, _blocks(y)), c.T)
+    sigma2 = (_blocks(v).mean(axis=(2, 3)) * np.float32(NOISE_FACTOR))[..., None, None]
+    return coeffs, sigma2
 
 
 def _block_weights(filt: NDArray, sigma2: NDArray[np.float32]) -> NDArray[np.float32]:
@@ -131,17 +159,15 @@ def _block_weights(filt: NDArray, sigma2: NDArray[np.float32]) -> NDArray[np.flo
     return (1 / (energy * sigma2[..., 0, 0] + np.float32(1e-12))).astype(np.float32)
 
 
-def _put_back(blocks: NDArray[np.float32], weights: NDArray[np.float32], shape: tuple[int, int]) -> NDArray[np.float32]:
-    """Weighted average of overlapping (By, Bx, BLOCK, BLOCK) blocks on a canvas of ``shape``."""
-    out = np.zeros(shape, np.float32)
-    acc = np.zeros(shape, np.float32)
+def _put_back(blocks: NDArray[np.float32], weights: NDArray[np.float32], out: NDArray[np.float32],
+              acc: NDArray[np.float32]) -> None:
+    """Add (By, Bx, BLOCK, BLOCK) blocks times their (By, Bx) weights into ``out`` and the weights into ``acc``."""
     by, bx = weights.shape
     weighted = blocks * weights[..., None, None]
     for i in range(BLOCK):
         for j in range(BLOCK):
             out[i:i + by * STRIDE:STRIDE, j:j + bx * STRIDE:STRIDE] += weighted[:, :, i, j]
             acc[i:i + by * STRIDE:STRIDE, j:j + bx * STRIDE:STRIDE] += weights
-    return out / np.maximum(acc, np.float32(1e-30))
 
 
 def restore_sums(sums: NDArray[np.float32], frames: NDArray[np.float32], scale: float, wide_px: float,

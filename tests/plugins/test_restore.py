@@ -91,3 +91,17 @@ def test_wiener_restoration_gains_over_the_bilinear_merge_at_scale_2(undersample
     print({k: round(v, 2) for k, v in db.items()})
     assert db["wiener"] >= 2.5, db
     assert db["wiener"] >= db["blend"] + 1.0, db
+
+
+def test_dct_wiener_is_the_same_in_strips(monkeypatch):
+    """Strips of 3 block rows give the whole image's result (the memory bound changes nothing)."""
+    from photonpano.plugins.compositors import _restore
+
+    rng = np.random.default_rng(8)
+    sharp, blurred = _blurred_texture(rng, (61, 90))
+    noisy = (blurred + rng.normal(0, 0.02, sharp.shape)).astype(np.float32)
+    variance = np.full(sharp.shape, 4e-4, np.float32)
+    whole = dct_wiener(noisy, variance)
+    monkeypatch.setattr(_restore, "STRIP_BLOCK_ROWS", 3)
+    assert len(_restore._strips(62)) > 5
+    np.testing.assert_allclose(dct_wiener(noisy, variance), whole, atol=1e-6)
