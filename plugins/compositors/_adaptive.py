@@ -32,7 +32,7 @@ import math
 import numpy as np
 from numpy.typing import NDArray
 
-__all__ = ["drop_sharpness", "blend_sums", "DETAIL_GAIN"]
+__all__ = ["drop_sharpness", "blend_sums", "fine_and_noise", "DETAIL_GAIN"]
 
 DETAIL_GAIN = 5.0
 """Default factor on the local detail variance in :func:`blend_sums`'s weight.
@@ -96,6 +96,34 @@ def blend_sums(sums: NDArray[np.float32], frames: NDArray[np.float32], scale: fl
     """
     import cv2
 
+    p, p_wide, noise = fine_and_noise(sums, frames, scale, wide_px, sharpness)
+    detail = p - p_wide
+    window = (2 * round(scale) + 1,) * 2  # one frame pixel either side
+    signal = np.maximum(cv2.boxFilter(detail * detail, -1, window) - cv2.boxFilter(noise, -1, window), 0)
+    signal *= np.float32(detail_gain)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        keep = np.where(signal + noise > 0, signal / (signal + noise), np.float32(1))
+    return ((p_wide + keep * detail) * frames).astype(np.float32)
+
+
+def fine_and_noise(sums: NDArray[np.float32], frames: NDArray[np.float32], scale: float, wide_px: float,
+                   sharpness: float) -> tuple[NDArray[np.float32], NDArray[np.float32], NDArray[np.float32]]:
+    """The fine and wide detection probabilities and the fine one's binomial noise variance.
+
+    Args:
+        sums: (Hc, Wc) float32 drop-weighted detections S per canvas pixel.
+        frames: (Hc, Wc) float32 drop-weighted binary frames N per canvas pixel.
+        scale: canvas pixels per frame pixel.
+        wide_px: half-width of the wide tent, in frame pixels (> 0).
+        sharpness: :func:`drop_sharpness` of the drops.
+
+    Returns:
+        ``(p, p_wide, noise)``, each (Hc, Wc) float32: ``S / N``, the same after a tent
+        filter of half-width ``wide_px`` frame pixels on S and N (clipped to [0, 1]), and
+        ``p_wide (1 - p_wide) sharpness / N``; all 0 where ``N == 0``.
+    """
+    import cv2
+
     r = wide_px * scale
     taps = np.maximum(0.0, 1 - np.abs(np.arange(-math.ceil(r), math.ceil(r) + 1)) / r)
     taps = (taps / taps.sum()).astype(np.float32)
@@ -107,10 +135,4 @@ def blend_sums(sums: NDArray[np.float32], frames: NDArray[np.float32], scale: fl
         p = np.where(seen, sums / frames, np.float32(0))
         p_wide = np.where(seen, np.clip(wide_s / wide_n, 0, 1), np.float32(0))
         noise = np.where(seen, p_wide * (1 - p_wide) * np.float32(sharpness) / frames, np.float32(0))
-    detail = p - p_wide
-    window = (2 * round(scale) + 1,) * 2  # one frame pixel either side
-    signal = np.maximum(cv2.boxFilter(detail * detail, -1, window) - cv2.boxFilter(noise, -1, window), 0)
-    signal *= np.float32(detail_gain)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        keep = np.where(signal + noise > 0, signal / (signal + noise), np.float32(1))
-    return ((p_wide + keep * detail) * frames).astype(np.float32)
+    return p.astype(np.float32), p_wide.astype(np.float32), noise.astype(np.float32)

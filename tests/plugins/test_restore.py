@@ -1,0 +1,107 @@
+"""Drizzle's sliding-DCT Wiener restoration (plugins/compositors/_restore.py): measured gains."""
+
+import cv2
+import numpy as np
+import pytest
+from photonpano.compose import canvas_homographies, compose
+from photonpano.metrics import psnr, scene_on_canvas
+from photonpano.plugins.compositors._restore import dct_wiener
+from photonpano.plugins.compositors.drizzle import Drizzle, DrizzleConfig
+from photonpano.plugins.compositors.flux_canvas import FluxCanvasConfig
+from photonpano.plugins.sources.simulate import SimulateConfig
+
+
+def _blurred_texture(rng, shape=(96, 128)):
+    """A sharp random texture in [0.1, 0.9] and its [1/6, 2/3, 1/6] x 2 blur."""
+    sharp = cv2.GaussianBlur(rng.uniform(0, 1, shape).astype(np.float32), (0, 0), 1.2)
+    sharp = 0.1 + 0.8 * (sharp - sharp.min()) / (sharp.max() - sharp.min())
+    taps = np.array([1, 4, 1], np.float32) / 6
+    return sharp, cv2.sepFilter2D(sharp, -1, taps, taps, borderType=cv2.BORDER_REFLECT)
+
+
+def _db(estimate, truth):
+    inner = np.s_[8:-8, 8:-8]
+    return 10 * np.log10(1 / np.mean((estimate[inner] - truth[inner]) ** 2))
+
+
+def test_dct_wiener_denoises_and_deblurs_a_texture():
+    """A blurred texture in noise: > 4 dB above the noisy input and > 2 dB above the noise-free blurred image.
+
+    Measured: noisy 34.9 dB, blurred without noise 36.4, denoised only 34.9, restored 39.4.
+    """
+    rng = np.random.default_rng(3)
+    sharp, blurred = _blurred_texture(rng)
+    variance = np.full(sharp.shape, 1e-4, np.float32)
+    noisy = (blurred + rng.normal(0, 0.01, sharp.shape)).astype(np.float32)
+    deblurred = dct_wiener(noisy, variance)
+    denoised = dct_wiener(noisy, variance, deblur=0.0)
+    print(f"noisy {_db(noisy, sharp):.2f} dB, denoised {_db(denoised, sharp):.2f}, "
+          f"deblurred {_db(deblurred, sharp):.2f}")
+    assert deblurred.shape == sharp.shape and deblurred.dtype == np.float32
+    assert _db(deblurred, sharp) > _db(noisy, sharp) + 4
+    assert _db(deblurred, sharp) > _db(blurred, sharp) + 2
+    assert _db(deblurred, sharp) > _db(denoised, sharp) + 3
+
+
+def test_dct_wiener_flattens_a_flat_field_and_keeps_its_mean():
+    """Pure noise on a constant: the mean stays, the noise drops more than 5x."""
+    rng = np.random.default_rng(4)
+    noisy = (0.3 + rng.normal(0, 0.03, (64, 80))).astype(np.float32)
+    out = dct_wiener(noisy, np.full(noisy.shape, 9e-4, np.float32))
+    assert abs(out.mean() - 0.3) < 0.002
+    assert out[4:-4, 4:-4].std() < 0.2 * noisy.std(), out.std()
+
+
+def test_dct_wiener_small_and_odd_shapes_and_errors():
+    """Images smaller than a block or of odd size come back in their shape; bad inputs raise."""
+    for shape in ((3, 5), (9, 17), (31, 8)):
+        image = np.full(shape, 0.5, np.float32)
+        out = dct_wiener(image, np.full(shape, 1e-3, np.float32))
+        assert out.shape == shape and np.allclose(out, 0.5, atol=1e-4)
+    with pytest.raises(ValueError, match="deblur"):
+        dct_wiener(np.zeros((8, 8), np.float32), np.ones((8, 8), np.float32), deblur=0.3)
+    with pytest.raises(ValueError, match="shape"):
+        dct_wiener(np.zeros((8, 8), np.float32), np.ones((8, 9), np.float32))
+    with pytest.raises(ValueError, match="restoration"):
+        Drizzle(restoration="nope")
+
+
+@pytest.fixture(scope="module")
+def undersampled():
+    """A small undersampled capture of the bundled photograph (pixel pitch 2, pan + vibration)."""
+    return SimulateConfig(frames=3000, height=48, width=96, pixel_pitch=2, scene_width=480, flux=0.5,
+                          speed_px_per_frame=0.04, vibration_px=3.0).build()
+
+
+def test_wiener_restoration_gains_over_the_bilinear_merge_at_scale_2(undersampled):
+    """True motion, ``scale: 2``: the default >= +2.5 dB above ``flux-canvas`` and >= 1 dB above the blend.
+
+    Measured: wiener +3.80 dB, blend +2.41 dB (this capture, seeded).
+    """
+    source = undersampled
+    to_canvas, shape = canvas_homographies(source.ground_truth, source.width, source.height, 2.0)
+    made = {name: compose(source, to_canvas, config.build(), canvas_shape=shape)
+            for name, config in {"wiener": DrizzleConfig(scale=2.0),
+                                 "blend": DrizzleConfig(scale=2.0, restoration="blend"),
+                                 "bilinear": FluxCanvasConfig(scale=2.0)}.items()}
+    scene = scene_on_canvas(source, to_canvas[0] @ np.linalg.inv(source.ground_truth[0]), shape)
+    both = np.isfinite(scene) & np.all([np.isfinite(p.flux) for p in made.values()], axis=0)
+    mask = cv2.erode(both.astype(np.uint8), np.ones((7, 7), np.uint8)).astype(bool)
+    db = {name: psnr(p.flux, scene, mask) - psnr(made["bilinear"].flux, scene, mask) for name, p in made.items()}
+    print({k: round(v, 2) for k, v in db.items()})
+    assert db["wiener"] >= 2.5, db
+    assert db["wiener"] >= db["blend"] + 1.0, db
+
+
+def test_dct_wiener_is_the_same_in_strips(monkeypatch):
+    """Strips of 3 block rows give the whole image's result (the memory bound changes nothing)."""
+    from photonpano.plugins.compositors import _restore
+
+    rng = np.random.default_rng(8)
+    sharp, blurred = _blurred_texture(rng, (61, 90))
+    noisy = (blurred + rng.normal(0, 0.02, sharp.shape)).astype(np.float32)
+    variance = np.full(sharp.shape, 4e-4, np.float32)
+    whole = dct_wiener(noisy, variance)
+    monkeypatch.setattr(_restore, "STRIP_BLOCK_ROWS", 3)
+    assert len(_restore._strips(62)) > 5
+    np.testing.assert_allclose(dct_wiener(noisy, variance), whole, atol=1e-6)
