@@ -121,13 +121,14 @@ def test_luminance_guided_colour_beats_the_per_plane_merge_by_2_db_without_fring
     # measured: guided 29.9/30.7/30.4 dB, per-plane drizzle (the blend, as issue 32 measured it)
     # 26.2/26.6/26.5, bilinear 26.4/26.8/26.6 (R/G/B); chroma 2.01 (guided), 3.50 (drizzle),
     # 3.96 (bilinear) 8-bit codes. Per-plane drizzle with the Wiener restoration of issue 27
-    # (the default since): 28.2/28.7/28.6 dB, chroma 3.17: guided stays 1.9 dB above it
+    # (the default since): 28.2/28.7/28.6 dB, chroma 3.17; guided, its luminance from the default
+    # drizzle since: 33.6/35.1/33.5 dB, chroma 2.06
     for baseline in ("drizzle", "bilinear"):
         assert db["guided"].mean() - db[baseline].mean() >= 2.0, (db, baseline)
         assert (db["guided"] > db[baseline] + 1.5).all(), (db, baseline)
         assert chroma["guided"] < 0.8 * chroma[baseline], chroma
-    assert db["guided"].mean() - db["wiener"].mean() >= 1.5, db
-    assert (db["guided"] > db["wiener"] + 1.2).all(), db
+    assert db["guided"].mean() - db["wiener"].mean() >= 2.0, db
+    assert (db["guided"] > db["wiener"] + 1.5).all(), db
     assert chroma["guided"] < 0.8 * chroma["wiener"], chroma
 
 
@@ -146,10 +147,10 @@ def test_colour_panorama_at_scale_2(capture):
     db, chroma = _scores({"guided": both.colour, "drizzle": plane, "wiener": wiener}, truth, min_cover=0.5)
     # measured: guided 30.3/31.0/30.7 dB, per-plane drizzle (the blend) 26.5/26.8/26.6; chroma 1.75
     # and 4.04 codes; per-plane drizzle with the Wiener restoration (the default since issue 27)
-    # 29.0/29.2/28.8 dB, chroma 2.50 codes
+    # 29.0/29.2/28.8 dB, chroma 2.50 codes; guided with the default drizzle's luminance 31.7/32.6/32.0 dB
     assert db["guided"].mean() - db["drizzle"].mean() >= 2.0, db
     assert chroma["guided"] < 0.8 * chroma["drizzle"], chroma
-    assert db["guided"].mean() - db["wiener"].mean() >= 1.4, db
+    assert db["guided"].mean() - db["wiener"].mean() >= 2.0, db
     assert chroma["guided"] < 0.8 * chroma["wiener"], chroma
 
 
