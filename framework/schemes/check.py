@@ -27,7 +27,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..executor import Executor, SerialExecutor
-from ..imaging import binned_frame, register_binned, warped_correlation
+from ..imaging import binned_frame, brightest_blob, register_binned, warped_correlation
 from ..records import MergedFrames, PairRegistrations
 
 __all__ = ["PairCheck", "LevelCheck"]
@@ -40,11 +40,17 @@ class PairCheck:
         binning: merged-frame pixels per side of the binned frames (>= 1).
         min_correlation: the binned correlation a registration must reach.
         min_overlap: fraction of binned pixels both frames must share.
+        mover_guard: register every pair without each frame's brightest blob too, and
+            prefer that registration where the frames without their blobs correlate
+            better under it by more than ``guard_margin`` (see the module).
+        guard_margin: the correlation margin of ``mover_guard``.
     """
 
-    def __init__(self, binning: int, *, min_correlation: float = 0.4, min_overlap: float = 0.3) -> None:
+    def __init__(self, binning: int, *, min_correlation: float = 0.4, min_overlap: float = 0.3,
+                 mover_guard: bool = True, guard_margin: float = 0.1) -> None:
         """Set the check's binning and limits."""
         self.factor = max(1, int(binning))
+        self.mover_guard, self.guard_margin = mover_guard, guard_margin
         self.min_correlation = min_correlation
         self.min_overlap = min_overlap
 
@@ -55,6 +61,13 @@ class PairCheck:
         executor outside this process the check runs here, one pair after another.
         """
         return LevelCheck(self, executor if executor.in_process else SerialExecutor())
+
+
+def _binned_with_blob(flux: NDArray[np.float32], mask: NDArray[np.bool_], factor: int
+                      ) -> tuple[NDArray[np.float32], NDArray[np.bool_], NDArray[np.bool_]]:
+    """A merged frame's binned image, its valid pixels and its brightest blob (:func:`~photonpano.imaging.brightest_blob`)."""
+    image, valid = binned_frame(flux, mask, factor)
+    return image, valid, brightest_blob(image, valid)
 
 
 class LevelCheck:
@@ -71,7 +84,7 @@ class LevelCheck:
         self.policy, self.executor = policy, executor
         self.checked = self.rejected = self.rescued = 0
         self.correlations: list[float] = []
-        self._binned: dict[tuple[bytes, bytes], tuple[NDArray[np.float32], NDArray[np.bool_]]] = {}
+        self._binned: dict[tuple[bytes, bytes], tuple[NDArray[np.float32], NDArray[np.bool_], NDArray[np.bool_]]] = {}
 
     def __call__(self, merged: MergedFrames, pairs: NDArray[np.int64], initial: NDArray[np.float64],
                  found: PairRegistrations) -> PairRegistrations:
@@ -96,22 +109,45 @@ class LevelCheck:
         keys = {i: (merged.content_key(i), merged.content_key(i, flux=True)) for i in frames}
         missing = [i for i in frames if keys[i] not in self._binned]
         computed = dict(zip(missing, self.executor.map(
-            lambda i: binned_frame(merged.flux[i], merged.masks[i], factor), missing)))
+            lambda i: _binned_with_blob(merged.flux[i], merged.masks[i], factor), missing)))
         binned = {i: computed[i] if i in computed else self._binned[keys[i]] for i in frames}
         self._binned = {keys[i]: binned[i] for i in frames}
         policy = self.policy
 
         def check(p: int) -> tuple[NDArray[np.float64], int, bool, float, bool]:
             """Pair p's (homography, inliers, ok, correlation, rescued)."""
-            a, b = binned[int(pairs[p, 0])], binned[int(pairs[p, 1])]
-            need = policy.min_overlap * max(int(b[1].sum()), 1)
+            (a, a_valid, a_blob), (b, b_valid, b_blob) = binned[int(pairs[p, 0])], binned[int(pairs[p, 1])]
+            whole, rest = ((a, a_valid), (b, b_valid)), ((a, a_valid & ~a_blob), (b, b_valid & ~b_blob))
+            need = policy.min_overlap * max(int(b_valid.sum()), 1)
+            without: list[tuple[NDArray[np.float64], float, bool]] = []
+
+            def registered_without() -> tuple[NDArray[np.float64], float, bool]:
+                """The frames registered without their blobs (once): (homography, correlation, ok)."""
+                if not without:
+                    h, cc, overlap = register_binned(*rest, initial[p], factor, from_initial=True)
+                    enough = policy.min_overlap * max(int(rest[1][1].sum()), 1)
+                    without.append((h, cc, cc >= policy.min_correlation and overlap >= enough))
+                return without[0]
+
+            def holds(h: NDArray[np.float64], cc: float, overlap: int) -> bool:
+                """The correlation and overlap pass and, with the guard, the frames without their blobs do not disagree."""
+                if not (cc >= policy.min_correlation and overlap >= need):
+                    return False
+                if not policy.mover_guard:
+                    return True
+                _, best, ok = registered_without()
+                return not ok or warped_correlation(*rest, h, factor)[0] >= best - policy.guard_margin
+
             homography, inliers = found.homographies[p], int(found.inliers[p])
             if found.ok[p]:
-                cc, overlap = warped_correlation(a, b, homography, factor)
-                if cc >= policy.min_correlation and overlap >= need:
+                cc, overlap = warped_correlation(*whole, homography, factor)
+                if holds(homography, cc, overlap):
                     return homography, inliers, True, cc, False
-            h, cc, overlap = register_binned(a, b, initial[p], factor)
-            if cc >= policy.min_correlation and overlap >= need:
+            h, cc, overlap = register_binned(*whole, initial[p], factor)
+            if holds(h, cc, overlap):
+                return h, max(8, int(round(100 * cc ** 2))), True, cc, True
+            if policy.mover_guard and registered_without()[2]:
+                h, cc, _ = registered_without()
                 return h, max(8, int(round(100 * cc ** 2))), True, cc, True
             return homography, inliers, False, cc, False
 
