@@ -273,36 +273,43 @@ def register_binned(a: tuple[NDArray, NDArray], b: tuple[NDArray, NDArray], init
     return found, best[0], int((inside & a[1]).sum())
 
 
-def brightest_blob(image: NDArray[np.float32], valid: NDArray[np.bool_], *, level: float = 0.5, margin: int = 3
-                   ) -> NDArray[np.bool_]:
-    """The connected bright region around a binned frame's brightest pixel: what may dominate its correlation.
+def brightest_blob(image: NDArray[np.float32], valid: NDArray[np.bool_], *, level: float = 0.25, margin: int = 3,
+                   max_fraction: float = 0.25) -> NDArray[np.bool_]:
+    """The bright compact region that carries most of a binned frame's contrast, if there is one.
 
-    A single bright, compact region (a lit object crossing a dark scene, a bright star) can
-    carry most of a binned frame's contrast, so a correlation, phase correlation or ECC
-    of two frames then follows that region's motion, which is the scene's only if the
-    region is static. The pair check registers and checks the frames again without it
+    A single bright, compact region (a lit object crossing a dark scene) can carry most of
+    a binned frame's contrast, so a correlation, phase correlation or ECC of two frames
+    then follows that region's motion, which is the scene's only if the region is static.
+    The pair check registers and checks the frames again without it
     (:class:`~photonpano.schemes.check.PairCheck`).
 
     Args:
         image: (h, w) float32 binned frame (:func:`binned_frame`).
         valid: (h, w) bool its valid pixels.
-        level: the region is where the image exceeds its median by ``level`` times the
-            brightest pixel's excess (0 < level < 1).
+        level: the candidate regions are where the image exceeds its median by ``level``
+            times the brightest valid pixel's excess (0 < level < 1).
         margin: dilation of the region in binned pixels (the blurred rim).
+        max_fraction: a region over this fraction of the valid pixels is no compact
+            object (a bright sky): none is returned.
 
     Returns:
-        (h, w) bool: the 8-connected region containing the brightest valid pixel, dilated;
-        all False where no valid pixel exceeds the median.
+        (h, w) bool: of the 8-connected candidate regions, the one with the largest summed
+        squared excess, dilated; all False where no valid pixel exceeds the median or the
+        region is too large.
     """
     import cv2
 
+    none = np.zeros(image.shape, bool)
     if not valid.any():
-        return np.zeros(image.shape, bool)
-    excess = np.where(valid, image - np.median(image[valid]), -np.inf)
-    at = int(np.argmax(excess))
-    peak = float(excess.flat[at])
+        return none
+    excess = np.where(valid, image - np.median(image[valid]), 0).astype(np.float32)
+    peak = float(excess.max())
     if not peak > 0:
-        return np.zeros(image.shape, bool)
-    _, labels = cv2.connectedComponents((excess > level * peak).astype(np.uint8), connectivity=8)
-    blob = (labels == labels.flat[at]).astype(np.uint8)
-    return cv2.dilate(blob, np.ones((2 * margin + 1, 2 * margin + 1), np.uint8)) > 0
+        return none
+    count, labels = cv2.connectedComponents((excess > level * peak).astype(np.uint8), connectivity=8)
+    energy = np.bincount(labels.ravel(), weights=(excess * excess).ravel(), minlength=count)
+    energy[0] = 0  # the background label
+    blob = labels == int(np.argmax(energy))
+    if blob.sum() > max_fraction * valid.sum():
+        return none
+    return cv2.dilate(blob.astype(np.uint8), np.ones((2 * margin + 1, 2 * margin + 1), np.uint8)) > 0
