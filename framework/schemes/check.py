@@ -65,7 +65,7 @@ class PairCheck:
 
 def _binned_with_blob(flux: NDArray[np.float32], mask: NDArray[np.bool_], factor: int
                       ) -> tuple[NDArray[np.float32], NDArray[np.bool_], NDArray[np.bool_]]:
-    """A merged frame's binned image, its valid pixels and its brightest blob (:func:`~photonpano.imaging.brightest_blob`)."""
+    """A merged frame's binned image, valid pixels and bright blob (:func:`~photonpano.imaging.brightest_blob`)."""
     image, valid = binned_frame(flux, mask, factor)
     return image, valid, brightest_blob(image, valid)
 
@@ -130,7 +130,7 @@ class LevelCheck:
                 return without[0]
 
             def holds(h: NDArray[np.float64], cc: float, overlap: int) -> bool:
-                """The correlation and overlap pass and, with the guard, the frames without their blobs do not disagree."""
+                """The correlation and overlap pass and, with the guard, the frames without blobs do not disagree."""
                 if not (cc >= policy.min_correlation and overlap >= need):
                     return False
                 if not policy.mover_guard:
