@@ -274,7 +274,7 @@ def register_binned(a: tuple[NDArray, NDArray], b: tuple[NDArray, NDArray], init
 
 
 def brightest_blob(image: NDArray[np.float32], valid: NDArray[np.bool_], *, level: float = 0.25, margin: int = 3,
-                   max_fraction: float = 0.25) -> NDArray[np.bool_]:
+                   max_fraction: float = 0.25, min_solidity: float = 0.5) -> NDArray[np.bool_]:
     """The bright compact region that carries most of a binned frame's contrast, if there is one.
 
     A single bright, compact region (a lit object crossing a dark scene) can carry most of
@@ -289,13 +289,15 @@ def brightest_blob(image: NDArray[np.float32], valid: NDArray[np.bool_], *, leve
         level: the candidate regions are where the image exceeds its median by ``level``
             times the brightest valid pixel's excess (0 < level < 1).
         margin: dilation of the region in binned pixels (the blurred rim).
-        max_fraction: a region over this fraction of the valid pixels is no compact
-            object (a bright sky): none is returned.
+        max_fraction: a region over this fraction of the valid pixels (dilated) is no
+            compact object (a bright sky): none is returned.
+        min_solidity: nor is a region covering less than this fraction of its convex hull
+            (a web of bright texture or noise over a bright, plain scene).
 
     Returns:
         (h, w) bool: of the 8-connected candidate regions, the one with the largest summed
         squared excess, dilated; all False where no valid pixel exceeds the median or the
-        region is too large.
+        region is too large or not compact.
     """
     import cv2
 
@@ -310,6 +312,8 @@ def brightest_blob(image: NDArray[np.float32], valid: NDArray[np.bool_], *, leve
     energy = np.bincount(labels.ravel(), weights=(excess * excess).ravel(), minlength=count)
     energy[0] = 0  # the background label
     blob = labels == int(np.argmax(energy))
-    if blob.sum() > max_fraction * valid.sum():
+    hull = cv2.convexHull(np.argwhere(blob)[:, ::-1].astype(np.int32))
+    if blob.sum() < min_solidity * cv2.contourArea(hull):
         return none
-    return cv2.dilate(blob.astype(np.uint8), np.ones((2 * margin + 1, 2 * margin + 1), np.uint8)) > 0
+    blob = cv2.dilate(blob.astype(np.uint8), np.ones((2 * margin + 1, 2 * margin + 1), np.uint8)) > 0
+    return none if blob.sum() > max_fraction * valid.sum() else blob

@@ -26,6 +26,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from .. import geometry
 from ..executor import Executor, SerialExecutor
 from ..imaging import binned_frame, brightest_blob, register_binned, warped_correlation
 from ..records import MergedFrames, PairRegistrations
@@ -129,14 +130,24 @@ class LevelCheck:
                     without.append((h, cc, cc >= policy.min_correlation and overlap >= enough))
                 return without[0]
 
+            corners = geometry.corners(a.shape[1] * factor, a.shape[0] * factor)
+            vetoed: list[bool] = []
+
+            def off(h: NDArray[np.float64]) -> float:
+                """How far ``h`` moves the frame's corners from the current estimate's, in pixels."""
+                return float(np.abs(geometry.apply(h, corners) - geometry.apply(initial[p], corners)).max())
+
             def holds(h: NDArray[np.float64], cc: float, overlap: int) -> bool:
-                """The correlation and overlap pass and, with the guard, the frames without blobs do not disagree."""
+                """The correlation and overlap pass, and the guard does not prefer the frames without blobs."""
                 if not (cc >= policy.min_correlation and overlap >= need):
                     return False
                 if not policy.mover_guard:
                     return True
-                _, best, ok = registered_without()
-                return not ok or warped_correlation(*rest, h, factor)[0] >= best - policy.guard_margin
+                other, best, ok = registered_without()
+                veto = (ok and warped_correlation(*rest, h, factor)[0] < best - policy.guard_margin
+                        and off(other) < off(h))
+                vetoed.append(veto)
+                return not veto
 
             homography, inliers = found.homographies[p], int(found.inliers[p])
             if found.ok[p]:
@@ -146,7 +157,7 @@ class LevelCheck:
             h, cc, overlap = register_binned(*whole, initial[p], factor)
             if holds(h, cc, overlap):
                 return h, max(8, int(round(100 * cc ** 2))), True, cc, True
-            if policy.mover_guard and registered_without()[2]:
+            if any(vetoed):  # a registration the frames without their blobs disagree with: theirs
                 h, cc, _ = registered_without()
                 return h, max(8, int(round(100 * cc ** 2))), True, cc, True
             return homography, inliers, False, cc, False
