@@ -72,8 +72,8 @@ class DrizzleConfig(CompositorConfig):
     """Robust merge: keep ``robust_exposures`` runs of frames apart and leave out those that
     disagree with the static scene at a canvas pixel (a moving object; see
     ``photonpano.robust_merge``); the left-out regions go to ``moving.png``. On static
-    captures it changes the panorama by less than 0.01 dB (docs/real_scenes.md); not
-    applied inside the colour compositors."""
+    captures it changes the panorama by less than 0.01 dB (docs/real_scenes.md). The
+    colour panorama (``colour_panorama``) leaves out the same exposures in every plane."""
     robust_exposures: Annotated[int, Field(ge=3, le=64)] = DEFAULT_EXPOSURES
     """Virtual exposures the robust merge compares (memory: that many canvases)."""
     detail_gain: Annotated[float, Field(gt=0, le=100)] = DETAIL_GAIN
