@@ -13,7 +13,16 @@ binning is the photon budget's ``check_binning``, :class:`~photonpano.budget.Bud
 2. every failed pair is registered **directly** on the binned frames: phase
    correlation for the translation left by the current estimate, then ECC
    (Evangelidis and Psarakis, 2008) for an affine correction
-   (:func:`~photonpano.imaging.register_binned`).
+   (:func:`~photonpano.imaging.register_binned`);
+3. with ``mover_guard`` (the default), a single bright compact region (a lit object
+   crossing a dark scene) must not decide a pair: each binned frame's
+   :func:`~photonpano.imaging.brightest_blob` is left out and the pair registered again
+   (ECC from the phase correlation and from the current estimate); a registration of
+   steps 1-2 is vetoed where the frames without their blobs correlate under it by more
+   than ``guard_margin`` less than under their own registration and that one is nearer
+   the current estimate (the chain's prediction), and the pair takes theirs. A static
+   scene's bright region leaves a rest that agrees, or registers further from the
+   estimate: nothing is vetoed (docs/real_scenes.md, "Moving objects").
 
 A level's figures (correlation per pair, pairs checked out and rescued) travel in its
 :attr:`~photonpano.records.LocateResult.check` to ``run.json``'s ``registration_check``.
