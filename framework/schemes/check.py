@@ -19,8 +19,9 @@ binning is the photon budget's ``check_binning``, :class:`~photonpano.budget.Bud
    :func:`~photonpano.imaging.brightest_blob` is left out and the pair registered again
    (ECC from the phase correlation and from the current estimate); a registration of
    steps 1-2 is vetoed where the frames without their blobs correlate under it by more
-   than ``guard_margin`` less than under their own registration and that one is nearer
-   the current estimate (the chain's prediction), and the pair takes theirs. A static
+   than ``guard_margin`` less than under their own registration, that one is nearer
+   the current estimate (the chain's prediction) and the whole frames correlate less
+   under it (the blobs move otherwise than the rest), and the pair takes theirs. A static
    scene's bright region leaves a rest that agrees, or registers further from the
    estimate: nothing is vetoed (docs/real_scenes.md, "Moving objects").
 
@@ -57,7 +58,7 @@ class PairCheck:
     """
 
     def __init__(self, binning: int, *, min_correlation: float = 0.4, min_overlap: float = 0.3,
-                 mover_guard: bool = True, guard_margin: float = 0.1) -> None:
+                 mover_guard: bool = True, guard_margin: float = 0.2) -> None:
         """Set the check's binning and limits."""
         self.factor = max(1, int(binning))
         self.mover_guard, self.guard_margin = mover_guard, guard_margin
@@ -154,7 +155,7 @@ class LevelCheck:
                     return True
                 other, best, ok = registered_without()
                 veto = (ok and warped_correlation(*rest, h, factor)[0] < best - policy.guard_margin
-                        and off(other) < off(h))
+                        and off(other) < off(h) and warped_correlation(*whole, other, factor)[0] < cc)
                 vetoed.append(veto)
                 return not veto
 
