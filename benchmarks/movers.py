@@ -6,6 +6,9 @@ a pan with a 5 px 30 Hz vibration; ``--photo`` a photograph, default the bundled
 - ``merge``: the capture with and without a bright disc (radius 30 px, 0.08 px/frame)
   composited with the *true* motion on one canvas by ``drizzle`` and ``flux-canvas``, plain
   and robust; PSNR against the scene over the pixels all panoramas cover (eroded by 3 px).
+- ``colour``: as ``merge``, for the colour panorama (``cfa: colorspad``, the panorama stage's
+  ``ColourPanorama`` around ``drizzle``, plain and robust): mean PSNR over R, G, B against
+  the true colour scene.
 - ``run``: a full reconstruction with the default settings plus ``--set`` overrides; the
   trajectory RMSE, status and PSNR (``ground_truth_report``) and, with the disc, the PSNR
   of the static capture merged with the true motion by the default compositor on the
@@ -14,6 +17,7 @@ a pan with a 5 px 30 Hz vibration; ``--photo`` a photograph, default the bundled
 Usage::
 
     python benchmarks/movers.py merge --photo benchmarks/photos/foliage_dandelions.jpg
+    python benchmarks/movers.py colour --photo benchmarks/photos/city_madison.jpg
     python benchmarks/movers.py run --disc --set mosaic.reject_movers=5
     python benchmarks/movers.py run --photo benchmarks/photos/highcontrast_hubble.jpg --set compositor.robust=false
 """
@@ -70,6 +74,43 @@ def merge(settings: dict) -> dict:
     return out
 
 
+def colour(settings: dict) -> dict:
+    """PSNR of the plain and robust colour panoramas, with and without the disc, with the true motion.
+
+    Args:
+        settings: ``simulate`` settings over :data:`BASE` (``cfa: colorspad`` added).
+
+    Returns:
+        ``{"static" | "disc": {"plain" | "robust": dB}}``: the mean over R, G and B of
+        ``psnr`` against the true colour flux on the canvas.
+    """
+    from types import SimpleNamespace
+
+    from photonpano.compose import canvas_homographies, compose
+    from photonpano.metrics import psnr, scene_on_canvas
+    from photonpano.plugins.compositors.colour import ColourPanorama
+    from photonpano.plugins.compositors.drizzle import DrizzleConfig
+    from photonpano.plugins.sources.simulate import SimulateConfig
+
+    settings = {**BASE, "cfa": "colorspad", **settings}
+    captures = {"static": SimulateConfig(**settings).build(), "disc": SimulateConfig(**settings, **DISC).build()}
+    static = captures["static"]
+    to_canvas, shape = canvas_homographies(static.ground_truth, static.width, static.height, 1.0)
+    from_scene = to_canvas[0] @ np.linalg.inv(static.ground_truth[0])
+    scene = np.stack([scene_on_canvas(SimpleNamespace(scene_flux=static.scene_flux_rgb[..., c],
+                                                      scene_pitch=static.scene_pitch), from_scene, shape)
+                      for c in range(3)], axis=-1)
+    panos = {(name, kind): compose(capture, to_canvas, ColourPanorama(DrizzleConfig(robust=kind == "robust").build),
+                                   canvas_shape=shape).colour
+             for name, capture in captures.items() for kind in ("plain", "robust")}
+    mask = _mask(*(p.min(axis=-1) for p in (scene, *panos.values())))
+    out: dict = {}
+    for (name, kind), pano in panos.items():
+        out.setdefault(name, {})[kind] = round(float(np.mean([psnr(pano[..., c], scene[..., c], mask)
+                                                              for c in range(3)])), 3)
+    return out
+
+
 def run(settings: dict, overrides: list[str], disc: bool) -> dict:
     """One reconstruction with default settings plus ``overrides``; see the module.
 
@@ -122,14 +163,17 @@ def run(settings: dict, overrides: list[str], disc: bool) -> dict:
 def main(argv: list[str] | None = None) -> int:
     """Print one measurement as JSON."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("what", choices=["merge", "run"])
+    parser.add_argument("what", choices=["merge", "colour", "run"])
     parser.add_argument("--photo", help="a photograph (default: the bundled office)")
     parser.add_argument("--disc", action="store_true", help="run: add the crossing disc")
     parser.add_argument("--set", dest="overrides", action="append", default=[], help="run: a spec override")
     parser.add_argument("--simulate", default="{}", help="more simulate settings, as JSON")
     args = parser.parse_args(argv)
     settings = {**({"photo": args.photo} if args.photo else {}), **json.loads(args.simulate)}
-    result = merge(settings) if args.what == "merge" else run(settings, args.overrides, args.disc)
+    if args.what == "run":
+        result = run(settings, args.overrides, args.disc)
+    else:
+        result = merge(settings) if args.what == "merge" else colour(settings)
     print(json.dumps(result))
     return 0
 

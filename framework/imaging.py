@@ -28,7 +28,7 @@ from . import geometry
 from .jit import cached_njit
 
 __all__ = ["block_mean", "bin_counts", "normalised_correlation", "phase_shift_correlation", "binned_frame",
-           "warped_correlation", "register_binned", "in_binned_pixels"]
+           "warped_correlation", "register_binned", "in_binned_pixels", "brightest_blob"]
 
 
 def block_mean(image: NDArray[np.floating], factor: int, mask: NDArray[np.bool_] | None = None
@@ -227,7 +227,8 @@ def warped_correlation(a: tuple[NDArray, NDArray], b: tuple[NDArray, NDArray],
 
 
 def register_binned(a: tuple[NDArray, NDArray], b: tuple[NDArray, NDArray], initial: NDArray[np.float64],
-                    factor: int, *, iterations: int = 50) -> tuple[NDArray[np.float64], float, int]:
+                    factor: int, *, iterations: int = 50, from_initial: bool = False
+                    ) -> tuple[NDArray[np.float64], float, int]:
     """Register two binned frames directly: phase correlation, then affine ECC.
 
     Args:
@@ -236,6 +237,8 @@ def register_binned(a: tuple[NDArray, NDArray], b: tuple[NDArray, NDArray], init
         initial: (3, 3) float64 current estimate mapping b's full-resolution pixels to a's.
         factor: the frames' binning.
         iterations: ECC iterations.
+        from_initial: run ECC from ``initial`` too and keep the higher correlation (phase
+            correlation follows the edges of masked-out regions, which move with them).
 
     Returns:
         ``(homography, correlation, overlap)``: (3, 3) float64 mapping b's full-resolution
@@ -252,13 +255,65 @@ def register_binned(a: tuple[NDArray, NDArray], b: tuple[NDArray, NDArray], init
     fill_b = np.where(inside, moved, moved[inside].mean() if inside.any() else 0).astype(np.float32)
     (dx, dy), _ = cv2.phaseCorrelate(fill_a - fill_a.mean(), fill_b - fill_b.mean(), window)
     # moved(x) ~ a(x - d): the correction maps moved's pixels to a's by x - d
-    warp = np.array([[1, 0, -dx], [0, 1, -dy]], np.float32)
+    starts = [np.array([[1, 0, -dx], [0, 1, -dy]], np.float32)] + ([np.eye(2, 3, dtype=np.float32)] * from_initial)
     criteria = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, iterations, 1e-5)
-    try:
-        cc, refined = cv2.findTransformECCWithMask(moved, a[0], inside.astype(np.uint8), a[1].astype(np.uint8),
-                                                   warp, cv2.MOTION_AFFINE, criteria, 1)
-    except cv2.error:
+    best: tuple[float, NDArray | None] = (-1.0, None)
+    for warp in starts:
+        try:
+            cc, refined = cv2.findTransformECCWithMask(moved, a[0], inside.astype(np.uint8), a[1].astype(np.uint8),
+                                                       warp, cv2.MOTION_AFFINE, criteria, 1)
+        except cv2.error:
+            continue
+        if best[1] is None or cc > best[0]:
+            best = (float(cc), refined)
+    if best[1] is None:
         return initial, -1.0, 0
-    correction = np.vstack([refined.astype(np.float64), [0, 0, 1]])
+    correction = np.vstack([best[1].astype(np.float64), [0, 0, 1]])
     found = geometry.normalize(in_binned_pixels(correction @ start, factor, back=True))
-    return found, float(cc), int((inside & a[1]).sum())
+    return found, best[0], int((inside & a[1]).sum())
+
+
+def brightest_blob(image: NDArray[np.float32], valid: NDArray[np.bool_], *, level: float = 0.25, margin: int = 3,
+                   max_fraction: float = 0.25, min_solidity: float = 0.5) -> NDArray[np.bool_]:
+    """The bright compact region that carries most of a binned frame's contrast, if there is one.
+
+    A single bright, compact region (a lit object crossing a dark scene) can carry most of
+    a binned frame's contrast, so a correlation, phase correlation or ECC of two frames
+    then follows that region's motion, which is the scene's only if the region is static.
+    The pair check registers and checks the frames again without it
+    (:class:`~photonpano.schemes.check.PairCheck`).
+
+    Args:
+        image: (h, w) float32 binned frame (:func:`binned_frame`).
+        valid: (h, w) bool its valid pixels.
+        level: the candidate regions are where the image exceeds its median by ``level``
+            times the brightest valid pixel's excess (0 < level < 1).
+        margin: dilation of the region in binned pixels (the blurred rim).
+        max_fraction: a region over this fraction of the valid pixels (dilated) is no
+            compact object (a bright sky): none is returned.
+        min_solidity: nor is a region covering less than this fraction of its convex hull
+            (a web of bright texture or noise over a bright, plain scene).
+
+    Returns:
+        (h, w) bool: of the 8-connected candidate regions, the one with the largest summed
+        squared excess, dilated; all False where no valid pixel exceeds the median or the
+        region is too large or not compact.
+    """
+    import cv2
+
+    none = np.zeros(image.shape, bool)
+    if not valid.any():
+        return none
+    excess = np.where(valid, image - np.median(image[valid]), 0).astype(np.float32)
+    peak = float(excess.max())
+    if not peak > 0:
+        return none
+    count, labels = cv2.connectedComponents((excess > level * peak).astype(np.uint8), connectivity=8)
+    energy = np.bincount(labels.ravel(), weights=(excess * excess).ravel(), minlength=count)
+    energy[0] = 0  # the background label
+    blob = labels == int(np.argmax(energy))
+    hull = cv2.convexHull(np.argwhere(blob)[:, ::-1].astype(np.int32))
+    if blob.sum() < min_solidity * cv2.contourArea(hull):
+        return none
+    blob = cv2.dilate(blob.astype(np.uint8), np.ones((2 * margin + 1, 2 * margin + 1), np.uint8)) > 0
+    return none if blob.sum() > max_fraction * valid.sum() else blob

@@ -42,7 +42,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 __all__ = ["DEFAULT_EXPOSURES", "exposure_breaks", "exposure_index", "feed_exposures", "join_exposures",
-           "robust_combine"]
+           "robust_combine", "robust_rejection", "keep_exposures"]
 
 DEFAULT_EXPOSURES = 16
 """Virtual exposures a robust compositor keeps apart (20 000 frames: 1 250 frames each;
@@ -134,13 +134,58 @@ def _weighted_median(values: NDArray[np.float32], weights: NDArray[np.float32]) 
     return np.where(half > 0, out, np.nan).astype(np.float32)
 
 
-def robust_combine(sums: NDArray[np.float32], frames: NDArray[np.float32], *, binary: bool = True,
-                   scale: float = 1.0, sigmas: float = 5.0, tolerance: float = 0.25, smooth_px: float = 2.0,
-                   min_width_px: float = 9.0, margin_px: float = 3.0,
-                   ) -> tuple[NDArray[np.float32], NDArray[np.float32], NDArray[np.bool_]]:
+def robust_combine(sums: NDArray[np.float32], frames: NDArray[np.float32], *, binary: bool = True, scale: float = 1.0,
+                   **test: float) -> tuple[NDArray[np.float32], NDArray[np.float32], NDArray[np.bool_]]:
     """Sum the virtual exposures of a canvas, leaving out those that disagree with the static scene.
 
-    See the module docstring for the test.
+    :func:`robust_rejection` then :func:`keep_exposures`; see the module docstring for the test.
+
+    Args:
+        sums: (K, Hc, Wc) float32 detections (or intensity sums) per exposure and canvas pixel.
+        frames: (K, Hc, Wc) float32 binary frames behind them (kernel-weighted).
+        binary: photon counts (binomial noise, flux ``-ln(1 - p)``); False: intensity sums.
+        scale: canvas pixels per frame pixel.
+        **test: :func:`robust_rejection`'s ``sigmas``, ``tolerance``, ``smooth_px``,
+            ``min_width_px``, ``margin_px``.
+
+    Returns:
+        ``(sums, frames, moving)``: (Hc, Wc) float32 sums and frames over the exposures
+        kept, and (Hc, Wc) bool, True where an exposure was left out.
+
+    Raises:
+        ValueError: if ``sums`` and ``frames`` differ in shape or are not (K, Hc, Wc).
+    """
+    sums, frames = np.asarray(sums, np.float32), np.asarray(frames, np.float32)
+    return keep_exposures(sums, frames, robust_rejection(sums, frames, binary=binary, scale=scale, **test))
+
+
+def keep_exposures(sums: NDArray[np.float32], frames: NDArray[np.float32], rejected: NDArray[np.bool_]
+                   ) -> tuple[NDArray[np.float32], NDArray[np.float32], NDArray[np.bool_]]:
+    """Sum the virtual exposures of a canvas over those not ``rejected`` at each pixel.
+
+    Where every exposure that saw a pixel is rejected, all are kept (nothing else is known
+    there).
+
+    Args:
+        sums: (K, Hc, Wc) float32 detections (or intensity sums) per exposure.
+        frames: (K, Hc, Wc) float32 frames behind them.
+        rejected: (K, Hc, Wc) bool exposures left out (:func:`robust_rejection`).
+
+    Returns:
+        ``(sums, frames, moving)`` as :func:`robust_combine`'s.
+    """
+    kept_s = np.where(rejected, 0, sums).sum(0)
+    kept_n = np.where(rejected, 0, frames).sum(0)
+    empty = (kept_n <= 0) & (frames.sum(0) > 0)  # every exposure left out: keep them all
+    kept_s = np.where(empty, sums.sum(0), kept_s).astype(np.float32)
+    kept_n = np.where(empty, frames.sum(0), kept_n).astype(np.float32)
+    return kept_s, kept_n, rejected.any(axis=0) & ~empty
+
+
+def robust_rejection(sums: NDArray[np.float32], frames: NDArray[np.float32], *, binary: bool = True,
+                     scale: float = 1.0, sigmas: float = 5.0, tolerance: float = 0.25, smooth_px: float = 2.0,
+                     min_width_px: float = 9.0, margin_px: float = 3.0) -> NDArray[np.bool_]:
+    """Which virtual exposures disagree with the static scene at each canvas pixel (see the module's test).
 
     Args:
         sums: (K, Hc, Wc) float32 detections (or intensity sums) per exposure and canvas pixel.
@@ -154,8 +199,8 @@ def robust_combine(sums: NDArray[np.float32], frames: NDArray[np.float32], *, bi
         margin_px: dilation of the left-out regions, in frame pixels.
 
     Returns:
-        ``(sums, frames, moving)``: (Hc, Wc) float32 sums and frames over the exposures
-        kept, and (Hc, Wc) bool, True where an exposure was left out.
+        (K, Hc, Wc) bool, True where exposure k is left out (none with fewer than 3
+        exposures: no majority to speak of).
 
     Raises:
         ValueError: if ``sums`` and ``frames`` differ in shape or are not (K, Hc, Wc).
@@ -166,7 +211,7 @@ def robust_combine(sums: NDArray[np.float32], frames: NDArray[np.float32], *, bi
     if sums.shape != frames.shape or sums.ndim != 3:
         raise ValueError(f"robust_combine: sums {sums.shape} and frames {frames.shape} must both be (K, Hc, Wc)")
     if len(sums) < 3:  # no majority to speak of
-        return sums.sum(0), frames.sum(0), np.zeros(sums.shape[1:], bool)
+        return np.zeros(sums.shape, bool)
     sigma = smooth_px * scale
     smooth_s = np.stack([cv2.GaussianBlur(s, (0, 0), sigma) for s in sums])
     smooth_n = np.stack([cv2.GaussianBlur(n, (0, 0), sigma) for n in frames])
@@ -210,9 +255,4 @@ def robust_combine(sums: NDArray[np.float32], frames: NDArray[np.float32], *, bi
     for k in range(len(out)):
         if out[k].any():
             rejected[k] = (cv2.dilate(out[k], grow) > 0) & wide
-    kept_s = np.where(rejected, 0, sums).sum(0)
-    kept_n = np.where(rejected, 0, frames).sum(0)
-    empty = (kept_n <= 0) & (frames.sum(0) > 0)  # every exposure left out: keep them all
-    kept_s = np.where(empty, sums.sum(0), kept_s).astype(np.float32)
-    kept_n = np.where(empty, frames.sum(0), kept_n).astype(np.float32)
-    return kept_s, kept_n, rejected.any(axis=0) & ~empty
+    return rejected

@@ -13,7 +13,17 @@ binning is the photon budget's ``check_binning``, :class:`~photonpano.budget.Bud
 2. every failed pair is registered **directly** on the binned frames: phase
    correlation for the translation left by the current estimate, then ECC
    (Evangelidis and Psarakis, 2008) for an affine correction
-   (:func:`~photonpano.imaging.register_binned`).
+   (:func:`~photonpano.imaging.register_binned`);
+3. with ``mover_guard`` (the default), a single bright compact region (a lit object
+   crossing a dark scene) must not decide a pair: each binned frame's
+   :func:`~photonpano.imaging.brightest_blob` is left out and the pair registered again
+   (ECC from the phase correlation and from the current estimate); a registration of
+   steps 1-2 is vetoed where the frames without their blobs correlate under it by more
+   than ``guard_margin`` less than under their own registration, that one is nearer
+   the current estimate (the chain's prediction) and the whole frames correlate less
+   under it (the blobs move otherwise than the rest), and the pair takes theirs. A static
+   scene's bright region leaves a rest that agrees, or registers further from the
+   estimate: nothing is vetoed (docs/real_scenes.md, "Moving objects").
 
 A level's figures (correlation per pair, pairs checked out and rescued) travel in its
 :attr:`~photonpano.records.LocateResult.check` to ``run.json``'s ``registration_check``.
@@ -26,8 +36,9 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from .. import geometry
 from ..executor import Executor, SerialExecutor
-from ..imaging import binned_frame, register_binned, warped_correlation
+from ..imaging import binned_frame, brightest_blob, register_binned, warped_correlation
 from ..records import MergedFrames, PairRegistrations
 
 __all__ = ["PairCheck", "LevelCheck"]
@@ -40,11 +51,17 @@ class PairCheck:
         binning: merged-frame pixels per side of the binned frames (>= 1).
         min_correlation: the binned correlation a registration must reach.
         min_overlap: fraction of binned pixels both frames must share.
+        mover_guard: register every pair without each frame's brightest blob too, and
+            prefer that registration where the frames without their blobs correlate
+            better under it by more than ``guard_margin`` (see the module).
+        guard_margin: the correlation margin of ``mover_guard``.
     """
 
-    def __init__(self, binning: int, *, min_correlation: float = 0.4, min_overlap: float = 0.3) -> None:
+    def __init__(self, binning: int, *, min_correlation: float = 0.4, min_overlap: float = 0.3,
+                 mover_guard: bool = True, guard_margin: float = 0.2) -> None:
         """Set the check's binning and limits."""
         self.factor = max(1, int(binning))
+        self.mover_guard, self.guard_margin = mover_guard, guard_margin
         self.min_correlation = min_correlation
         self.min_overlap = min_overlap
 
@@ -55,6 +72,13 @@ class PairCheck:
         executor outside this process the check runs here, one pair after another.
         """
         return LevelCheck(self, executor if executor.in_process else SerialExecutor())
+
+
+def _binned_with_blob(flux: NDArray[np.float32], mask: NDArray[np.bool_], factor: int
+                      ) -> tuple[NDArray[np.float32], NDArray[np.bool_], NDArray[np.bool_]]:
+    """A merged frame's binned image, valid pixels and bright blob (:func:`~photonpano.imaging.brightest_blob`)."""
+    image, valid = binned_frame(flux, mask, factor)
+    return image, valid, brightest_blob(image, valid)
 
 
 class LevelCheck:
@@ -71,7 +95,7 @@ class LevelCheck:
         self.policy, self.executor = policy, executor
         self.checked = self.rejected = self.rescued = 0
         self.correlations: list[float] = []
-        self._binned: dict[tuple[bytes, bytes], tuple[NDArray[np.float32], NDArray[np.bool_]]] = {}
+        self._binned: dict[tuple[bytes, bytes], tuple[NDArray[np.float32], NDArray[np.bool_], NDArray[np.bool_]]] = {}
 
     def __call__(self, merged: MergedFrames, pairs: NDArray[np.int64], initial: NDArray[np.float64],
                  found: PairRegistrations) -> PairRegistrations:
@@ -96,22 +120,55 @@ class LevelCheck:
         keys = {i: (merged.content_key(i), merged.content_key(i, flux=True)) for i in frames}
         missing = [i for i in frames if keys[i] not in self._binned]
         computed = dict(zip(missing, self.executor.map(
-            lambda i: binned_frame(merged.flux[i], merged.masks[i], factor), missing)))
+            lambda i: _binned_with_blob(merged.flux[i], merged.masks[i], factor), missing)))
         binned = {i: computed[i] if i in computed else self._binned[keys[i]] for i in frames}
         self._binned = {keys[i]: binned[i] for i in frames}
         policy = self.policy
 
         def check(p: int) -> tuple[NDArray[np.float64], int, bool, float, bool]:
             """Pair p's (homography, inliers, ok, correlation, rescued)."""
-            a, b = binned[int(pairs[p, 0])], binned[int(pairs[p, 1])]
-            need = policy.min_overlap * max(int(b[1].sum()), 1)
+            (a, a_valid, a_blob), (b, b_valid, b_blob) = binned[int(pairs[p, 0])], binned[int(pairs[p, 1])]
+            whole, rest = ((a, a_valid), (b, b_valid)), ((a, a_valid & ~a_blob), (b, b_valid & ~b_blob))
+            need = policy.min_overlap * max(int(b_valid.sum()), 1)
+            without: list[tuple[NDArray[np.float64], float, bool]] = []
+
+            def registered_without() -> tuple[NDArray[np.float64], float, bool]:
+                """The frames registered without their blobs (once): (homography, correlation, ok)."""
+                if not without:
+                    h, cc, overlap = register_binned(*rest, initial[p], factor, from_initial=True)
+                    enough = policy.min_overlap * max(int(rest[1][1].sum()), 1)
+                    without.append((h, cc, cc >= policy.min_correlation and overlap >= enough))
+                return without[0]
+
+            corners = geometry.corners(a.shape[1] * factor, a.shape[0] * factor)
+            vetoed: list[bool] = []
+
+            def off(h: NDArray[np.float64]) -> float:
+                """How far ``h`` moves the frame's corners from the current estimate's, in pixels."""
+                return float(np.abs(geometry.apply(h, corners) - geometry.apply(initial[p], corners)).max())
+
+            def holds(h: NDArray[np.float64], cc: float, overlap: int) -> bool:
+                """The correlation and overlap pass, and the guard does not prefer the frames without blobs."""
+                if not (cc >= policy.min_correlation and overlap >= need):
+                    return False
+                if not policy.mover_guard:
+                    return True
+                other, best, ok = registered_without()
+                veto = (ok and warped_correlation(*rest, h, factor)[0] < best - policy.guard_margin
+                        and off(other) < off(h) and warped_correlation(*whole, other, factor)[0] < cc)
+                vetoed.append(veto)
+                return not veto
+
             homography, inliers = found.homographies[p], int(found.inliers[p])
             if found.ok[p]:
-                cc, overlap = warped_correlation(a, b, homography, factor)
-                if cc >= policy.min_correlation and overlap >= need:
+                cc, overlap = warped_correlation(*whole, homography, factor)
+                if holds(homography, cc, overlap):
                     return homography, inliers, True, cc, False
-            h, cc, overlap = register_binned(a, b, initial[p], factor)
-            if cc >= policy.min_correlation and overlap >= need:
+            h, cc, overlap = register_binned(*whole, initial[p], factor)
+            if holds(h, cc, overlap):
+                return h, max(8, int(round(100 * cc ** 2))), True, cc, True
+            if any(vetoed):  # a registration the frames without their blobs disagree with: theirs
+                h, cc, _ = registered_without()
                 return h, max(8, int(round(100 * cc ** 2))), True, cc, True
             return homography, inliers, False, cc, False
 

@@ -21,17 +21,14 @@ Three ways to a colour panorama, each wrapping compositors once per channel:
   interpolation of a regular lattice of that spacing, generalised to the irregular
   layout), and the dense planes are then composited with the run's homographies.
 
-:class:`ColourPanorama` is the panorama stage's compositor when the source asks for
-colour (``colour_panorama: true``, see
-:meth:`~photonpano.stages.SourceConfig.panorama_compositor`): the spec's compositor on
-the inpainted counts (the panorama, unchanged) and :class:`LumaGuided` (at the spec
-compositor's scale) on the raw counts, from one read of the capture.
+:class:`ColourPanorama` is the panorama stage's compositor with ``colour_panorama: true``
+(:meth:`~photonpano.stages.SourceConfig.panorama_compositor`): the spec's compositor on the
+inpainted counts and :class:`LumaGuided` on the raw ones, from one read of the capture.
 
-Registration never sees the colour: the sources' ``sum_ranges`` inpaint the filtered
-pixels from their unfiltered neighbours, so the motion comes from the luminance of all
-pixels; these compositors read the raw counts with :meth:`read` (``source.raw_sums``,
-sensor geometry fixed by ``source.corrector.geometry``). Sources that qualify: the
-SwissSPAD sources (``npy-cube``, ``swissspad-bin``) and ``simulate``, with ``cfa`` set.
+Registration never sees the colour (``sum_ranges`` inpaints the filtered pixels from their
+unfiltered neighbours); these compositors read the raw counts with :meth:`read`
+(``source.raw_sums``, geometry fixed by ``source.corrector.geometry``): the SwissSPAD
+sources (``npy-cube``, ``swissspad-bin``) and ``simulate``, with ``cfa`` set.
 """
 
 from __future__ import annotations
@@ -99,10 +96,7 @@ class _PerChannel(Compositor):
         return self._corrector.geometry(source.raw_sums(edges))
 
     def frame_breaks(self, n_frames: int, frame_step: int = 1) -> NDArray[np.int64] | None:
-        """The channel compositors' (see :meth:`Compositor.frame_breaks`): the same sub-batches as the panorama's.
-
-        The channels themselves are fed without frame indices (no robust merge).
-        """
+        """The channel compositors' (see :meth:`Compositor.frame_breaks`): the same sub-batches as the panorama's."""
         return self._parts[0].frame_breaks(n_frames, frame_step)
 
     def fork(self) -> _PerChannel | None:
@@ -119,15 +113,16 @@ class _PerChannel(Compositor):
         for part, theirs in zip(self._parts, other._parts):
             part.join(theirs)
 
-    def finish(self) -> Any:
+    def finish(self, rejected: NDArray[np.bool_] | None = None) -> Any:
         """The colour :class:`~photonpano.compose.Panorama`.
 
         Its flux is (Hc, Wc, 3) float32 in photons/s behind the R, G, B filters (NaN
-        where a channel saw nothing), its frames (Hc, Wc, 3) float32.
+        where a channel saw nothing), its frames (Hc, Wc, 3) float32. ``rejected``: the
+        virtual exposures each channel's drizzle leaves out (:meth:`.drizzle.Drizzle.finish`).
         """
         from photonpano.compose import Panorama
 
-        panos = [part.finish() for part in self._parts]
+        panos = [part.finish() if rejected is None else part.finish(rejected) for part in self._parts]
         return Panorama(flux=np.stack([p.flux for p in panos], axis=-1),
                         frames=np.stack([p.frames for p in panos], axis=-1),
                         homographies=panos[0].homographies)
@@ -222,12 +217,17 @@ class LumaGuided(_PerChannel):
         sigma_px: standard deviation of the colour ratios' Gaussian in canvas pixels at
             scale 1 (times ``scale`` on a finer canvas; the residual's, 1 px, scales too);
             None: :data:`._guided.CHROMA_SIGMA_PX`.
+        exposures: virtual exposures of the robust merge (fed through :meth:`feed_ranges`):
+            the exposures that the luminance's :meth:`.drizzle.Drizzle.rejection` leaves
+            out at a canvas pixel are left out of the luminance and every plane there
+            (a moving object's ghost); None or 1: every photon merged.
 
     Raises:
         ValueError: if ``scale`` or ``sigma_px`` is not above 0.
     """
 
-    def __init__(self, scale: float = 1.0, corrector: Any = None, sigma_px: float | None = None) -> None:
+    def __init__(self, scale: float = 1.0, corrector: Any = None, sigma_px: float | None = None,
+                 exposures: int | None = None) -> None:
         """Build the three plane compositors and the luminance one."""
         from ._adaptive import DETAIL_GAIN
         from ._guided import CHROMA_SIGMA_PX
@@ -236,9 +236,9 @@ class LumaGuided(_PerChannel):
         sigma_px = CHROMA_SIGMA_PX if sigma_px is None else sigma_px
         if not (scale > 0 and sigma_px > 0):
             raise ValueError(f"LumaGuided: scale and sigma_px must be above 0, got {scale}, {sigma_px}")
-        super().__init__(lambda: Drizzle(scale, "square", 1.0 / scale), corrector)
-        self._luma = Drizzle(scale, "point", wide_px=2.0, detail_gain=DETAIL_GAIN)
-        self._sharp = Drizzle(scale, "square", 1.0 / scale, wide_px=2.0, restoration="wiener")
+        super().__init__(lambda: Drizzle(scale, "square", 1.0 / scale, exposures=exposures), corrector)
+        self._luma = Drizzle(scale, "point", wide_px=2.0, detail_gain=DETAIL_GAIN, exposures=exposures)
+        self._sharp = Drizzle(scale, "square", 1.0 / scale, wide_px=2.0, restoration="wiener", exposures=exposures)
         self.sigma_px = sigma_px
 
     def prepare(self, canvas: Any, source: Any) -> None:
@@ -255,11 +255,13 @@ class LumaGuided(_PerChannel):
     def feed(self, counts: NDArray, n_frames: NDArray[np.int64], homographies: NDArray[np.float64],
              weights: NDArray[np.float32] | None = None) -> None:
         """Feed each plane the pixels behind its filter and the luminance the unfiltered ones."""
-        for part, mask in zip(self._parts, self._masks):
+        for part, mask in zip([*self._parts, self._luma, self._sharp], [*self._masks, *[self._unfiltered] * 2]):
             part.feed(counts, n_frames, homographies, mask if weights is None else mask * weights)
-        luma = self._unfiltered if weights is None else self._unfiltered * weights
-        self._luma.feed(counts, n_frames, homographies, luma)
-        self._sharp.feed(counts, n_frames, homographies, luma)
+
+    def feed_ranges(self, edges: NDArray[np.int64], counts: NDArray, homographies: NDArray[np.float64]) -> None:
+        """Feed each plane and the luminance their pixels' counts, into their virtual exposures (``exposures``)."""
+        for part, mask in zip([*self._parts, self._luma, self._sharp], [*self._masks, *[self._unfiltered] * 2]):
+            part.feed_ranges(edges, counts, homographies, mask)
 
     def fork(self) -> LumaGuided | None:
         """An empty copy on the same canvas."""
@@ -284,12 +286,15 @@ class LumaGuided(_PerChannel):
     def finish(self) -> Any:
         """The colour :class:`~photonpano.compose.Panorama` (flux (Hc, Wc, 3) float32 photons/s, R, G, B).
 
-        Its ``frames`` are the planes' (Hc, Wc, 3) drop-weighted frames.
+        Its ``frames`` are the planes' (Hc, Wc, 3) drop-weighted frames; with ``exposures``,
+        the exposures the luminance's robust merge rejects are left out of every plane.
         """
         from ._adaptive import drop_sharpness
         from ._guided import RESIDUAL_SIGMA_PX, guided_colour
 
-        planes, luma, sharp = super().finish(), self._luma.finish().flux, self._sharp.finish().flux
+        rejected = self._luma.rejection()  # None without the robust merge
+        planes = super().finish(rejected)
+        luma, sharp = self._luma.finish(rejected).flux, self._sharp.finish(rejected).flux
         binary = getattr(self._source, "kind", "binary") == "binary"
         flux = guided_colour(luma, planes.flux, planes.frames, float(self._source.exposure_s),
                              sigma_px=self.sigma_px * self.scale, residual_px=RESIDUAL_SIGMA_PX * self.scale,
@@ -314,7 +319,8 @@ class ColourPanorama(Compositor):
     def __init__(self, make: Callable[[], Compositor]) -> None:
         """Build the panorama's and the colour planes' compositors."""
         self._flux = make()
-        self.scale, self._colour = self._flux.scale, LumaGuided(self._flux.scale)
+        self.scale = self._flux.scale
+        self._colour = LumaGuided(self.scale, exposures=getattr(self._flux, "exposures", None))
 
     def prepare(self, canvas: Any, source: Any) -> None:
         """Prepare both on ``canvas`` (see :meth:`Compositor.prepare`).
@@ -346,13 +352,9 @@ class ColourPanorama(Compositor):
         return self._flux.frame_breaks(n_frames, frame_step)
 
     def feed_ranges(self, edges: NDArray[np.int64], counts: NDArray, homographies: NDArray[np.float64]) -> None:
-        """The corrected counts to the panorama with their frames (its robust merge), the raw ones to the colour planes.
-
-        The colour planes are merged without the robust merge (their compositors are fed
-        without frame indices).
-        """
+        """The corrected counts to the panorama, the raw ones to the colour (robust alike), both with their frames."""
         self._flux.feed_ranges(edges, counts[0], homographies)
-        self._colour.feed(counts[1], np.diff(np.asarray(edges, np.int64)).astype(np.int64), homographies)
+        self._colour.feed_ranges(edges, counts[1], homographies)
 
     def fork(self) -> ColourPanorama | None:
         """An empty copy on the same canvas, if both compositors fork."""

@@ -43,7 +43,8 @@ from photonpano.robust_merge import (
     exposure_breaks,
     feed_exposures,
     join_exposures,
-    robust_combine,
+    keep_exposures,
+    robust_rejection,
 )
 from photonpano.stages import Compositor, CompositorConfig, PhotonSource
 from pydantic import Field
@@ -86,8 +87,8 @@ class DrizzleConfig(CompositorConfig):
     """Robust merge: keep ``robust_exposures`` runs of frames apart and leave out those that
     disagree with the static scene at a canvas pixel (a moving object; see
     ``photonpano.robust_merge``); the left-out regions go to ``moving.png``. On static
-    captures it changes the panorama by less than 0.01 dB (docs/real_scenes.md); not
-    applied inside the colour compositors."""
+    captures it changes the panorama by less than 0.01 dB (docs/real_scenes.md). The
+    colour panorama (``colour_panorama``) leaves out the same exposures in every plane."""
     robust_exposures: Annotated[int, Field(ge=3, le=64)] = DEFAULT_EXPOSURES
     """Virtual exposures the robust merge compares (memory: that many canvases)."""
     detail_gain: Annotated[float, Field(gt=0, le=100)] = DETAIL_GAIN
@@ -175,11 +176,20 @@ class Drizzle(Compositor):
         """The virtual exposures' boundaries (see :meth:`Compositor.frame_breaks`); None without the robust merge."""
         return exposure_breaks(n_frames, self.exposures, frame_step) if self.exposures > 1 else None
 
-    def feed_ranges(self, edges: NDArray[np.int64], counts: NDArray, homographies: NDArray[np.float64]) -> None:
-        """Splat a sub-batch into its virtual exposures (see :meth:`Compositor.feed_ranges`)."""
+    def feed_ranges(self, edges: NDArray[np.int64], counts: NDArray, homographies: NDArray[np.float64],
+                    weights: NDArray[np.float32] | None = None) -> None:
+        """Splat a sub-batch into its virtual exposures (see :meth:`Compositor.feed_ranges`).
+
+        Args:
+            edges: (B + 1,) int64 frame-range edges of the count images.
+            counts: (B, H, W) summed frames.
+            homographies: (B, 3, 3) float64 frame-to-canvas homographies.
+            weights: optional (H, W) float32 per-pixel weights, as :meth:`feed`'s.
+        """
         if self.exposures == 1:
-            return super().feed_ranges(edges, counts, homographies)
-        feed_exposures(self._accs, lambda: np.zeros_like(self._acc), self._splat_into, edges, counts, homographies,
+            return self.feed(counts, np.diff(np.asarray(edges, np.int64)).astype(np.int64), homographies, weights)
+        feed_exposures(self._accs, lambda: np.zeros_like(self._acc),
+                       lambda acc, c, n, h: self._splat_into(acc, c, n, h, weights), edges, counts, homographies,
                        len(self._canvas.homographies))
 
     def fork(self) -> Drizzle:
@@ -195,16 +205,41 @@ class Drizzle(Compositor):
             raise TypeError(f"Drizzle.join: expected a fork of this compositor, got {type(other).__name__}")
         join_exposures(self._accs, other._accs, np.ndarray.__iadd__)
 
-    def finish(self) -> Panorama:
-        """The flux MLE per canvas pixel (see :meth:`Compositor.finish`); robust: the exposures that agree."""
+    def _exposures(self) -> NDArray[np.float32]:
+        """(K', Hc, Wc, 2) float32 sums and frames of the virtual exposures fed so far."""
+        return np.stack([a for a in self._accs if a is not None])
+
+    def rejection(self) -> NDArray[np.bool_] | None:
+        """(K', Hc, Wc) bool: where each virtual exposure fed so far disagrees with the static scene.
+
+        :func:`photonpano.robust_merge.robust_rejection` of this compositor's exposures
+        (K' of the ``exposures``, those fed); None without the robust merge. Another
+        drizzle fed the same frames can :meth:`finish` with it (the colour planes,
+        :class:`.colour.LumaGuided`).
+        """
+        return None if self.exposures == 1 else self._reject(self._exposures())
+
+    def _reject(self, stacked: NDArray[np.float32]) -> NDArray[np.bool_]:
+        """:meth:`rejection` of the stacked exposures."""
+        return robust_rejection(stacked[..., 0], stacked[..., 1], scale=self.scale,
+                                binary=getattr(self._source, "kind", "binary") == "binary")
+
+    def finish(self, rejected: NDArray[np.bool_] | None = None) -> Panorama:
+        """The flux MLE per canvas pixel (see :meth:`Compositor.finish`); robust: the exposures that agree.
+
+        Args:
+            rejected: with the robust merge, (K', Hc, Wc) bool exposures to leave out (a
+                :meth:`rejection`, possibly another drizzle's fed the same frames); None:
+                this compositor's own :meth:`rejection`.
+        """
         from photonpano.intensity import estimate_radiance
 
         moving = None
         if self.exposures > 1:
-            stacked = np.stack([a for a in self._accs if a is not None])
-            sums, frames, moving = robust_combine(
-                stacked[..., 0], stacked[..., 1], binary=getattr(self._source, "kind", "binary") == "binary",
-                scale=self.scale)
+            stacked = self._exposures()
+            if rejected is None:
+                rejected = self._reject(stacked)
+            sums, frames, moving = keep_exposures(stacked[..., 0], stacked[..., 1], rejected)
         else:
             sums, frames = np.ascontiguousarray(self._acc[..., 0]), np.ascontiguousarray(self._acc[..., 1])
         if self.wide_px is not None and getattr(self._source, "kind", "binary") == "binary":

@@ -44,7 +44,7 @@ def colour_panorama(source: Any, homographies: NDArray[np.float64], canvas_shape
             ``homographies.npy``).
         canvas_shape: ``(Hc, Wc)`` of the canvas.
         make: builds the spec's compositor (default: the bilinear ``flux-canvas``): its
-            scale for ``guided``, else each channel's compositor.
+            scale and robust merge's exposures for ``guided``, else each channel's compositor.
         subbatch_px: frames whose warps differ by less than this (canvas pixels) are
             composited together.
         chunk_batches: sub-batches counted per read of the source.
@@ -64,7 +64,9 @@ def colour_panorama(source: Any, homographies: NDArray[np.float64], canvas_shape
 
     corrector = cfa_corrector(source, "colour_panorama")
     make = make or BilinearCompositor
-    channels = LumaGuided(make().scale, corrector) if guided else CfaChannels(make, corrector)
+    built = make()  # the robust merge's exposures too: a moving object is left out of the colour alike
+    channels = (LumaGuided(built.scale, corrector, exposures=getattr(built, "exposures", None)) if guided
+                else CfaChannels(make, corrector))
     return compose(source, homographies, channels, subbatch_px=subbatch_px, chunk_batches=chunk_batches,
                    progress=progress, canvas_shape=canvas_shape, executor=executor).flux
 

@@ -1,5 +1,7 @@
 """Moving objects left out of the mosaic levels' registrations (issue 28)."""
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 from photonpano.records import MergedFrames
@@ -172,3 +174,67 @@ def test_moving_fraction_tells_one_region_from_many_small_ones():
     assert largest == pytest.approx(799 / 15000, abs=1e-6)
     assert total == pytest.approx((799 + 150 - 4) / 15000, abs=1e-6)
     assert moving_fraction(Panorama(flux=frames, frames=frames, homographies=np.eye(3)[None])) is None
+
+
+def _dark_pair_with_disc(disc_level, seed=0):
+    """Two merged frames of a dark star field with a bright disc crossing it (issue 28: Hubble + disc).
+
+    The field (1 photon per pixel on average) is shifted by (6, -3) px, the disc (radius
+    25 px, ``disc_level`` photons per pixel) by (-24, -3) px.
+    """
+    import cv2
+    from photonpano.plugins.sources.simulate import load_scene
+
+    photo = Path(__file__).resolve().parents[2] / "benchmarks" / "photos" / "highcontrast_hubble.jpg"
+    scene = load_scene(photo, 1440)[200:500, 400:900].astype(np.float32)
+    scene /= scene.mean()
+    rng = np.random.default_rng(seed)
+    yy, xx = np.mgrid[:200, :400]
+    flux = []
+    for shift, disc in (((0, 0), (0, 0)), ((6.0, -3.0), (-24.0, -3.0))):
+        moved = cv2.warpAffine(scene, np.float32([[1, 0, -shift[0]], [0, 1, -shift[1]]]), scene.shape[::-1])
+        lit = (xx - 200 - disc[0]) ** 2 + (yy - 100 - disc[1]) ** 2 <= 25 ** 2
+        flux.append(rng.poisson(moved[50:250, 50:450] + disc_level * lit).astype(np.float32))
+    flux = np.stack(flux)
+    return MergedFrames(flux, np.ones_like(flux), np.zeros(flux.shape, np.uint8), np.ones(flux.shape, bool))
+
+
+@pytest.mark.parametrize("disc_level", [20.0, 40.0])
+def test_the_pair_checks_rescue_follows_the_scene_not_a_bright_disc_crossing_it(disc_level):
+    """A failed pair rescued on binned frames follows the scene, not the disc.
+
+    Without the guard the disc pulls the registration (5-40 px off); with it (the
+    default) the frames without the disc give the scene's shift within 0.5 px.
+    """
+    from photonpano.executor import SerialExecutor
+    from photonpano.records import PairRegistrations
+    from photonpano.schemes import PairCheck
+
+    merged = _dark_pair_with_disc(disc_level)
+    failed = PairRegistrations(np.eye(3)[None], np.zeros(1, np.int64), np.zeros(1, np.int64), np.zeros(1, bool))
+    shifts = {}
+    for guard in (False, True):
+        level = PairCheck(3, mover_guard=guard).start_level(SerialExecutor())
+        found = level(merged, np.array([[0, 1]]), np.eye(3)[None], failed)
+        assert found.ok[0] and level.figures()["rescued"] == 1
+        shifts[guard] = found.homographies[0][:2, 2]
+    assert np.abs(shifts[True] - [6.0, -3.0]).max() < 0.5, shifts[True]
+    assert np.abs(shifts[False] - [6.0, -3.0]).max() > 3.0, shifts[False]
+
+
+def test_brightest_blob_finds_the_disc_not_a_brighter_star_and_not_a_bright_sky():
+    """The region with the most contrast energy, dilated; none where it is over a quarter of the frame."""
+    from photonpano.imaging import brightest_blob
+
+    image = np.zeros((100, 200), np.float32)
+    yy, xx = np.mgrid[:100, :200]
+    disc = (yy - 50) ** 2 + (xx - 60) ** 2 <= 12 ** 2
+    image[disc] = 5.0
+    image[20, 150] = 9.0  # a brighter, point-like star
+    valid = np.ones(image.shape, bool)
+    blob = brightest_blob(image, valid, margin=2)
+    assert blob[disc].all() and not blob[20, 150]
+    assert blob.sum() < disc.sum() + 2 * np.pi * 12 * 3  # the disc and a 2 px rim
+    sky = np.where(yy < 60, 5.0, 0.0).astype(np.float32)
+    assert not brightest_blob(sky, valid).any()
+    assert not brightest_blob(np.zeros_like(image), valid).any()

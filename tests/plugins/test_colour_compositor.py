@@ -83,8 +83,7 @@ def test_a_run_composites_the_colour_panorama_with_the_panorama(capture):
     sub = spec.panorama_subbatch_px
     plain = compose(source, pano.homographies, spec.compositor.build(), canvas_shape=shape, subbatch_px=sub)
     np.testing.assert_allclose(pano.flux, plain.flux, rtol=1e-5)  # the panorama is the one without colour
-    guided = LumaGuided(spec.compositor.scale)
-    guided.frame_breaks = spec.compositor.build().frame_breaks  # the panorama's sub-batches (its robust merge's)
+    guided = LumaGuided(spec.compositor.scale, exposures=spec.compositor.build().exposures)  # robust alike
     alone = compose(source, pano.homographies, guided, canvas_shape=shape, subbatch_px=sub)
     np.testing.assert_allclose(pano.colour, alone.flux, rtol=1e-5)
 

@@ -85,3 +85,39 @@ def test_panorama_stage_composites_colour_in_the_same_pass(colour_cube):
     plain = compose(source, homographies, make(), canvas_shape=(254, 496))
     np.testing.assert_array_equal(pano.flux, plain.flux)  # the panorama is the one without colour
     np.testing.assert_allclose(pano.colour, colour_panorama(source, homographies, (254, 496), make=make), rtol=1e-5)
+
+
+def test_the_colour_panorama_leaves_a_moving_disc_out_as_the_robust_merge_does():
+    """A disc crossing a colour capture leaves a ghost in every plane unless the colour is robust too (issue 28).
+
+    4 000 frames of the office through the real filter layout (96 x 160 px, flux 1), a disc
+    of radius 12 px at 0.15 px/frame, composited with the true motion by the panorama
+    stage's colour compositor around ``drizzle``: plain 25.5 dB (mean over R, G, B), robust
+    28.3 dB, the static capture 28.4 dB; on the static capture robust and plain agree
+    within 0.02 dB.
+    """
+    import cv2
+    from photonpano.compose import canvas_homographies, compose
+    from photonpano.metrics import psnr, scene_on_canvas
+    from photonpano.plugins.compositors.colour import ColourPanorama
+    from photonpano.plugins.sources.simulate import SimulateConfig
+
+    settings = {"cfa": "colorspad", "frames": 4000, "height": 96, "width": 160, "scene_width": 480, "flux": 1.0,
+                "speed_px_per_frame": 0.03}
+    captures = {"static": SimulateConfig(**settings).build(),
+                "disc": SimulateConfig(**settings, mover_radius_px=12, mover_speed_px_per_frame=0.15).build()}
+    static = captures["static"]
+    to_canvas, shape = canvas_homographies(static.ground_truth, static.width, static.height, 1.0)
+    from_scene = to_canvas[0] @ np.linalg.inv(static.ground_truth[0])
+    scene = np.stack([scene_on_canvas(SimpleNamespace(scene_flux=static.scene_flux_rgb[..., c],
+                                                      scene_pitch=static.scene_pitch), from_scene, shape)
+                      for c in range(3)], axis=-1)
+    panos = {(name, robust): compose(capture, to_canvas, ColourPanorama(DrizzleConfig(robust=robust).build),
+                                     canvas_shape=shape).colour
+             for name, capture in captures.items() for robust in (False, True)}
+    seen = np.logical_and.reduce([np.isfinite(p).all(-1) for p in (scene, *panos.values())])
+    mask = cv2.erode(seen.astype(np.uint8), np.ones((7, 7), np.uint8)) > 0
+    db = {key: np.mean([psnr(p[..., c], scene[..., c], mask) for c in range(3)]) for key, p in panos.items()}
+    assert abs(db["static", True] - db["static", False]) < 0.03, db
+    assert db["disc", False] < db["static", False] - 2.0, db  # the ghost
+    assert db["disc", True] > db["static", False] - 0.3, db
