@@ -188,7 +188,7 @@ def spec_model(host: PluginHost) -> type[PipelineSpec]:
             "k sensor pixels summed): 2 gives the locators the half-resolution images they register anyway for a "
             "quarter of the merging work; 1 merges at full resolution (e.g. with `locator.image_scale: 0.5` for "
             "SIFT's former default). auto: 2 where the binned frames keep at least 100 pixels on their short "
-            "side, else 1 (photonpano.budget.grid.auto_binning). The mosaic levels have their own, "
+            "side, else 1 (photonpano.budget.binnings.auto_binning). The mosaic levels have their own, "
             "`mosaic.registration_binning`. The panorama is always composited from the full-resolution "
             "photons.")], "auto"),
         "panorama_subbatch_px": (Annotated[float, Field(gt=0, le=2, description="Frames whose canvas "
@@ -255,7 +255,7 @@ def _mosaic_model(host: PluginHost) -> type[BaseModel]:
             description="Binning k of the merged frames and templates of the mosaic levels (see the top-level "
             "`registration_binning`). auto: the top-level value where that is set in the spec; else full "
             "resolution (1) while the capture holds at most 6e9 pixel-frames (frames x height x width: about "
-            "23 600 frames of 254x496), binned as level 1 beyond (photonpano.budget.grid.mosaic_binning). Full "
+            "23 600 frames of 254x496), binned as level 1 beyond (photonpano.budget.binnings.mosaic_binning). Full "
             "resolution cut the 20 000-frame trajectory RMSE on 17 of the evaluation suite's 18 photos (city "
             "0.060 -> 0.037 px) for about 1.35x the CPU time.")], "auto"),
     }

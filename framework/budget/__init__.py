@@ -10,7 +10,7 @@ four choices of one capture and why each was made, and is recorded in ``run.json
   capture's light and speed);
 - **registration binning** k: sensor pixels per side summed into a merged-frame pixel
   before the pairwise levels merge and register (spec ``registration_binning``;
-  :mod:`photonpano.budget.grid`), and its value at the mosaic levels (spec
+  :mod:`photonpano.budget.binnings`), and its value at the mosaic levels (spec
   ``mosaic.registration_binning``: full resolution where the capture is short enough and
   a group gathers enough light);
 - **check binning** c: merged-frame pixels per side of the binned images on which the
@@ -28,7 +28,7 @@ import math
 from dataclasses import dataclass
 from typing import Any
 
-from .grid import auto_binning, mosaic_binning, registration_binning
+from .binnings import auto_binning, mosaic_binning, registration_binning
 from .probe import CaptureProbe, GroupPlan, plan_group_size
 
 __all__ = ["Budget", "GroupPlan", "CaptureProbe", "agreement_binning", "check_binning", "auto_binning"]

@@ -51,7 +51,7 @@ def test_registration_grid_maps_a_binned_pixel_to_the_centre_of_its_block(tiny_c
 
 
 def test_auto_binning_keeps_100_pixels_on_the_short_side():
-    from photonpano.budget.grid import auto_binning
+    from photonpano.budget.binnings import auto_binning
 
     assert auto_binning(254, 496) == 2
     assert auto_binning(256, 512) == 2

@@ -235,7 +235,7 @@ def test_budget_with_an_explicit_group_size_runs_no_check_and_counts_the_check_i
 
 def test_mosaic_levels_register_at_full_resolution_on_short_well_lit_captures(monkeypatch):
     """mosaic.registration_binning auto: 1 within the pixel-frame and light limits, else level 1's binning."""
-    from photonpano.budget import grid
+    from photonpano.budget import binnings as grid
 
     capture = _capture(frames=1000, height=224, width=320)  # 7.2e7 pixel-frames, binned 2x2 at level 1
     auto = _budget(capture, group_size=200)
