@@ -151,10 +151,13 @@ class LevelCheck:
                 """The correlation and overlap pass, and the guard does not prefer the frames without blobs."""
                 if not (cc >= policy.min_correlation and overlap >= need):
                     return False
-                if not policy.mover_guard:
+                if not policy.mover_guard or not (a_blob.any() or b_blob.any()):
+                    return True  # without blobs the frames' own registration cannot correlate worse whole
+                rest_cc = warped_correlation(*rest, h, factor)[0]
+                if rest_cc >= 1 - policy.guard_margin:  # no registration can beat it by the margin
                     return True
                 other, best, ok = registered_without()
-                veto = (ok and warped_correlation(*rest, h, factor)[0] < best - policy.guard_margin
+                veto = (ok and rest_cc < best - policy.guard_margin
                         and off(other) < off(h) and warped_correlation(*whole, other, factor)[0] < cc)
                 vetoed.append(veto)
                 return not veto
