@@ -126,8 +126,9 @@ def test_a_default_run_detects_a_crossing_disc_and_registers_through_it():
     """Default settings engage mover rejection on a disc capture; with it off the disc pulls the trajectory.
 
     The office, 10 000 frames, a disc of radius 30 px at 0.16 px/frame: the level-2 robust
-    template leaves out 24 % of the canvas; 0.157 px, `ok` (levels 0.246, 0.164, 0.157 px);
-    ``reject_movers: null`` (the former default): 0.849 px, `degraded`.
+    template leaves out 24 % of the canvas; 0.059 px, `ok` with the mosaic levels at full
+    resolution (0.157 px binned); ``reject_movers: null`` (the former default): 0.363 px
+    (0.849 px binned).
     """
     error, stats, report = _run(SMALL_DISC)
     assert report["movers"]["engaged"] and report["movers"]["largest_region"] > 0.1, report["movers"]
@@ -137,7 +138,7 @@ def test_a_default_run_detects_a_crossing_disc_and_registers_through_it():
     assert report["status"] == "ok", report["warnings"]
     off, _, off_report = _run(SMALL_DISC, ["mosaic.reject_movers=null"])
     assert off_report["movers"] is None
-    assert off.rmse_px > 2 * BOUND, off.rmse_px  # what the default now avoids
+    assert off.rmse_px > max(BOUND, 3 * error.rmse_px), (off.rmse_px, error.rmse_px)  # what the default avoids
 
 
 @pytest.mark.slow
