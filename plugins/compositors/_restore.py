@@ -191,6 +191,13 @@ def restore_sums(sums: NDArray[np.float32], frames: NDArray[np.float32], scale: 
 
     p, p_wide, noise = fine_and_noise(sums, frames, scale, wide_px, sharpness)
     seen = frames > 0
+    if seen.any() and not seen.all():
+        # unobserved canvas pixels (holes between drops, beyond the coverage) take the wide
+        # estimate of the nearest observed one: zeros there would pull the blocks around them dark
+        from scipy.ndimage import distance_transform_edt
+
+        nearest = distance_transform_edt(~seen, return_distances=False, return_indices=True)
+        p_wide = p_wide[nearest[0], nearest[1]]
     p = np.where(seen, p, p_wide)
     noise = np.where(seen, noise, np.float32(0.25))  # unobserved: a sample's whole variance
     noise = np.maximum(noise, np.float32(1e-9))
