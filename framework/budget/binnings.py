@@ -60,13 +60,14 @@ FULL_RESOLUTION_MOSAIC_PHOTONS = 10.0
 (the photon budget's light limit, :func:`~photonpano.budget.probe.choose_group_size`).
 
 Measured on the evaluation suite (20 000-frame captures, every level's binning else as
-before): where the groups had this much light, full resolution cut the trajectory RMSE of
-32 of the 35 captures by more than 0.005 px and raised none (city 0.060 -> 0.037 px, chelsea 0.122 -> 0.083, clock 1.133 -> 0.724, coffee
-0.180 -> 0.100) for about 1.35x the CPU time (city: 20 -> 27 s of CPU for the run and its
-ground-truth check). Where they had less (fast pans at 8.7-9.7 photons, flux 0.005 at
-0.8, a dark scene at 1.8) the noisier full-resolution frames either did worse (coffee at
-flux 0.005: 0.965 -> 1.420 px) or, registering more consistently with a wrong template,
-hid errors over 1 px from the held-out check (four captures reported ``ok``)."""
+before): where the groups had this much light, full resolution cut the trajectory RMSE
+of 32 of the 35 captures by more than 0.005 px and raised none (city 0.060 -> 0.037 px,
+chelsea 0.122 -> 0.083, clock 1.133 -> 0.724, coffee 0.180 -> 0.100) for about 1.35x the
+CPU time (city: 20 -> 27 s of CPU for the run and its ground-truth check). Where they
+had less (fast pans at 8.7-9.7 photons, flux 0.005 at 0.8, a dark scene at 1.8) the
+noisier full-resolution frames either did worse (coffee at flux 0.005: 0.965 -> 1.420
+px) or, registering more consistently with a wrong template, hid errors over 1 px from
+the held-out check (four captures reported ``ok``)."""
 
 
 def mosaic_binning(spec: Any, source: PhotonSource, register: int,

@@ -37,6 +37,8 @@ photographs, against +2.4 dB for the noise-adaptive blend of :mod:`._adaptive`.
 
 from __future__ import annotations
 
+from typing import Literal
+
 import numpy as np
 from numpy.typing import NDArray
 
@@ -100,7 +102,7 @@ def dct_wiener(noisy: NDArray[np.float32], variance: NDArray[np.float32], deblur
     # pad (reflect) so the blocks at the stride cover the image exactly, at least one block
     ph = max(BLOCK - h, (-(h - BLOCK)) % STRIDE)
     pw = max(BLOCK - w, (-(w - BLOCK)) % STRIDE)
-    mode = "reflect" if min(h, w) > max(ph, pw) else "symmetric"
+    mode: Literal["reflect", "symmetric"] = "reflect" if min(h, w) > max(ph, pw) else "symmetric"
     y = np.pad(noisy, ((0, ph), (0, pw)), mode=mode)
     v = np.pad(variance, ((0, ph), (0, pw)), mode=mode)
     if min(y.shape) < BLOCK:
@@ -119,7 +121,7 @@ def dct_wiener(noisy: NDArray[np.float32], variance: NDArray[np.float32], deblur
         pilot[..., 0, 0] = coeffs[..., 0, 0]
         _put_back(np.matmul(np.matmul(c.T, pilot), c), _block_weights(pilot != 0, sigma2),
                   pilot_sum[rows], pilot_weight[rows])
-    pilot_image = pilot_sum / np.maximum(pilot_weight, np.float32(1e-30))
+    pilot_image = (pilot_sum / np.maximum(pilot_weight, np.float32(1e-30))).astype(np.float32, copy=False)
     # step 2: Wiener deconvolution with the pilot's power
     out_sum, out_weight = pilot_sum, pilot_weight  # reused: the pilot is in ``pilot_image``
     out_sum[:], out_weight[:] = 0, 0
@@ -130,7 +132,7 @@ def dct_wiener(noisy: NDArray[np.float32], variance: NDArray[np.float32], deblur
         filt[..., 0, 0] = 1 / gain[0, 0]
         _put_back(np.matmul(np.matmul(c.T, coeffs * filt), c), _block_weights(filt, sigma2),
                   out_sum[rows], out_weight[rows])
-    return (out_sum / np.maximum(out_weight, np.float32(1e-30)))[:h, :w]
+    return (out_sum / np.maximum(out_weight, np.float32(1e-30)))[:h, :w].astype(np.float32, copy=False)
 
 
 STRIP_BLOCK_ROWS = 32

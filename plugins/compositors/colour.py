@@ -122,7 +122,7 @@ class _PerChannel(Compositor):
         """
         from photonpano.compose import Panorama
 
-        panos = [part.finish() if rejected is None else part.finish(rejected) for part in self._parts]
+        panos = [part.finish() if rejected is None else part.finish(rejected) for part in self._parts]  # type: ignore[call-arg]
         return Panorama(flux=np.stack([p.flux for p in panos], axis=-1),
                         frames=np.stack([p.frames for p in panos], axis=-1),
                         homographies=panos[0].homographies)
@@ -261,7 +261,7 @@ class LumaGuided(_PerChannel):
     def feed_ranges(self, edges: NDArray[np.int64], counts: NDArray, homographies: NDArray[np.float64]) -> None:
         """Feed each plane and the luminance their pixels' counts, into their virtual exposures (``exposures``)."""
         for part, mask in zip([*self._parts, self._luma, self._sharp], [*self._masks, *[self._unfiltered] * 2]):
-            part.feed_ranges(edges, counts, homographies, mask)
+            part.feed_ranges(edges, counts, homographies, mask)  # type: ignore[call-arg]  # drizzles take weights
 
     def fork(self) -> LumaGuided | None:
         """An empty copy on the same canvas."""
@@ -283,7 +283,7 @@ class LumaGuided(_PerChannel):
         self._luma.join(other._luma)
         self._sharp.join(other._sharp)
 
-    def finish(self) -> Any:
+    def finish(self) -> Any:  # type: ignore[override]  # its own luminance decides what is rejected
         """The colour :class:`~photonpano.compose.Panorama` (flux (Hc, Wc, 3) float32 photons/s, R, G, B).
 
         Its ``frames`` are the planes' (Hc, Wc, 3) drop-weighted frames; with ``exposures``,
