@@ -42,7 +42,6 @@ from __future__ import annotations
 import argparse
 import time
 from pathlib import Path
-from types import SimpleNamespace
 
 import cv2
 import numpy as np
@@ -51,8 +50,8 @@ from photonpano.host import PluginHost
 from photonpano.metrics import (
     canvas_from_scene_homography,
     chroma_edge_error,
+    colour_scene_on_canvas,
     psnr,
-    scene_on_canvas,
     source_trajectory_error,
 )
 from photonpano.pipeline import reconstruct
@@ -61,13 +60,6 @@ from photonpano.plugins.compositors.flux_canvas import FluxCanvasConfig
 from photonpano.spec import apply_overrides, validate_spec
 
 PHOTOS = Path(__file__).parent / "photos"
-
-
-def colour_scene_on_canvas(source, canvas_from_scene: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
-    """(Hc, Wc, 3) float32 true flux behind each filter on the canvas (``scene_on_canvas`` per channel)."""
-    return np.stack([scene_on_canvas(SimpleNamespace(scene_flux=source.scene_flux_rgb[..., c],
-                                                     scene_pitch=source.scene_pitch), canvas_from_scene, shape)
-                     for c in range(3)], axis=-1)
 
 
 def score(panos: dict[str, np.ndarray], truth: np.ndarray) -> dict[str, tuple[list[float], float]]:

@@ -84,10 +84,8 @@ def colour(settings: dict) -> dict:
         ``{"static" | "disc": {"plain" | "robust": dB}}``: the mean over R, G and B of
         ``psnr`` against the true colour flux on the canvas.
     """
-    from types import SimpleNamespace
-
     from photonpano.compose import canvas_homographies, compose
-    from photonpano.metrics import psnr, scene_on_canvas
+    from photonpano.metrics import colour_scene_on_canvas, psnr
     from photonpano.plugins.compositors.colour import ColourPanorama
     from photonpano.plugins.compositors.drizzle import DrizzleConfig
     from photonpano.plugins.sources.simulate import SimulateConfig
@@ -97,9 +95,7 @@ def colour(settings: dict) -> dict:
     static = captures["static"]
     to_canvas, shape = canvas_homographies(static.ground_truth, static.width, static.height, 1.0)
     from_scene = to_canvas[0] @ np.linalg.inv(static.ground_truth[0])
-    scene = np.stack([scene_on_canvas(SimpleNamespace(scene_flux=static.scene_flux_rgb[..., c],
-                                                      scene_pitch=static.scene_pitch), from_scene, shape)
-                      for c in range(3)], axis=-1)
+    scene = colour_scene_on_canvas(static, from_scene, shape)
     panos = {(name, kind): compose(capture, to_canvas, ColourPanorama(DrizzleConfig(robust=kind == "robust").build),
                                    canvas_shape=shape).colour
              for name, capture in captures.items() for kind in ("plain", "robust")}

@@ -12,7 +12,8 @@ from numpy.typing import NDArray
 from . import geometry
 
 __all__ = ["TrajectoryError", "trajectory_error", "source_trajectory_error", "psnr", "chroma_edge_error",
-           "scene_on_canvas", "ground_truth_report", "plot_trajectory", "trajectory_figure", "TRAJECTORY_MIN_SPAN_PX"]
+           "scene_on_canvas", "colour_scene_on_canvas",
+           "ground_truth_report", "plot_trajectory", "trajectory_figure", "TRAJECTORY_MIN_SPAN_PX"]
 
 
 @dataclass(frozen=True)
@@ -178,6 +179,29 @@ def scene_on_canvas(source, canvas_from_scene: NDArray[np.float64],
     warped = cv2.warpPerspective(scene, to_canvas, shape[::-1], flags=cv2.INTER_LANCZOS4,
                                  borderMode=cv2.BORDER_CONSTANT, borderValue=np.nan)
     return np.asarray(warped, np.float32)  # scene_flux is float32: no copy
+
+
+def colour_scene_on_canvas(source, canvas_from_scene: NDArray[np.float64],
+                           shape: tuple[int, int]) -> NDArray[np.float32]:
+    """Resample a colour capture's true flux behind each filter onto a panorama canvas.
+
+    :func:`scene_on_canvas` per channel of ``source.scene_flux_rgb`` (a ``simulate``
+    source with ``cfa``).
+
+    Args:
+        source: a capture with ``scene_flux_rgb`` ((Hs, Ws, 3) float32 photons/s behind
+            the R, G, B filters) and optionally ``scene_pitch`` (default 1).
+        canvas_from_scene: (3, 3) float64 map from ground-truth coordinates to canvas pixels.
+        shape: ``(Hc, Wc)`` of the canvas.
+
+    Returns:
+        (Hc, Wc, 3) float32 flux in photons/s, R, G, B; NaN outside the scene.
+    """
+    from types import SimpleNamespace
+
+    pitch = getattr(source, "scene_pitch", 1.0)
+    return np.stack([scene_on_canvas(SimpleNamespace(scene_flux=source.scene_flux_rgb[..., c], scene_pitch=pitch),
+                                     canvas_from_scene, shape) for c in range(3)], axis=-1)
 
 
 def source_trajectory_error(homographies: NDArray[np.float64], source: Any) -> TrajectoryError:

@@ -1,13 +1,12 @@
 """Colour through motion: a simulated colour-filtered capture, composited per colour plane."""
 
 from pathlib import Path
-from types import SimpleNamespace
 
 import cv2
 import numpy as np
 import pytest
 from photonpano.compose import canvas_homographies, compose
-from photonpano.metrics import chroma_edge_error, psnr, scene_on_canvas
+from photonpano.metrics import chroma_edge_error, colour_scene_on_canvas, psnr
 from photonpano.plugins.compositors.colour import CfaChannels, FrameDemosaic, LumaGuided
 from photonpano.plugins.compositors.drizzle import DrizzleConfig
 from photonpano.plugins.sources._swissspad_sensor import bundled_sensor_file, load_cfa
@@ -43,8 +42,7 @@ def test_simulated_filters_follow_the_real_layout(capture):
 def test_demosaic_through_motion_beats_per_frame_demosaic(capture):
     to_canvas, shape = canvas_homographies(capture.ground_truth, capture.width, capture.height, 1.0)
     canvas_from_scene = to_canvas[0] @ np.linalg.inv(capture.ground_truth[0])
-    truth = np.stack([scene_on_canvas(SimpleNamespace(scene_flux=capture.scene_flux_rgb[..., c]), canvas_from_scene,
-                                      shape) for c in range(3)], axis=-1)
+    truth = colour_scene_on_canvas(capture, canvas_from_scene, shape)
     make = DrizzleConfig().build
     panos = {key: compose(capture, to_canvas, comp, canvas_shape=shape).flux
              for key, comp in {"motion": CfaChannels(make), "r2": FrameDemosaic(make, radius_px=2.0),
@@ -91,8 +89,7 @@ def test_a_run_composites_the_colour_panorama_with_the_panorama(capture):
 def _truth_canvas(capture, scale=1.0):
     to_canvas, shape = canvas_homographies(capture.ground_truth, capture.width, capture.height, scale)
     canvas_from_scene = to_canvas[0] @ np.linalg.inv(capture.ground_truth[0])
-    truth = np.stack([scene_on_canvas(SimpleNamespace(scene_flux=capture.scene_flux_rgb[..., c]), canvas_from_scene,
-                                      shape) for c in range(3)], axis=-1)
+    truth = colour_scene_on_canvas(capture, canvas_from_scene, shape)
     return to_canvas, shape, truth
 
 

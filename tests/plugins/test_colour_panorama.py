@@ -98,7 +98,7 @@ def test_the_colour_panorama_leaves_a_moving_disc_out_as_the_robust_merge_does()
     """
     import cv2
     from photonpano.compose import canvas_homographies, compose
-    from photonpano.metrics import psnr, scene_on_canvas
+    from photonpano.metrics import colour_scene_on_canvas, psnr
     from photonpano.plugins.compositors.colour import ColourPanorama
     from photonpano.plugins.sources.simulate import SimulateConfig
 
@@ -109,9 +109,7 @@ def test_the_colour_panorama_leaves_a_moving_disc_out_as_the_robust_merge_does()
     static = captures["static"]
     to_canvas, shape = canvas_homographies(static.ground_truth, static.width, static.height, 1.0)
     from_scene = to_canvas[0] @ np.linalg.inv(static.ground_truth[0])
-    scene = np.stack([scene_on_canvas(SimpleNamespace(scene_flux=static.scene_flux_rgb[..., c],
-                                                      scene_pitch=static.scene_pitch), from_scene, shape)
-                      for c in range(3)], axis=-1)
+    scene = colour_scene_on_canvas(static, from_scene, shape)
     panos = {(name, robust): compose(capture, to_canvas, ColourPanorama(DrizzleConfig(robust=robust).build),
                                      canvas_shape=shape).colour
              for name, capture in captures.items() for robust in (False, True)}
