@@ -31,6 +31,7 @@ A level's figures (correlation per pair, pairs checked out and rescued) travel i
 
 from __future__ import annotations
 
+import functools
 from typing import Any
 
 import numpy as np
@@ -130,15 +131,13 @@ class LevelCheck:
             (a, a_valid, a_blob), (b, b_valid, b_blob) = binned[int(pairs[p, 0])], binned[int(pairs[p, 1])]
             whole, rest = ((a, a_valid), (b, b_valid)), ((a, a_valid & ~a_blob), (b, b_valid & ~b_blob))
             need = policy.min_overlap * max(int(b_valid.sum()), 1)
-            without: list[tuple[NDArray[np.float64], float, bool]] = []
 
+            @functools.cache
             def registered_without() -> tuple[NDArray[np.float64], float, bool]:
                 """The frames registered without their blobs (once): (homography, correlation, ok)."""
-                if not without:
-                    h, cc, overlap = register_binned(*rest, initial[p], factor, from_initial=True)
-                    enough = policy.min_overlap * max(int(rest[1][1].sum()), 1)
-                    without.append((h, cc, cc >= policy.min_correlation and overlap >= enough))
-                return without[0]
+                h, cc, overlap = register_binned(*rest, initial[p], factor, from_initial=True)
+                enough = policy.min_overlap * max(int(rest[1][1].sum()), 1)
+                return h, cc, cc >= policy.min_correlation and overlap >= enough
 
             corners = geometry.corners(a.shape[1] * factor, a.shape[0] * factor)
             vetoed: list[bool] = []
