@@ -75,11 +75,15 @@ class PairCheck:
         return LevelCheck(self, executor if executor.in_process else SerialExecutor())
 
 
-def _binned_with_blob(flux: NDArray[np.float32], mask: NDArray[np.bool_], factor: int
+def _binned_with_blob(flux: NDArray[np.float32], mask: NDArray[np.bool_], factor: int, find_blob: bool = True
                       ) -> tuple[NDArray[np.float32], NDArray[np.bool_], NDArray[np.bool_]]:
-    """A merged frame's binned image, valid pixels and bright blob (:func:`~photonpano.imaging.brightest_blob`)."""
+    """A merged frame's binned image, valid pixels and bright blob.
+
+    The blob is :func:`~photonpano.imaging.brightest_blob`'s, or none without ``find_blob``
+    (the mover guard is off).
+    """
     image, valid = binned_frame(flux, mask, factor)
-    return image, valid, brightest_blob(image, valid)
+    return image, valid, brightest_blob(image, valid) if find_blob else np.zeros_like(valid)
 
 
 class LevelCheck:
@@ -121,7 +125,7 @@ class LevelCheck:
         keys = {i: (merged.content_key(i), merged.content_key(i, flux=True)) for i in frames}
         missing = [i for i in frames if keys[i] not in self._binned]
         computed = dict(zip(missing, self.executor.map(
-            lambda i: _binned_with_blob(merged.flux[i], merged.masks[i], factor), missing)))
+            lambda i: _binned_with_blob(merged.flux[i], merged.masks[i], factor, self.policy.mover_guard), missing)))
         binned = {i: computed[i] if i in computed else self._binned[keys[i]] for i in frames}
         self._binned = {keys[i]: binned[i] for i in frames}
         policy = self.policy
