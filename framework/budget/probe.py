@@ -32,7 +32,7 @@ from typing import Any
 
 import numpy as np
 
-from ..imaging import block_mean, phase_shift_correlation
+from ..imaging import block_mean, phase_shift_correlation, shift_without_mover
 
 __all__ = ["CaptureProbe", "GroupPlan", "probe_capture", "choose_group_size", "plan_group_size", "short_of_light",
            "whole_flicker_periods"]
@@ -153,7 +153,7 @@ def probe_capture(source, *, probes: int = 8, min_photons: float = 20.0, min_blo
             detections, counted = detections + float(counts.mean()) * 2, counted + 2 * length
             a, _ = block_mean(counts[0].astype(np.float32), binning)
             b, _ = block_mean(counts[1].astype(np.float32), binning)
-            shift, cc = phase_shift_correlation(a, b)
+            shift, cc = shift_without_mover(a, b, *phase_shift_correlation(a, b), min_correlation)
             correlations.append(cc)
             speeds.append(float(np.hypot(*shift)) * binning / length if cc >= min_correlation else np.nan)
         found = int(np.sum(np.isfinite(speeds)))

@@ -36,6 +36,22 @@ def test_probe_finds_no_structure_in_uniform_photons(tmp_path):
     assert max(probe.correlations) < 0.25
 
 
+def test_probe_speed_is_the_scene_s_not_a_crossing_disc_s(monkeypatch):
+    """A bright disc crossing a smooth scene pulls phase correlation to its own motion; the probe is not."""
+    from pathlib import Path
+
+    import photonpano.budget.probe as probe_module
+
+    photo = Path(__file__).resolve().parents[2] / "benchmarks" / "photos" / "objects_coffee.jpg"
+    scene = {"frames": 8000, "height": 128, "width": 256, "photo": str(photo), "flux": 0.5, "vibration_px": 5.0,
+             "vibration_hz": 30.0}
+    static = probe_capture(_capture(**scene)).speed_px_per_frame
+    disc = _capture(**scene, mover_radius_px=15.0, mover_speed_px_per_frame=0.08)
+    assert probe_capture(disc).speed_px_per_frame == pytest.approx(static, rel=0.15)  # 0.0263 against 0.0285
+    monkeypatch.setattr(probe_module, "shift_without_mover", lambda a, b, shift, cc, limit: (shift, cc))
+    assert probe_capture(disc).speed_px_per_frame > 1.5 * static  # phase correlation alone: 0.0604
+
+
 def test_group_size_follows_motion_and_light():
     """Group size follows motion and light."""
     bright_slow = choose_group_size(CaptureProbe(0.2, 0.01), 20_000)
