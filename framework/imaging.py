@@ -342,7 +342,7 @@ def shift_without_mover(a: NDArray[np.float32], b: NDArray[np.float32], shift: N
     every pixel's contrast), without each block's :func:`brightest_blob`; the shift of
     the image centre found so replaces the phase correlation's where it correlates at
     :data:`MOVER_MIN_CORRELATION` or more and differs by more than
-    :data:`MOVER_DISAGREEMENT_PX` in length. On the evaluation suite's 40 captures without
+    :data:`MOVER_DISAGREEMENT_PX` in length. On the evaluation suite's 45 captures without
     a mover the probe is unchanged but on two, where it moves toward the true speed
     (interior_room/fast-pan 0.1261 -> 0.1240, true 0.12; objects_coffee/flux-0.005 0.0288
     -> 0.0272, its base capture 0.0271).
