@@ -112,7 +112,8 @@ def probe_capture(source, *, probes: int = 8, min_photons: float = 20.0, min_blo
     The photon rate is first taken from the middle 1000 frames (to choose L), then from
     every probed block. At ``probes`` places spread over the capture, two adjacent
     blocks of L binary frames are summed, binned to about 32 pixels on the short side,
-    and their shift is found by phase correlation; speed = shift / L. L is the larger
+    and their shift is found by phase correlation, checked against a crossing bright
+    object by :func:`~photonpano.imaging.shift_without_mover`; speed = shift / L. L is the larger
     of ``min_block`` and the length that gathers ``min_photons`` detections per binned
     pixel, and is divided by 4 (down to 8 frames) while fewer than half the probes
     correlate, for motion that moves the frame by more than the correlation can follow;
