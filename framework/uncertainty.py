@@ -35,15 +35,7 @@ light levels and nuisances; see docs/accuracy.md for the current figures: the sh
 frames of ``ok`` captures whose actual error is within twice their predicted sigma, and
 each capture's median sigma over its RMSE; the chain term was added, and the constants
 refitted (1.4 / 2.5 -> 1.3 / 2.0 / 1.0), when the mosaic levels went to full resolution:
-without it two fast pans over 1 px reported ``ok``; and refitted again (-> 1.05 / 4.0 /
-1.5) when ``cubic-lk`` began to smooth the shape of the corrections harder than their
-shift: the RMSE fell by a median 27 % while the held-out residuals, which see each pair
-registration's own shape noise, hardly did, so their ratio to the error fell; with the
-old constants 94-100 % of most captures' frames were within 2 sigma and a fast pan at
-1.04 px reported ``ok``. The constants that pass every rule lie in a narrow band,
-``RESIDUAL_TO_SIGMA`` 0.9-1.15, ``DRIFT_PER_FRAME_EXTENT`` 3.5-5,
-``CHAIN_DRIFT_PER_FRAME_EXTENT`` 1.5-1.6, bounded by interior_clock/flicker-100 (0.90 px,
-sigma 0.30) and animal_chelsea/hot-pixels (0.21 px, sigma 0.58); these are its middle). Frames whose trajectory
+without it two fast pans over 1 px reported ``ok``). Frames whose trajectory
 rests on registrations that failed (bridged from neighbours) or on no registration at
 all (before the first or after the last group's reference frame by more than half a
 group) are marked *unverified*.
@@ -68,15 +60,15 @@ __all__ = ["FrameUncertainty", "frame_uncertainty", "held_out_residuals", "frame
            "RESIDUAL_TO_SIGMA", "DRIFT_PER_FRAME_EXTENT", "CHAIN_DRIFT_PER_FRAME_EXTENT", "NEIGHBOURS",
            "LIMIT_PX"]
 
-RESIDUAL_TO_SIGMA = 1.05
+RESIDUAL_TO_SIGMA = 1.3
 """Local term of the predicted per-frame sigma over the local RMS of held-out pair
 residuals (calibrated on the evaluation suite, see the module)."""
 
-DRIFT_PER_FRAME_EXTENT = 4.0
+DRIFT_PER_FRAME_EXTENT = 2.0
 """Drift term of the predicted sigma per frame extent travelled from the middle frame, in
 units of the capture's median local sigma (calibrated on the evaluation suite)."""
 
-CHAIN_DRIFT_PER_FRAME_EXTENT = 1.5
+CHAIN_DRIFT_PER_FRAME_EXTENT = 1.0
 """Drift term of the predicted sigma per frame extent travelled from the middle frame, in
 units of level 1's pose-graph residual (``levels[0].quality.pose_graph_residual_px``;
 calibrated on the evaluation suite)."""

@@ -23,11 +23,6 @@ from photonpano.stages import Groups, Interpolator, InterpolatorConfig
 from photonpano.types import check_shape
 from pydantic import Field
 
-SHIFT = [4, 5]
-"""Columns of ``p5, p6`` (translation) in the (N, 8) parameters of :func:`params_from_homographies`."""
-SHAPE = [0, 1, 2, 3, 6, 7]
-"""Columns of ``p1..p4, p7, p8`` (the linear part and perspective)."""
-
 
 class CubicLKConfig(InterpolatorConfig):
     """Cubic splines on p1..p8 of the keyframe homographies (paper Eq. 4)."""
@@ -39,20 +34,8 @@ class CubicLKConfig(InterpolatorConfig):
     max(keyframe spacing, m/2) frames), or the pose of the reference frame itself (an
     interpolating not-a-knot spline, the paper's main text)."""
     smoothness: Annotated[float, Field(ge=0)] = 1e-3
-    """exposure-average: weight of the second-difference penalty on the spline
-    coefficients of ``p5, p6`` (the frame centre's shift, see below), relative to the
-    data term; it settles coefficients the groups do not pin down."""
-    shape_smoothness: Annotated[float, Field(ge=0)] = 1.0
-    """exposure-average: the same weight for ``p1..p4, p7, p8``, the shape of the
-    correction about the frame centre (the level loop hands the interpolator corrections
-    centred on the frame centre, :func:`photonpano.levels.estimate_motion`). A merged
-    frame pins its shape far less precisely than its position, and a camera's rotation,
-    zoom and tilt change more slowly than its position, so the shape is smoothed harder.
-    Set on the evaluation suite (``benchmarks/suite.py``) against 1e-3 for both: RMSE
-    animal_chelsea/base 0.083 -> 0.056 px, foliage_dandelions/base 0.135 -> 0.089,
-    highcontrast_hubble/long-100000 (a 45 Hz vibration) 0.095 -> 0.070, and a 2 deg
-    roll vibration at 30 Hz still followed (city_madison 0.044 -> 0.043 px; 10 instead
-    of 1 biases a 0.5 deg, 30 Hz roll: 0.036 -> 0.041 px). See docs/accuracy.md."""
+    """exposure-average: weight of the second-difference penalty on spline coefficients,
+    relative to the data term; it settles coefficients the groups do not pin down."""
     extrapolate: Literal["linear", "constant"] = "linear"
     """reference-frame: beyond the first and last keyframe, continue the end tangent
     (linear) or hold the end value (constant)."""
@@ -124,10 +107,8 @@ class CubicLKInterpolator(Interpolator):
         design = (integral(hi) - integral(lo)) / lengths[:, None]  # (G, K) group means
         second = np.diff(np.eye(n_basis), 2, axis=0)
         scale = np.trace(design.T @ design) / n_basis
-        coef = np.empty((n_basis, params.shape[1]))
-        for columns, weight in ((SHIFT, self.config.smoothness), (SHAPE, self.config.shape_smoothness)):
-            lhs = design.T @ design + weight * scale * second.T @ second
-            coef[:, columns] = np.linalg.solve(lhs, design.T @ params[:, columns])
+        lhs = design.T @ design + self.config.smoothness * scale * second.T @ second
+        coef = np.linalg.solve(lhs, design.T @ params)
         return BSpline(knots, coef, 3)(np.arange(n_frames, dtype=np.float64))
 
 
