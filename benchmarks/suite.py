@@ -123,7 +123,8 @@ def run_capture(capture: Capture, dump: Path | None = None, overrides: Sequence[
     ``dump/<photo>--<variant>.npz`` (``error``, ``sigma``, ``unverified`` per frame, the
     final ``homographies``, ``width`` and ``height``, the last level's evidence pairs
     ``middle``, ``residual``, ``ok``, and level 1's as ``first_middle``, ``first_residual``,
-    ``first_ok``; for recalibrating offline).
+    ``first_ok``, and every level's ``level_homographies`` (L, T, 3, 3) and per-frame
+    ``level_errors`` (L, T); for recalibrating offline).
     """
     from photonpano.host import PluginHost
     from photonpano.metrics import ground_truth_report, source_trajectory_error
@@ -161,7 +162,10 @@ def run_capture(capture: Capture, dump: Path | None = None, overrides: Sequence[
             pairs.update(zip(("first_middle", "first_residual", "first_ok"), first[1:4]))
         unverified = unc.unverified if unc is not None else np.zeros(len(error), bool)
         np.savez(dump / f"{capture.name.replace('/', '--')}.npz", error=error, sigma=sigma, unverified=unverified,
-                 homographies=homographies, width=source.width, height=source.height, **pairs)
+                 homographies=homographies, width=source.width, height=source.height,
+                 level_homographies=np.stack([level.homographies for level in levels]),
+                 level_errors=np.stack([source_trajectory_error(level.homographies, source).per_frame_px
+                                        for level in levels]), **pairs)
     return {**row, "rmse": gt["trajectory_rmse_px"], "max": gt["trajectory_max_px"], "psnr_gap": gt["psnr_gap_db"],
             "over_flux_canvas": gt["psnr_db"] - gt["psnr_estimated_by"]["flux-canvas"],
             "over_flux_canvas_true": gt["psnr_db"] - gt["psnr_true_homographies_by"]["flux-canvas"],

@@ -37,7 +37,8 @@ def estimate_motion(source: PhotonSource, resampler: Resampler, merger: Merger, 
     One level per scheme. Each level re-samples groups, has its scheme merge them with
     the current homographies (relative to each group's reference frame) and register
     them into keyframe homographies, and interpolates the keyframe *corrections*
-    ``K_g @ inv(H[ref_g])`` to every frame, so that detail resolved at earlier, denser
+    ``inv(H[ref_g]) @ K_g`` (in the frame's coordinates centred on the frame centre, see
+    :func:`_interpolate`) to every frame, so that detail resolved at earlier, denser
     levels is kept (at level 1, where ``H`` is the identity, this is the paper's plain
     interpolation of the keyframe homographies).
 
@@ -134,11 +135,23 @@ def _resample(resampler: Resampler, n: int, group_size: int, level: int) -> Grou
 def _interpolate(interpolator: Interpolator, groups: Groups, current: NDArray[np.float64],
                  keyframes: NDArray[np.float64], homographies: NDArray[np.float64], source: PhotonSource,
                  level: int) -> NDArray[np.float64]:
-    """Interpolate the keyframe corrections to every frame and apply them (refusing folds)."""
-    correction = keyframes @ np.linalg.inv(current)
+    """Interpolate the keyframe corrections to every frame and apply them (refusing folds).
+
+    Each correction is taken in its own frame's pixel coordinates with the origin moved to
+    the frame centre, ``C_g = inv(T_c) @ inv(H[ref_g]) @ K_g @ T_c``, and applied as
+    ``H[t] @ T_c @ C(t) @ inv(T_c)``. Then ``p5, p6`` of a correction are the shift of
+    the frame centre and ``p1..p4, p7, p8`` its shape (rotation, scale, shear, perspective
+    about the centre): an error in one does not move the other, so an interpolator may
+    smooth them differently (``cubic-lk``'s ``shape_smoothness``). In panorama
+    coordinates (the correction ``K_g @ inv(H[ref_g])``, as before) a rotation about the
+    panorama's origin also shifts every frame far from it, which couples the two.
+    """
+    centre = geometry.translation((source.width - 1) / 2, (source.height - 1) / 2)
+    to_centre = np.linalg.inv(centre)
+    correction = geometry.normalize(to_centre @ np.linalg.inv(current) @ keyframes @ centre)
     with watched("interpolator", interpolator, "interpolate"):
         update = interpolator.interpolate(groups.reference, correction, len(homographies), groups)
-    updated = geometry.normalize(update @ homographies)
+    updated = geometry.normalize(homographies @ centre @ update @ to_centre)
     if not plausible(geometry.invert(homographies) @ updated, source.width, source.height).all():
         raise StageError("interpolator", type(interpolator).__name__,
                          f"level {level}: the interpolated update folds or rescales some frames")

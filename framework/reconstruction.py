@@ -246,9 +246,12 @@ def reconstruct(spec: PipelineSpec, source: PhotonSource, *, on_level: Callable[
     stats: list[dict[str, Any]] = list(resume.statistics) if resume is not None else []
     stages = Stages(spec, source)
     last: LevelResult | None = None
+    before_last = resume.homographies if resume is not None else None  # the level before ``last``'s trajectory
 
     def level_done(result: LevelResult) -> None:
-        nonlocal last
+        nonlocal last, before_last
+        if last is not None:
+            before_last = last.homographies
         last = result
         if on_level is not None:
             on_level(result)
@@ -271,7 +274,8 @@ def reconstruct(spec: PipelineSpec, source: PhotonSource, *, on_level: Callable[
         agreement = panorama_agreement(source, stages.merger, homographies, pano, plan.group_size,
                                        budget.agreement_binning)
         chain = stats[0].get("quality", {}).get("pose_graph_residual_px") if stats else None
-        uncertainty = frame_uncertainty(last, source.width, source.height, chain) if last is not None else None
+        uncertainty = (frame_uncertainty(last, source.width, source.height, chain, previous=before_last)
+                       if last is not None else None)
         summary = uncertainty.summary(source.frame_rate_hz) if uncertainty is not None else None
         status, warnings = assess(plan, stats, agreement, summary)
         movers = _movers_record(stats)

@@ -213,7 +213,9 @@ class Interpolator(abc.ABC):
 
         Args:
             keyframes: (G,) int64 strictly increasing frame indices, G >= 1.
-            homographies: (G, 3, 3) float64 homographies at those frames.
+            homographies: (G, 3, 3) float64 homographies at those frames (from the level
+                loop: corrections in each frame's pixels with the origin at the frame
+                centre, so ``p5, p6`` are its shift; :func:`photonpano.levels.estimate_motion`).
             n_frames: number of binary frames T.
             groups: the groups whose merged frames gave the keyframes (their
                 ``reference`` equals ``keyframes``), for interpolators that model a

@@ -217,3 +217,35 @@ def test_register_pairs_resolves_ids_and_refuses_what_it_cannot():
         with pytest.raises(ValueError, match=message) as raised:
             named_frames("Loc.register_pairs", frames_, np.array(pairs))
         assert "\n" not in str(raised.value)
+
+
+def test_the_interpolator_gets_corrections_centred_on_the_frame_centre():
+    """A keyframe turned about its own centre, far along a pan: its correction's shift is zero.
+
+    In panorama coordinates the same turn, about the panorama's origin, reads as a large shift.
+    """
+    from types import SimpleNamespace
+
+    from photonpano import geometry
+    from photonpano.levels import _interpolate
+    from photonpano.records import Groups
+    from photonpano.stages import Interpolator
+
+    class Hold(Interpolator):
+        def interpolate(self, keyframes, homographies, n_frames, groups=None):
+            self.seen = homographies
+            return np.repeat(homographies[:1], n_frames, axis=0)
+
+    width, height, angle = 496, 254, 0.01
+    c, s = np.cos(angle), np.sin(angle)
+    centre = geometry.translation((width - 1) / 2, (height - 1) / 2)
+    turn = centre @ np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]]) @ np.linalg.inv(centre)
+    current = np.repeat(geometry.translation(2000.0, 0)[None], 10, axis=0)
+    groups = Groups(start=np.array([0]), stop=np.array([10]), reference=np.array([5]))
+    hold = Hold()
+    updated = _interpolate(hold, groups, current[:1], current[:1] @ turn, current,
+                           SimpleNamespace(width=width, height=height), level=2)
+    shape = geometry.params_from_homographies(hold.seen)[0]
+    assert np.abs(shape[4:6]).max() < 1e-9 and abs(shape[1] - s) < 1e-9
+    middle = geometry.apply(updated, np.array([[(width - 1) / 2, (height - 1) / 2]]))
+    np.testing.assert_allclose(middle[:, 0], [[2000 + (width - 1) / 2, (height - 1) / 2]] * 10, atol=1e-9)

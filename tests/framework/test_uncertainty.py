@@ -7,7 +7,7 @@ from photonpano.quality import _uncertainty_warnings
 from photonpano.records import Groups, LevelResult, LocateResult, PairRegistrations
 from photonpano.uncertainty import (
     CHAIN_DRIFT_PER_FRAME_EXTENT,
-    DRIFT_PER_FRAME_EXTENT,
+    LEVEL_CHANGE_TO_SIGMA,
     LIMIT_PX,
     NEIGHBOURS,
     RESIDUAL_TO_SIGMA,
@@ -46,37 +46,39 @@ def test_local_rms_ignores_missing_values():
 
 
 def test_residuals_scale_into_sigma_for_every_frame():
-    """Held-out pairs off by 0.1 px predict RESIDUAL_TO_SIGMA x 0.1 px, plus the drift term; none is unverified."""
+    """Held-out pairs off by 0.1 px predict RESIDUAL_TO_SIGMA x 0.1 px everywhere; none is unverified."""
     result = _level(shift=np.full(18, 0.1))
     unc = frame_uncertainty(result, W, H)
     assert unc.sigma_px.shape == (1000,) and unc.sigma_px.dtype == np.float64
-    local = RESIDUAL_TO_SIGMA * 0.1
-    travelled = frame_extents_travelled(result.homographies, W, H)
-    assert travelled[500] == 0 and travelled[0] == pytest.approx(5 / W)  # 0.01 px/frame, 500 frames from the middle
-    assert np.allclose(unc.sigma_px, np.hypot(local, DRIFT_PER_FRAME_EXTENT * local * travelled))
+    assert np.allclose(unc.sigma_px, RESIDUAL_TO_SIGMA * 0.1)
     assert not unc.unverified.any() and unc.evidence == "held-out pairs" and unc.failed == 0
 
 
-def test_sigma_grows_with_the_frame_extents_travelled_from_the_middle():
-    """A pan across three frame widths: the same local residuals predict more error at its ends (chain drift)."""
-    n = 1000
-    wide = frame_uncertainty(_level(n_frames=n, shift=np.full(18, 0.1), speed=3 * W / n), W, H)
-    local = RESIDUAL_TO_SIGMA * 0.1
-    assert wide.sigma_px[n // 2] == pytest.approx(local)
-    assert wide.sigma_px[0] == pytest.approx(np.hypot(local, DRIFT_PER_FRAME_EXTENT * local * 1.5))
-    assert np.all(np.diff(wide.sigma_px[n // 2:]) >= 0)
-
-
 def test_level_one_chain_residual_adds_drift_away_from_the_middle_only():
-    """The chain term: level 1's pose-graph residual per frame extent travelled, in quadrature."""
+    """A pan across three frame widths: level 1's pose-graph residual per frame extent travelled, in quadrature."""
     n = 1000
     level = _level(n_frames=n, shift=np.full(18, 0.02), speed=3 * W / n)
     plain, chained = frame_uncertainty(level, W, H), frame_uncertainty(level, W, H, chain_residual_px=0.4)
     local = RESIDUAL_TO_SIGMA * 0.02
+    travelled = frame_extents_travelled(level.homographies, W, H)
+    assert travelled[n // 2] == 0 and travelled[0] == pytest.approx(1.5)
     assert chained.sigma_px[n // 2] == pytest.approx(plain.sigma_px[n // 2]) == pytest.approx(local)
-    per_extent = np.hypot(DRIFT_PER_FRAME_EXTENT * local, CHAIN_DRIFT_PER_FRAME_EXTENT * 0.4)
-    assert chained.sigma_px[0] == pytest.approx(np.hypot(local, per_extent * 1.5))
+    assert chained.sigma_px[0] == pytest.approx(np.hypot(local, CHAIN_DRIFT_PER_FRAME_EXTENT * 0.4 * 1.5))
+    assert np.all(np.diff(chained.sigma_px[n // 2:]) >= 0)
     assert chained.sigma_px[0] > 3 * plain.sigma_px[0]  # precise local residuals no longer hide the chain
+
+
+def test_the_last_level_moving_frames_adds_its_move_to_their_sigma():
+    """Frames the last level moved 0.8 px from the level before get LEVEL_CHANGE_TO_SIGMA x 0.8 px more, in quadrature."""
+    level = _level(shift=np.full(18, 0.05))
+    previous = level.homographies.copy()
+    previous[200:400] = geometry.translation(0.0, 0.8) @ previous[200:400]
+    unc = frame_uncertainty(level, W, H, previous=previous)
+    local = RESIDUAL_TO_SIGMA * 0.05
+    assert unc.sigma_px[300] == pytest.approx(np.hypot(local, LEVEL_CHANGE_TO_SIGMA * 0.8))
+    assert unc.sigma_px[100] == pytest.approx(local) and unc.sigma_px[500] == pytest.approx(local)
+    with pytest.raises(ValueError, match="previous level"):
+        frame_uncertainty(level, W, H, previous=previous[:10])
 
 
 def test_a_jump_is_located_and_named_by_frames_and_seconds():
