@@ -246,12 +246,14 @@ def reconstruct(spec: PipelineSpec, source: PhotonSource, *, on_level: Callable[
     stats: list[dict[str, Any]] = list(resume.statistics) if resume is not None else []
     stages = Stages(spec, source)
     last: LevelResult | None = None
-    before_last = resume.homographies if resume is not None else None  # the level before ``last``'s trajectory
+    # the trajectory and scheme of the level before ``last`` (the level-change term of the uncertainty)
+    before_last = resume.homographies if resume is not None else None
+    before_scheme = stats[-1].get("scheme") if stats else None
 
     def level_done(result: LevelResult) -> None:
-        nonlocal last, before_last
+        nonlocal last, before_last, before_scheme
         if last is not None:
-            before_last = last.homographies
+            before_last, before_scheme = last.homographies, last.scheme
         last = result
         if on_level is not None:
             on_level(result)
@@ -274,7 +276,10 @@ def reconstruct(spec: PipelineSpec, source: PhotonSource, *, on_level: Callable[
         agreement = panorama_agreement(source, stages.merger, homographies, pano, plan.group_size,
                                        budget.agreement_binning)
         chain = stats[0].get("quality", {}).get("pose_graph_residual_px") if stats else None
-        uncertainty = (frame_uncertainty(last, source.width, source.height, chain, previous=before_last)
+        # the level-change term compares two iterations of the same scheme: a mosaic level after the
+        # pairwise level 1 moves the frames by level 1's error, not by the error left after it
+        previous = before_last if last is not None and before_scheme == last.scheme else None
+        uncertainty = (frame_uncertainty(last, source.width, source.height, chain, previous=previous)
                        if last is not None else None)
         summary = uncertainty.summary(source.frame_rate_hz) if uncertainty is not None else None
         status, warnings = assess(plan, stats, agreement, summary)

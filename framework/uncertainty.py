@@ -25,7 +25,9 @@ predicts a 1-sigma error for every binary frame from three terms, added in quadr
   pose-graph residual. A fast pan across three frame widths drifted by 1-2 px at its ends
   while its local residuals predicted 0.4 px.
 - *level change*: how far the last level moved each frame from the level before's
-  trajectory, times :data:`LEVEL_CHANGE_TO_SIGMA`. A level that still moves the
+  trajectory, times :data:`LEVEL_CHANGE_TO_SIGMA`, where both levels iterate the same
+  scheme (two mosaic levels; the first mosaic level after the pairwise level 1 moves the
+  frames by level 1's error, which it has just removed). A level that still moves the
   trajectory by a pixel has not converged, and one whose merged frames hold too few
   photons to register moves it by its noise; in both cases the error that is left is of
   the order of that move (the a-posteriori error estimate of an iteration: the last
@@ -148,7 +150,9 @@ def frame_uncertainty(result: LevelResult, width: int, height: int, chain_residu
             distance of its pairs from the solved keyframes,
             :func:`~photonpano.quality.level_figures`), or None (no chain term).
         previous: (T, 3, 3) float64 frame-to-panorama homographies of the level before
-            the last (same panorama), or None (a single level: no level-change term).
+            the last (same panorama), or None (no level-change term: a single level, or a
+            level before of another scheme, whose move measures its own error, not the
+            error the last level left; the pipeline passes it between two mosaic levels).
 
     Returns:
         The :class:`FrameUncertainty`, or None if the level holds no evidence (a mosaic
