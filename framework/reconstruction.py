@@ -246,15 +246,17 @@ def reconstruct(spec: PipelineSpec, source: PhotonSource, *, on_level: Callable[
     stats: list[dict[str, Any]] = list(resume.statistics) if resume is not None else []
     stages = Stages(spec, source)
     last: LevelResult | None = None
-    # the trajectory and scheme of the level before ``last`` (the level-change term of the uncertainty)
-    before_last = resume.homographies if resume is not None else None
-    before_scheme = stats[-1].get("scheme") if stats else None
+    # each scheme's earliest trajectory, for the level-change term of the uncertainty (how far the
+    # levels of the last level's scheme moved the frames since its first); a resumed run starts
+    # from the last finished level's
+    first_of_scheme: dict[str, NDArray[np.float64]] = {}
+    if resume is not None and stats and stats[-1].get("scheme"):
+        first_of_scheme[stats[-1]["scheme"]] = resume.homographies
 
     def level_done(result: LevelResult) -> None:
-        nonlocal last, before_last, before_scheme
-        if last is not None:
-            before_last, before_scheme = last.homographies, last.scheme
+        nonlocal last
         last = result
+        first_of_scheme.setdefault(result.scheme, result.homographies)
         if on_level is not None:
             on_level(result)
         stats.append(stages.level_statistics(result))
@@ -276,9 +278,12 @@ def reconstruct(spec: PipelineSpec, source: PhotonSource, *, on_level: Callable[
         agreement = panorama_agreement(source, stages.merger, homographies, pano, plan.group_size,
                                        budget.agreement_binning)
         chain = stats[0].get("quality", {}).get("pose_graph_residual_px") if stats else None
-        # the level-change term compares two iterations of the same scheme: a mosaic level after the
-        # pairwise level 1 moves the frames by level 1's error, not by the error left after it
-        previous = before_last if last is not None and before_scheme == last.scheme else None
+        # the level-change term compares iterations of one scheme: a mosaic level after the pairwise
+        # level 1 moves the frames by level 1's error, not by the error left after it; and the move
+        # since the scheme's first level, not the last step alone, which shrinks with every level
+        # added where convergence is slow (a fourth level hid a dark scene's 0.86 px error)
+        first = first_of_scheme.get(last.scheme) if last is not None else None
+        previous = first if first is not None and last is not None and first is not last.homographies else None
         uncertainty = (frame_uncertainty(last, source.width, source.height, chain, previous=previous)
                        if last is not None else None)
         summary = uncertainty.summary(source.frame_rate_hz) if uncertainty is not None else None

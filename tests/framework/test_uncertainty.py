@@ -69,7 +69,7 @@ def test_level_one_chain_residual_adds_drift_away_from_the_middle_only():
 
 
 def test_the_last_level_moving_frames_adds_its_move_to_their_sigma():
-    """Frames the last level moved 0.8 px from the level before get LEVEL_CHANGE_TO_SIGMA x 0.8 px more, in quadrature."""
+    """Frames moved 0.8 px from the previous trajectory get LEVEL_CHANGE_TO_SIGMA x 0.8 px more, in quadrature."""
     level = _level(shift=np.full(18, 0.05))
     previous = level.homographies.copy()
     previous[200:400] = geometry.translation(0.0, 0.8) @ previous[200:400]
