@@ -38,7 +38,13 @@ def camera_path(config: SimulateConfig, scene_shape: tuple[int, int]) -> NDArray
     ``H[t] = T(centre + offset(t)) R(theta(t)) S(zoom(t)) T(-frame_centre)``: a frame
     pixel ``(x, y)`` of binary frame t sees scene pixel ``H[t] @ (x, y, 1)``, frame
     pixels measured in scene pixels (a frame spans ``pixel_pitch`` times its size in
-    pixels).
+    pixels). With ``vibration_model: rotation`` the vibration is not in the offset but a
+    turn of a pinhole camera (focal length ``f = focal_px * pixel_pitch``) about its
+    centre, applied to the frame first: ``H[t] @ T(frame_centre) K R_t K^-1
+    T(-frame_centre)``, ``K = diag(f, f, 1)``, ``R_t`` a yaw of ``atan(a sin(w t) / f)``
+    then a pitch of ``atan(a cos(w t) / f)`` (a = ``vibration_px``), which moves the frame
+    centre by about ``a`` as the translation would (Hartley and Zisserman, *Multiple View
+    Geometry*, 2nd ed., Sec. 8.4.2: a camera rotating about its centre, ``H = K R K^-1``).
 
     Args:
         config: the simulation settings.
@@ -67,8 +73,10 @@ def camera_path(config: SimulateConfig, scene_shape: tuple[int, int]) -> NDArray
         shake *= config.shake_px / max(float(np.sqrt(np.mean(shake ** 2))), 1e-12) / np.sqrt(2)
         x, y = x + shake[0], y + shake[1]
     w = 2 * np.pi * config.vibration_hz * s
-    x = x + config.vibration_px * np.sin(w)
-    y = y + config.vibration_px * np.cos(w)
+    rotating = config.vibration_model == "rotation" and config.vibration_px > 0
+    if not rotating:
+        x = x + config.vibration_px * np.sin(w)
+        y = y + config.vibration_px * np.cos(w)
     theta = np.deg2rad(config.rotation_deg) * np.sin(2 * np.pi * config.rotation_hz * s)
     zoom = 1.0 + config.zoom * np.sin(2 * np.pi * config.zoom_hz * s)
 
@@ -82,6 +90,9 @@ def camera_path(config: SimulateConfig, scene_shape: tuple[int, int]) -> NDArray
     h[:, 0, 2] = (ws - 1) / 2 + x - (c * cx - si * cy)
     h[:, 1, 2] = (hs - 1) / 2 + y - (si * cx + c * cy)
     h[:, 2, 2] = 1
+    if rotating:
+        h = h @ _turning_camera(config.vibration_px * np.sin(w), config.vibration_px * np.cos(w),
+                                config.focal_px * config.pixel_pitch, cx, cy)
 
     from photonpano.geometry import footprint_bounds
 
@@ -93,6 +104,37 @@ def camera_path(config: SimulateConfig, scene_shape: tuple[int, int]) -> NDArray
             "reduce frames, speed_px_per_frame or the motion amplitudes, or raise scene_width"
         )
     return h
+
+
+def _turning_camera(shift_x: NDArray[np.float64], shift_y: NDArray[np.float64], focal: float,
+                    cx: float, cy: float) -> NDArray[np.float64]:
+    """Homographies of a pinhole camera turned to move its frame centre by about ``(shift_x, shift_y)``.
+
+    Args:
+        shift_x: (T,) float64 shift of the frame centre along x (a yaw), in pixels.
+        shift_y: (T,) float64 shift along y (a pitch), in pixels.
+        focal: focal length in pixels.
+        cx: x of the frame centre (the principal point) in pixels.
+        cy: y of the frame centre in pixels.
+
+    Returns:
+        (T, 3, 3) float64 ``T(c) K R_t K^-1 T(-c)``, frame pixels of the turned camera to
+        those of the unturned one, ``R_t`` a yaw of ``atan(shift_x / f)`` then a pitch of
+        ``atan(shift_y / f)``.
+    """
+    yaw, pitch = np.arctan(shift_x / focal), np.arctan(shift_y / focal)
+    cos_a, sin_a, cos_b, sin_b = np.cos(yaw), np.sin(yaw), np.cos(pitch), np.sin(pitch)
+    n = len(yaw)
+    rotation = np.zeros((n, 3, 3))
+    # R = R_yaw @ R_pitch, R_yaw = [[ca, 0, sa], [0, 1, 0], [-sa, 0, ca]],
+    # R_pitch = [[1, 0, 0], [0, cb, sb], [0, -sb, cb]]
+    rotation[:, 0, 0], rotation[:, 0, 1], rotation[:, 0, 2] = cos_a, -sin_a * sin_b, sin_a * cos_b
+    rotation[:, 1, 1], rotation[:, 1, 2] = cos_b, sin_b
+    rotation[:, 2, 0], rotation[:, 2, 1], rotation[:, 2, 2] = -sin_a, -cos_a * sin_b, cos_a * cos_b
+    k = np.diag([focal, focal, 1.0])
+    centre = np.array([[1.0, 0.0, cx], [0.0, 1.0, cy], [0.0, 0.0, 1.0]])
+    out = centre @ k @ rotation @ np.linalg.inv(k) @ np.linalg.inv(centre)
+    return out / out[:, 2:3, 2:3]
 
 
 def load_scene(photo: Path, scene_width: int, colour: bool = False) -> NDArray[np.float32]:

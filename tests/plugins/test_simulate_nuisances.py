@@ -159,3 +159,24 @@ def test_nuisance_settings_are_validated():
     # a disc that does not move is fine
     cap = SimulateConfig(**{**BASE, "frames": 10}, mover_radius_px=5, mover_speed_px_per_frame=0).build()
     assert np.ptp(cap.mover_centres, axis=0).max() == 0
+
+
+def test_a_rotating_camera_moves_the_centre_like_the_translation_and_the_corners_by_perspective():
+    """vibration_model rotation: the frame centre follows the same circle; the corners move up to ~2.2 px more."""
+    from photonpano import geometry
+    from photonpano.plugins.sources._simulated_scene import camera_path
+
+    settings = dict(BASE, vibration_px=5.0, vibration_hz=300.0, width=496, height=254, scene_width=1440)
+    sliding, turning = SimulateConfig(**settings), SimulateConfig(**settings, vibration_model="rotation")
+    shape = (800, 1440)
+    a, b = camera_path(sliding, shape), camera_path(turning, shape)
+    centre = np.array([[(496 - 1) / 2, (254 - 1) / 2]])
+    np.testing.assert_allclose(geometry.apply(b, centre), geometry.apply(a, centre), atol=0.05)
+    frame_corners = geometry.corners(496, 254)
+    corners = np.linalg.norm(geometry.apply(b, frame_corners) - geometry.apply(a, frame_corners), axis=-1)
+    # a yaw of atan(5 / 420) alone moves a corner 5 x^2 / f^2 = 1.7 px further; with the pitch, up to 2.2 px
+    assert 2.0 < corners.max() < 2.5
+    # without vibration, the model changes nothing
+    still = dict(settings, vibration_px=0.0)
+    np.testing.assert_array_equal(camera_path(SimulateConfig(**still, vibration_model="rotation"), shape),
+                                  camera_path(SimulateConfig(**still), shape))
