@@ -246,17 +246,18 @@ def reconstruct(spec: PipelineSpec, source: PhotonSource, *, on_level: Callable[
     stats: list[dict[str, Any]] = list(resume.statistics) if resume is not None else []
     stages = Stages(spec, source)
     last: LevelResult | None = None
-    # each scheme's earliest trajectory, for the level-change term of the uncertainty (how far the
-    # levels of the last level's scheme moved the frames since its first); a resumed run starts
-    # from the last finished level's
+    # each scheme's earliest trajectory after level 1, for the level-change term of the uncertainty
+    # (how far the levels of the last level's scheme moved the frames since its first refining
+    # level; a resumed run starts from the last finished level's)
     first_of_scheme: dict[str, NDArray[np.float64]] = {}
-    if resume is not None and stats and stats[-1].get("scheme"):
+    if resume is not None and len(stats) >= 2 and stats[-1].get("scheme"):
         first_of_scheme[stats[-1]["scheme"]] = resume.homographies
 
     def level_done(result: LevelResult) -> None:
         nonlocal last
         last = result
-        first_of_scheme.setdefault(result.scheme, result.homographies)
+        if result.level >= 2:
+            first_of_scheme.setdefault(result.scheme, result.homographies)
         if on_level is not None:
             on_level(result)
         stats.append(stages.level_statistics(result))
@@ -278,10 +279,10 @@ def reconstruct(spec: PipelineSpec, source: PhotonSource, *, on_level: Callable[
         agreement = panorama_agreement(source, stages.merger, homographies, pano, plan.group_size,
                                        budget.agreement_binning)
         chain = stats[0].get("quality", {}).get("pose_graph_residual_px") if stats else None
-        # the level-change term compares iterations of one scheme: a mosaic level after the pairwise
+        # the level-change term compares iterations of one scheme after level 1: the level after
         # level 1 moves the frames by level 1's error, not by the error left after it; and the move
-        # since the scheme's first level, not the last step alone, which shrinks with every level
-        # added where convergence is slow (a fourth level hid a dark scene's 0.86 px error)
+        # since the scheme's first such level, not the last step alone, which shrinks with every
+        # level added where convergence is slow (a fourth level hid a dark scene's 0.86 px error)
         first = first_of_scheme.get(last.scheme) if last is not None else None
         previous = first if first is not None and last is not None and first is not last.homographies else None
         uncertainty = (frame_uncertainty(last, source.width, source.height, chain, previous=previous)

@@ -156,8 +156,9 @@ def frame_uncertainty(result: LevelResult, width: int, height: int, chain_residu
             distance of its pairs from the solved keyframes,
             :func:`~photonpano.quality.level_figures`), or None (no chain term).
         previous: (T, 3, 3) float64 frame-to-panorama homographies (same panorama) of
-            the first level of the last level's scheme (the pipeline passes the first
-            mosaic level's), or None (no level-change term: a single level of that scheme).
+            the first level after level 1 of the last level's scheme (the pipeline passes
+            the first mosaic level's, level 2 by default), or None (no level-change term:
+            no such level before the last).
 
     Returns:
         The :class:`FrameUncertainty`, or None if the level holds no evidence (a mosaic

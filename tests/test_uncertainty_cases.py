@@ -46,19 +46,20 @@ def _levels_and_report(source: dict, overrides: list[str]):
     return capture, levels, stats, report
 
 
-@pytest.mark.parametrize("levels", [2, 4])
-def test_the_level_change_term_is_the_move_since_the_first_mosaic_level(levels):
-    """Two levels: no level-change term (level 2 moves frames by level 1's error); four: levels 2 -> 4, not 3 -> 4."""
+@pytest.mark.parametrize("overrides, since", [(["levels=2"], None), (["levels=4"], 2),
+                                              (["level_schemes=[pairwise]"], 2)])
+def test_the_level_change_term_is_the_move_since_the_first_level_after_level_1(overrides, since):
+    """Levels 2 -> last of the last level's scheme; none with two levels (level 2 moves frames by level 1's error)."""
     from photonpano.uncertainty import frame_uncertainty
 
     capture, results, stats, report = _levels_and_report(
-        {"frames": 3000, "height": 128, "width": 248, "vibration_px": 2.0}, [f"levels={levels}"])
-    assert [r.scheme for r in results] == ["pairwise"] + ["mosaic"] * (levels - 1)
+        {"frames": 3000, "height": 128, "width": 248, "vibration_px": 2.0}, overrides)
+    assert len({r.scheme for r in results[1:]}) == 1
     chain = stats[0]["quality"]["pose_graph_residual_px"]
-    previous = results[1].homographies if levels > 2 else None
+    previous = results[since - 1].homographies if since is not None else None
     expected = frame_uncertainty(results[-1], capture.width, capture.height, chain, previous=previous)
     assert np.allclose(report["frame_uncertainty"].sigma_px, expected.sigma_px)
-    if levels > 2:  # the last step alone predicts less
+    if len(results) > 3:  # the last step alone predicts less
         last_step = frame_uncertainty(results[-1], capture.width, capture.height, chain,
                                       previous=results[-2].homographies)
         assert np.median(expected.sigma_px) > np.median(last_step.sigma_px)

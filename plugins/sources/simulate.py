@@ -82,12 +82,11 @@ class SimulateConfig(ColourSourceConfig):
     vibration_hz: Annotated[float, Field(ge=0)] = 30.0
     """Frequency of the vibration in Hz."""
     vibration_model: Literal["translation", "rotation"] = "translation"
-    """What vibrates: the frame slides over the scene (``translation``, a camera moving
-    parallel to a flat scene), or a pinhole camera of focal length ``focal_px`` turns about
-    its centre (``rotation``: yaw and pitch that move the frame centre by ``vibration_px``
-    on the same circle; a hand-held camera shakes by turning). A rotation also changes the
-    frame's perspective: at 5 px and 420 px focal length a frame corner of a 496x254 frame
-    moves up to 2.2 px more or less than the centre."""
+    """What vibrates: the frame slides over the scene (``translation``), or a pinhole camera
+    of focal length ``focal_px`` turns about its centre (``rotation``: yaw and pitch moving
+    the frame centre by ``vibration_px`` on the same circle, as a hand-held camera shakes),
+    which vibrates the frame's perspective too: at 5 px and 420 px a corner of a 496x254
+    frame moves up to 2.2 px more or less than the centre."""
     focal_px: Annotated[float, Field(gt=0)] = 420.0
     """``vibration_model: rotation``: focal length of the pinhole camera in frame pixels."""
     rotation_deg: Annotated[float, Field(ge=0)] = 0.0
