@@ -283,10 +283,11 @@ def reconstruct(spec: PipelineSpec, source: PhotonSource, *, on_level: Callable[
         # level 1 moves the frames by level 1's error, not by the error left after it; and the move
         # since the scheme's first such level, not the last step alone, which shrinks with every
         # level added where convergence is slow (a fourth level hid a dark scene's 0.86 px error)
-        first = first_of_scheme.get(last.scheme) if last is not None else None
-        previous = first if first is not None and last is not None and first is not last.homographies else None
-        uncertainty = (frame_uncertainty(last, source.width, source.height, chain, previous=previous)
-                       if last is not None else None)
+        uncertainty = None
+        if last is not None:
+            first = first_of_scheme.get(last.scheme)
+            uncertainty = frame_uncertainty(last, source.width, source.height, chain,
+                                            previous=None if first is last.homographies else first)
         summary = uncertainty.summary(source.frame_rate_hz) if uncertainty is not None else None
         status, warnings = assess(plan, stats, agreement, summary)
         movers = _movers_record(stats)
