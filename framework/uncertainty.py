@@ -51,11 +51,10 @@ median local sigma); a chain term when the mosaic levels went to full resolution
 (1.3 / 2.0 / 1.0); refitted when ``cubic-lk`` began to smooth the shape of the
 corrections (1.05 / 3.5 / 1.6, a knife-edge fit: the RMSE fell a median 27 % while the
 held-out residuals did not); then the level-change term, which made the drift term from
-the median local sigma unnecessary and widened the band of constants that pass every rule.
-Frames whose trajectory
-rests on registrations that failed (bridged from neighbours) or on no registration at
-all (before the first or after the last group's reference frame by more than half a
-group) are marked *unverified*.
+the median local sigma unnecessary (0.9 / 0.5 / 1.2). Frames whose trajectory rests on
+registrations that failed (bridged from neighbours) or on no registration at all (before
+the first or after the last group's reference frame by more than half a group) are marked
+*unverified*.
 
 Where the last level registers pairs itself (the ``pairwise`` scheme, whose pose graph
 holds redundant pairs), its consecutive pairs' residuals against the solved keyframes
