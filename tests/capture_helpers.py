@@ -7,6 +7,7 @@
 - :func:`write_video`: frames to a video file with PyAV.
 - :func:`reconstruct_simulated`: a ``simulate`` capture reconstructed by the pipeline,
   with its trajectory error and confidence report.
+- :func:`load_suite`: the evaluation suite, ``benchmarks/suite.py``, as a module.
 """
 
 from __future__ import annotations
@@ -146,3 +147,16 @@ def reconstruct_simulated(source: dict, overrides=()):
     report: dict = {}
     homographies, _, _, _ = reconstruct(spec, capture, report=report)
     return source_trajectory_error(homographies, capture), report
+
+
+def load_suite():
+    """Import ``benchmarks/suite.py`` (the evaluation suite) as the module ``suite``."""
+    import importlib.util
+    import sys
+
+    spec = importlib.util.spec_from_file_location("suite", Path(__file__).resolve().parents[1] / "benchmarks"
+                                                  / "suite.py")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules["suite"] = module  # dataclasses look their module up
+    spec.loader.exec_module(module)
+    return module

@@ -1,21 +1,8 @@
 """The evaluation suite's quick subset (issue 26): what ``benchmarks/suite.py --quick`` checks, in CI."""
 
-import importlib.util
-import sys
-from pathlib import Path
-
 import numpy as np
 import pytest
-
-SUITE = Path(__file__).resolve().parents[1] / "benchmarks" / "suite.py"
-
-
-def _suite():
-    spec = importlib.util.spec_from_file_location("suite", SUITE)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules["suite"] = module  # dataclasses look their module up
-    spec.loader.exec_module(module)
-    return module
+from capture_helpers import load_suite as _suite
 
 
 def test_the_suite_has_forty_captures_of_ten_photographs_and_every_regime():

@@ -68,15 +68,9 @@ def test_the_level_change_term_is_the_move_since_the_first_level_after_level_1(o
 @pytest.mark.slow
 def test_a_fourth_level_does_not_hide_a_dark_scene_s_error():
     """The suite's dark outdoor capture with levels=4: 0.86 px; the last step alone predicted 0.23 px and said ok."""
-    import importlib.util
-    import sys
-    from pathlib import Path
+    from capture_helpers import load_suite
 
-    path = Path(__file__).resolve().parents[1] / "benchmarks" / "suite.py"
-    spec = importlib.util.spec_from_file_location("suite", path)
-    suite = importlib.util.module_from_spec(spec)
-    sys.modules["suite"] = suite
-    spec.loader.exec_module(suite)
+    suite = load_suite()
     capture = next(c for c in suite.captures() if c.name == "outdoor_camera/dark")
     row = suite.run_capture(capture, overrides=["levels=4"])
     assert row["rmse"] > 0.6  # measured 0.855 px

@@ -131,9 +131,10 @@ def _turning_camera(shift_x: NDArray[np.float64], shift_y: NDArray[np.float64], 
     rotation[:, 0, 0], rotation[:, 0, 1], rotation[:, 0, 2] = cos_a, -sin_a * sin_b, sin_a * cos_b
     rotation[:, 1, 1], rotation[:, 1, 2] = cos_b, sin_b
     rotation[:, 2, 0], rotation[:, 2, 1], rotation[:, 2, 2] = -sin_a, -cos_a * sin_b, cos_a * cos_b
+    from photonpano.geometry import translation
+
     k = np.diag([focal, focal, 1.0])
-    centre = np.array([[1.0, 0.0, cx], [0.0, 1.0, cy], [0.0, 0.0, 1.0]])
-    out = centre @ k @ rotation @ np.linalg.inv(k) @ np.linalg.inv(centre)
+    out = translation(cx, cy) @ k @ rotation @ np.linalg.inv(k) @ translation(-cx, -cy)
     return out / out[:, 2:3, 2:3]
 
 
