@@ -208,7 +208,7 @@ class LumaGuided(_PerChannel):
     combines them with :func:`._guided.guided_colour` (see :mod:`._guided`) and scales
     each pixel's colour by a fifth luminance merge (the default ``drizzle``, Wiener
     restored, :mod:`._restore`) over the fourth: guided colour ratios, the sharper
-    luminance (+1.2 to +3.7 dB on four photos, chroma within 6 %; docs/capture_formats.md).
+    luminance (docs/capture_formats.md).
     Fed the raw counts (:meth:`read`), like :class:`CfaChannels`.
 
     Args:
@@ -290,7 +290,7 @@ class LumaGuided(_PerChannel):
         the exposures the luminance's robust merge rejects are left out of every plane.
         """
         from ._adaptive import drop_sharpness
-        from ._guided import RESIDUAL_SIGMA_PX, guided_colour
+        from ._guided import RESIDUAL_SIGMA_PX, WIDE_SIGMA_PX, guided_colour
 
         rejected = self._luma.rejection()  # None without the robust merge
         planes = super().finish(rejected)
@@ -298,7 +298,7 @@ class LumaGuided(_PerChannel):
         binary = getattr(self._source, "kind", "binary") == "binary"
         flux = guided_colour(luma, planes.flux, planes.frames, float(self._source.exposure_s),
                              sigma_px=self.sigma_px * self.scale, residual_px=RESIDUAL_SIGMA_PX * self.scale,
-                             sharpness=drop_sharpness("square", 1.0), binary=binary)
+                             wide_px=WIDE_SIGMA_PX * self.scale, sharpness=drop_sharpness("square", 1.0), binary=binary)
         usable = np.isfinite(sharp) & np.isfinite(luma) & (luma > 0)
         ratio = np.where(usable, sharp / np.where(usable, luma, 1), np.float32(1)).astype(np.float32)
         return dataclasses.replace(planes, flux=flux * ratio[..., None])

