@@ -184,8 +184,11 @@ def guided_colour(luma: NDArray[np.float32], planes: NDArray[np.float32], frames
     from ._bilateral import joint_bilateral_sums
 
     matched = footprint_tent(luma)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        log_luma = np.where(matched > 0, np.log(matched), np.nan).astype(np.float32)
+    # the bilateral filter's guide: log luminance, no detection (0) as the faintest one seen
+    positive = matched[matched > 0]
+    floor = float(positive.min()) if positive.size else 1.0
+    with np.errstate(invalid="ignore"):
+        log_luma = np.log(np.maximum(matched, floor)).astype(np.float32)  # NaN stays NaN: unobserved
     seen = np.isfinite(planes) & (frames > 0)
     both = seen & np.isfinite(matched)[..., None]
     # photon noise of the planes, in (photons/s)^2
