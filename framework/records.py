@@ -70,6 +70,9 @@ class MergedFrames:
             ring of merged frames): equal ids mean identical frames, in this process.
             Without them (None), :meth:`content_key` digests the pixels. The ids also
             name the frames for a locator (:meth:`frame_ids`): its pairs are pairs of ids.
+        exposure_s: the binary frame exposure in seconds when ``flux`` is the MLE of
+            binary frames (binomial noise: a locator may register
+            :func:`~photonpano.binomial.stabilised_detections`), None for intensity frames.
     """
 
     flux: NDArray[np.float32]
@@ -77,17 +80,23 @@ class MergedFrames:
     images: NDArray[np.uint8]
     masks: NDArray[np.bool_]
     ids: NDArray[np.int64] | None = None
+    exposure_s: float | None = None
 
     def __len__(self) -> int:
         return len(self.flux)
 
     @staticmethod
     def concat(*parts: MergedFrames) -> MergedFrames:
-        """Return the merged frames of ``parts`` one after another (with ids if every part has them)."""
+        """Return the merged frames of ``parts`` one after another (with ids if every part has them).
+
+        Their ``exposure_s`` is the parts' where all agree, else None.
+        """
         fields = ("flux", "frames", "images", "masks")
         ids = np.concatenate([p.ids for p in parts]) if all(p.ids is not None for p in parts) else None
         flux, frames, images, masks = (np.concatenate([getattr(p, f) for p in parts]) for f in fields)
-        return MergedFrames(flux, frames, images, masks, ids=ids)
+        exposures = {p.exposure_s for p in parts}
+        return MergedFrames(flux, frames, images, masks, ids=ids,
+                            exposure_s=exposures.pop() if len(exposures) == 1 else None)
 
     def frame_ids(self) -> NDArray[np.int64]:
         """Return the (G,) int64 names of the frames: :attr:`ids`, or positions ``0..G-1`` without ids.
@@ -99,7 +108,8 @@ class MergedFrames:
     def take(self, index: NDArray[np.int64]) -> MergedFrames:
         """Return frames ``index`` ((K,) int positions), with their ids when these frames carry ids."""
         ids = None if self.ids is None else self.ids[index]
-        return MergedFrames(self.flux[index], self.frames[index], self.images[index], self.masks[index], ids=ids)
+        return MergedFrames(self.flux[index], self.frames[index], self.images[index], self.masks[index], ids=ids,
+                            exposure_s=self.exposure_s)
 
     @staticmethod
     def new_ids(count: int) -> NDArray[np.int64]:

@@ -75,7 +75,7 @@ from .records import LevelResult
 __all__ = ["FrameUncertainty", "frame_uncertainty", "held_out_residuals", "frame_extents_travelled",
            "RESIDUAL_TO_SIGMA", "CHAIN_DRIFT_PER_FRAME_EXTENT", "LEVEL_CHANGE_TO_SIGMA", "NEIGHBOURS", "LIMIT_PX"]
 
-RESIDUAL_TO_SIGMA = 0.9
+RESIDUAL_TO_SIGMA = 0.8
 """Local term of the predicted per-frame sigma over the local RMS of held-out pair
 residuals (calibrated on the evaluation suite, see the module)."""
 

@@ -17,7 +17,7 @@ __all__ = ["panorama_views"]
 
 
 def panorama_views(panorama: Panorama, to_canvas: NDArray[np.float64], height: int, width: int,
-                   min_frames: float) -> MergedFrames:
+                   min_frames: float, exposure_s: float | None = None) -> MergedFrames:
     """Resample a panorama into the pixel grids of some frames, as merged frames.
 
     Args:
@@ -26,6 +26,9 @@ def panorama_views(panorama: Panorama, to_canvas: NDArray[np.float64], height: i
         height: frame height in pixels.
         width: frame width in pixels.
         min_frames: canvas pixels observed by fewer binary frames are not trusted.
+        exposure_s: the views' ``exposure_s`` (:class:`~photonpano.records.MergedFrames`):
+            the binary frame exposure of the capture behind the panorama, None for
+            intensity frames.
 
     Returns:
         G :class:`~photonpano.stages.MergedFrames`: bilinear flux (0 where unseen),
@@ -42,7 +45,7 @@ def panorama_views(panorama: Panorama, to_canvas: NDArray[np.float64], height: i
     g = len(to_canvas)
     shape = (g, height, width)
     out = MergedFrames(flux=np.empty(shape, np.float32), frames=np.empty(shape, np.float32),
-                       images=np.empty(shape, np.uint8), masks=np.empty(shape, bool))
+                       images=np.empty(shape, np.uint8), masks=np.empty(shape, bool), exposure_s=exposure_s)
     inverse = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
     for i, h in enumerate(to_canvas):
         out.flux[i] = cv2.warpPerspective(flux, h, (width, height), flags=inverse, borderValue=0)

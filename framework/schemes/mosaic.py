@@ -48,6 +48,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .. import geometry
+from ..binomial import binary_exposure
 from ..compose import compose
 from ..errors import StageError
 from ..executor import pure_task
@@ -174,7 +175,8 @@ class MosaicScheme(LevelScheme):
             with watched("merger", task.merger, "merge"):
                 merged = task.merger.merge(source, task.homographies, groups.select(index))
             merge_s = time.perf_counter() - start
-            views = panorama_views(template, to_canvas[index], source.height, source.width, task.group_size)
+            views = panorama_views(template, to_canvas[index], source.height, source.width, task.group_size,
+                                   binary_exposure(source))
             if reject is not None:
                 merged = mask_disagreement(merged, views, reject)
             n = len(index)
@@ -297,4 +299,4 @@ def mask_disagreement(merged: MergedFrames, views: MergedFrames, sigmas: float =
         outliers = cv2.morphologyEx(outliers, cv2.MORPH_OPEN, opening)  # thin edges and points go
         outliers = cv2.dilate(outliers, kernel)
         masks[i] &= outliers == 0
-    return MergedFrames(merged.flux, merged.frames, merged.images, masks, merged.ids)
+    return MergedFrames(merged.flux, merged.frames, merged.images, masks, merged.ids, merged.exposure_s)

@@ -47,7 +47,7 @@ class _MergedRing:
             shape = (self.capacity,) + merged.flux.shape[1:]
             self.frames = MergedFrames(*(np.zeros(shape, getattr(merged, f).dtype)
                                          for f in ("flux", "frames", "images", "masks")),
-                                       ids=np.full(self.capacity, -1, np.int64))
+                                       ids=np.full(self.capacity, -1, np.int64), exposure_s=merged.exposure_s)
         slots = index % self.capacity
         for f in ("flux", "frames", "images", "masks"):
             getattr(self.frames, f)[slots] = getattr(merged, f)

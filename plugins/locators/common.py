@@ -178,6 +178,15 @@ class CachingLocator(Locator):
             return compute()
         return cache.get(self._key(index, flux), compute)
 
+    @property
+    def exposure_s(self) -> float | None:
+        """The current batch's binary frame exposure in seconds (:class:`MergedFrames` ``exposure_s``), or None.
+
+        None outside a batch and for intensity frames; a locator's per-frame preparation
+        (:meth:`frame_data`'s ``compute``) may use it to weigh pixels by their binomial noise.
+        """
+        return None if self._merged is None else self._merged.exposure_s
+
     def finish(self) -> None:
         """End the batch started by :meth:`begin` (drops the reference to the merged frames)."""
         self._merged = None
@@ -301,7 +310,8 @@ class FeatureLocator(CachingLocator):
             return to_registrations(results)
 
         def ecc(i: int) -> NDArray[np.float32]:
-            return self.frame_data("ecc", i, lambda: ecc_image(merged.flux[i], merged.masks[i]), flux=True)
+            return self.frame_data("ecc", i, lambda: ecc_image(merged.flux[i], merged.masks[i], merged.exposure_s),
+                                   flux=True)
 
         def polish(result: PairResult, a: int, b: int) -> PairResult:
             if not result.ok:

@@ -189,7 +189,7 @@ class KorniaDirectLocator(DirectLocator):
         """
         import cv2
 
-        image = ecc_image(flux, mask)
+        image = ecc_image(flux, mask, self.exposure_s)
         trust = mask.astype(np.float32)
         if self.config.blur > 0:
             image = cv2.GaussianBlur(image, (0, 0), self.config.blur)

@@ -146,8 +146,8 @@ class OpenCVEccLocator(DirectLocator):
                         "translation": cv2.MOTION_TRANSLATION}[config.motion]
 
     def prepare(self, flux: NDArray[np.float32], mask: NDArray[np.bool_]):
-        """Return the :func:`ecc_pyramid` of a merged frame's normalised flux (:func:`ecc_image`)."""
-        return ecc_pyramid(ecc_image(flux, mask), mask, self.config.pyramid_levels)
+        """Return the :func:`ecc_pyramid` of a merged frame's :func:`ecc_image` (stabilised for binary frames)."""
+        return ecc_pyramid(ecc_image(flux, mask, self.exposure_s), mask, self.config.pyramid_levels)
 
     def register(self, pyramid_a, pyramid_b, initial: NDArray[np.float64]) -> PairResult:
         """Register one pair coarse to fine.

@@ -71,13 +71,15 @@ class WarpMerger(Merger):
     def merge(self, source: PhotonSource, homographies: NDArray[np.float64], groups: Groups,
               progress: Any = None, executor: Any = None) -> MergedFrames:
         """Merge every group (see :meth:`Merger.merge`); windows of groups run on ``executor``."""
+        from photonpano.binomial import binary_exposure
         from photonpano.executor import SerialExecutor, pure_task
         from photonpano.warping import merge_groups
 
         self.check_source(source)
         g, h, w = len(groups), source.height, source.width
         out = MergedFrames(flux=np.empty((g, h, w), np.float32), frames=np.empty((g, h, w), np.float32),
-                           images=np.empty((g, h, w), np.uint8), masks=np.empty((g, h, w), bool))
+                           images=np.empty((g, h, w), np.uint8), masks=np.empty((g, h, w), bool),
+                           exposure_s=binary_exposure(source))
         windows = [np.arange(s, min(s + self.config.window_groups, g)) for s in range(0, g, self.config.window_groups)]
 
         @pure_task
