@@ -45,9 +45,10 @@ class _MergedRing:
     def put(self, index: NDArray[np.int64], merged: MergedFrames) -> None:
         if self.frames is None:
             shape = (self.capacity,) + merged.flux.shape[1:]
-            self.frames = MergedFrames(*(np.zeros(shape, getattr(merged, f).dtype)
-                                         for f in ("flux", "frames", "images", "masks")),
-                                       ids=np.full(self.capacity, -1, np.int64), exposure_s=merged.exposure_s)
+            flux, frames, images, masks = (np.zeros(shape, getattr(merged, f).dtype)
+                                           for f in ("flux", "frames", "images", "masks"))
+            self.frames = MergedFrames(flux, frames, images, masks, ids=np.full(self.capacity, -1, np.int64),
+                                       exposure_s=merged.exposure_s)
         slots = index % self.capacity
         for f in ("flux", "frames", "images", "masks"):
             getattr(self.frames, f)[slots] = getattr(merged, f)

@@ -133,4 +133,3 @@ def test_check_frame_range_refuses_ranges_outside_the_capture(start, stop):
     check_frame_range(100, 100, 100)  # an empty range at the end is inside
     with pytest.raises(ValueError, match=f"frames {start}:{stop} leave the capture of 100 frames"):
         check_frame_range(start, stop, 100)
-
