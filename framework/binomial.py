@@ -26,8 +26,9 @@ def stabilised_detections(flux: NDArray, exposure_s: float) -> NDArray[np.float3
     detections over ``n`` binary frames has variance ``p (1 - p) / n``, growing with the
     flux until near saturation, while its transform has variance ``1 / (4 n)`` at every
     flux. A least-squares registration (ECC, Lucas-Kanade) of transformed merged frames
-    therefore weighs every pixel by its information, where one of flux images is
-    dominated by its bright, noisy pixels (the flux MLE's variance grows as ``p / (1 - p)``).
+    therefore weighs every pixel by its information, where a registration of flux images
+    is dominated by their bright, noisy pixels (the flux MLE's variance grows as
+    ``p / (1 - p)``).
 
     Args:
         flux: float array of flux in photons/s; NaN (unobserved) stays NaN, negative

@@ -22,8 +22,8 @@ def ecc_image(flux: NDArray[np.float32], mask: NDArray[np.bool_], exposure_s: fl
     <photonpano.records.MergedFrames>`), the flux is first turned into
     :func:`~photonpano.binomial.stabilised_detections`, whose noise is the same at every
     flux, so ECC's least squares weighs each pixel by its information rather than by the
-    flux MLE's noise, which grows with the flux (suite base captures: trajectory RMSE -9 to
-    -21 %, docs/accuracy.md). The result is scaled so that twice its mean over the trusted
+    flux MLE's noise, which grows with the flux (evaluation suite: trajectory RMSE -8 %,
+    geometric mean over 48 captures; docs/locators.md). The result is scaled so that twice its mean over the trusted
     pixels is 1 (ECC is invariant to gain and offset; this keeps the numbers near 1).
     Every observed pixel keeps its (possibly noisier) value: zeroing the untrusted border
     would put false edges into the moving image and bias the alignment. Unobserved (NaN)
@@ -45,12 +45,12 @@ def ecc_image(flux: NDArray[np.float32], mask: NDArray[np.bool_], exposure_s: fl
 
     from ._compiled import normalised_flux
 
-    # one compiled pass (runs once per merged frame and panorama view, on the workers)
     flux, mask = np.ascontiguousarray(flux, np.float32), np.ascontiguousarray(mask, bool)
     if flux.shape != mask.shape:
         raise ValueError(f"ecc_image: flux {flux.shape} and mask {mask.shape} differ in shape")
     if exposure_s is not None:
         flux = stabilised_detections(flux, exposure_s)
+    # one compiled pass (runs once per merged frame and panorama view, on the workers)
     image = np.empty(flux.shape, np.float32)
     normalised_flux(flux.reshape(-1), mask.reshape(-1), image.reshape(-1))
     return image
