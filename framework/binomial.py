@@ -49,5 +49,12 @@ def binary_exposure(source: Any) -> float | None:
 
     Merged frames carry it (:class:`~photonpano.records.MergedFrames` ``exposure_s``) so
     that a locator can weigh pixels by their binomial noise (:func:`stabilised_detections`).
+
+    Args:
+        source: a capture (:class:`~photonpano.stages.PhotonSource`): its ``kind``
+            (``"binary"`` when absent) and ``exposure_s``.
+
+    Returns:
+        ``exposure_s`` in seconds for a binary capture, else None.
     """
     return float(source.exposure_s) if getattr(source, "kind", "binary") == "binary" else None

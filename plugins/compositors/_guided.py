@@ -114,7 +114,7 @@ def footprint_tent(image: NDArray[np.float32]) -> NDArray[np.float32]:
 
 
 def _ratio(both: NDArray[np.bool_], weighted: NDArray[np.float32], matched_w: NDArray[np.float32],
-           variance: NDArray[np.float32], fine_sums: NDArray[np.float64], sigma_px: float,
+           variance: NDArray[np.float32], fine_sums: tuple[NDArray[np.float64], ...], sigma_px: float,
            wide_px: float) -> NDArray[np.float64]:
     """The colour ratio ``k_c`` of one plane (step 2 of the module docstring); NaN where no plane pixel is near.
 
@@ -206,7 +206,7 @@ def guided_colour(luma: NDArray[np.float32], planes: NDArray[np.float32], frames
     sums, squared_sums = joint_bilateral_sums(np.concatenate([weighted, matched_w]), variance, log_luma, sigma_px,
                                               range_sigma)
     ratios = np.stack([_ratio(both[..., c], weighted[c], matched_w[c], variance[c],
-                              np.stack([sums[c], sums[3 + c], squared_sums[c]]), sigma_px, wide_px)
+                              (sums[c], sums[3 + c], squared_sums[c]), sigma_px, wide_px)
                        for c in range(3)], -1)
     out = np.empty(planes.shape, np.float32)
     for c in range(3):

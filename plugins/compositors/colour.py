@@ -214,8 +214,8 @@ class LumaGuided(_PerChannel):
     Args:
         scale: super-resolution scale (canvas pixels per frame pixel).
         corrector: as for :class:`CfaChannels`.
-        sigma_px: standard deviation of the colour ratios' Gaussian in canvas pixels at
-            scale 1 (times ``scale`` on a finer canvas; the residual's, 1 px, scales too);
+        sigma_px: the fine colour ratio's bilateral sigma in canvas pixels at scale 1 (times
+            ``scale`` on a finer canvas; the wide ratio's 4 px and residual's 1 px scale too);
             None: :data:`._guided.CHROMA_SIGMA_PX`.
         exposures: virtual exposures of the robust merge (fed through :meth:`feed_ranges`):
             the exposures that the luminance's :meth:`.drizzle.Drizzle.rejection` leaves
