@@ -2,7 +2,7 @@
 
 Each level: **re-sample** the capture into groups, let the level's scheme **merge** and
 **locate** them (:mod:`photonpano.schemes`), **guard** the keyframe updates, and
-**interpolate** the keyframe corrections to every binary frame; then emit the level's
+**interpolate** the keyframe poses to every binary frame; then emit the level's
 frozen :class:`~photonpano.records.LevelResult`.
 """
 
@@ -36,11 +36,10 @@ def estimate_motion(source: PhotonSource, resampler: Resampler, merger: Merger, 
 
     One level per scheme. Each level re-samples groups, has its scheme merge them with
     the current homographies (relative to each group's reference frame) and register
-    them into keyframe homographies, and interpolates the keyframe *corrections*
-    ``inv(H[ref_g]) @ K_g`` (in the frame's coordinates centred on the frame centre, see
-    :func:`_interpolate`) to every frame, so that detail resolved at earlier, denser
-    levels is kept (at level 1, where ``H`` is the identity, this is the paper's plain
-    interpolation of the keyframe homographies).
+    them into keyframe homographies, and interpolates the keyframe poses (each standing
+    for its group's mean pose, in panorama coordinates centred on the middle frame's
+    centre, see :func:`_interpolate`) to every frame: the paper's interpolation of the
+    keyframe homographies, at every level.
 
     Args:
         source: the capture.
@@ -101,7 +100,7 @@ def estimate_motion(source: PhotonSource, resampler: Resampler, merger: Merger, 
             t2 = time.perf_counter()
             current = homographies[groups.reference]
             keyframes, rejected = guard_keyframes(current, located.keyframes, source.width, source.height)
-            updated = _interpolate(interpolator, groups, current, keyframes, homographies, source, level)
+            updated = _interpolate(interpolator, groups, keyframes, homographies, source, level)
             homographies = _gauge(updated)
             t3 = time.perf_counter()
             first = prepare_s if level == start_level else 0.0
@@ -132,26 +131,37 @@ def _resample(resampler: Resampler, n: int, group_size: int, level: int) -> Grou
         raise StageError("resampler", type(resampler).__name__, str(exc)) from None
 
 
-def _interpolate(interpolator: Interpolator, groups: Groups, current: NDArray[np.float64],
-                 keyframes: NDArray[np.float64], homographies: NDArray[np.float64], source: PhotonSource,
-                 level: int) -> NDArray[np.float64]:
-    """Interpolate the keyframe corrections to every frame and apply them (refusing folds).
+def _interpolate(interpolator: Interpolator, groups: Groups, keyframes: NDArray[np.float64],
+                 homographies: NDArray[np.float64], source: PhotonSource, level: int) -> NDArray[np.float64]:
+    """Interpolate the keyframe poses to every frame (refusing folds).
 
-    Each correction is taken in its own frame's pixel coordinates with the origin moved to
-    the frame centre, ``C_g = inv(T_c) @ inv(H[ref_g]) @ K_g @ T_c``, and applied as
-    ``H[t] @ T_c @ C(t) @ inv(T_c)``. Then ``p5, p6`` of a correction are the shift of
-    the frame centre and ``p1..p4, p7, p8`` its shape (rotation, scale, shear, perspective
-    about the centre): an error in one does not move the other, so an interpolator may
-    smooth them differently (``cubic-lk``'s ``shape_smoothness``). In panorama
-    coordinates (the correction ``K_g @ inv(H[ref_g])``, as before) a rotation about the
-    panorama's origin also shifts every frame far from it, which couples the two.
+    The interpolator fits the *trajectory*, not a correction of it, so that its smoothness
+    penalty acts on the camera's motion (a pan's shape is constant however noisy the
+    level before was). Poses are taken in panorama coordinates with the origin moved to the
+    middle frame's centre (``Z = inv(T_c) @ K @ T_c``, panorama coordinates being the
+    middle frame's pixels): there ``p5, p6`` are the frame centre's position and
+    ``p1..p4`` the frame's rotation, scale and shear wherever it is, so an interpolator
+    may smooth them differently (``cubic-lk``'s ``shape_smoothness``).
+
+    What a keyframe measures: its merged frame holds the group's frames warped to the
+    reference frame by the current estimate, so the registration finds the reference
+    frame's current pose moved by the *mean* over the group of the current estimate's
+    error. Each keyframe is handed over as the group's mean pose, ``params(Z_g) -
+    a(ref_g) + mean_(t in g) a(t)`` with ``a(t)`` the parameters of the current estimate
+    (the exposure-average measurement of paper suppl. S.2; at level 1, where the estimate
+    is the identity, this is the keyframe itself).
     """
     centre = geometry.translation((source.width - 1) / 2, (source.height - 1) / 2)
     to_centre = np.linalg.inv(centre)
-    correction = geometry.normalize(to_centre @ np.linalg.inv(current) @ keyframes @ centre)
+    trajectory = geometry.params_from_homographies(to_centre @ homographies @ centre)
+    cumulative = np.concatenate([np.zeros((1, 8)), np.cumsum(trajectory, axis=0)])
+    mean = (cumulative[groups.stop] - cumulative[groups.start]) / (groups.stop - groups.start)[:, None]
+    poses = (geometry.params_from_homographies(to_centre @ keyframes @ centre)
+             - trajectory[groups.reference] + mean)
     with watched("interpolator", interpolator, "interpolate"):
-        update = interpolator.interpolate(groups.reference, correction, len(homographies), groups)
-    updated = geometry.normalize(homographies @ centre @ update @ to_centre)
+        fitted = interpolator.interpolate(groups.reference, geometry.homographies_from_params(poses),
+                                          len(homographies), groups)
+    updated = geometry.normalize(centre @ fitted @ to_centre)
     if not plausible(geometry.invert(homographies) @ updated, source.width, source.height).all():
         raise StageError("interpolator", type(interpolator).__name__,
                          f"level {level}: the interpolated update folds or rescales some frames")

@@ -45,7 +45,7 @@ class CubicLKConfig(InterpolatorConfig):
     """exposure-average: weight of the second-difference penalty on the spline
     coefficients of ``p5, p6`` (the frame centre's shift, see below), relative to the
     data term; it settles coefficients the groups do not pin down."""
-    shape_smoothness: Annotated[float, Field(ge=0)] = 1.0
+    shape_smoothness: Annotated[float, Field(ge=0)] | Literal["auto"] = "auto"
     """exposure-average: the same weight for ``p1..p4, p7, p8``, the shape of the
     correction about the frame centre (the level loop hands the interpolator corrections
     centred on the frame centre, :func:`photonpano.levels.estimate_motion`). A merged
@@ -134,17 +134,98 @@ class CubicLKInterpolator(Interpolator):
         lo, hi = groups.start - 0.5, groups.stop - 0.5
         design = (integral(hi) - integral(lo)) / lengths[:, None]  # (G, K) group means
         second = np.diff(np.eye(n_basis), 2, axis=0)
-        scale = np.trace(design.T @ design) / n_basis
+        penalty = np.trace(design.T @ design) / n_basis * second.T @ second
+        shape = self.config.shape_smoothness
+        if shape == "auto":
+            folds = _folds(groups)
+            shape = SHAPE_DEFAULT if folds is None else _cross_validate(design, params[:, SHAPE], penalty, *folds)
         coef = np.empty((n_basis, params.shape[1]))
-        for columns, weight in ((SHIFT, self.config.smoothness), (SHAPE, self.config.shape_smoothness)):
-            coef[:, columns] = _huber_fit(design, params[:, columns], weight * scale * second.T @ second,
+        for columns, weight in ((SHIFT, self.config.smoothness), (SHAPE, shape)):
+            weights = np.broadcast_to(np.asarray(weight, np.float64), (len(columns),))
+            coef[:, columns] = _huber_fit(design, params[:, columns], penalty, weights,
                                           self.config.outlier_threshold, NOISE_FLOOR[columns])
         return BSpline(knots, coef, 3)(np.arange(n_frames, dtype=np.float64))
 
 
+SHAPE_DEFAULT = 1.0
+"""``shape_smoothness: auto`` where a level has too few groups to cross-validate."""
+
+SMOOTHNESS_GRID = 10.0 ** np.arange(-3, 9)
+"""The weights ``shape_smoothness: auto`` chooses from (relative to the data term)."""
+
+
+def _folds(groups: Groups, count: int = 5) -> tuple[list[NDArray[np.int64]], NDArray[np.int64]] | None:
+    """Held-out keyframes of a blocked cross-validation, or None for too few groups.
+
+    Keyframes are cut into contiguous blocks spanning twice the median group length, and
+    the blocks dealt to ``count`` folds in turn: a held-out keyframe then shares almost
+    no photons with the keyframes fitted (groups overlap, and neighbours' registration
+    errors are correlated; the h-block cross-validation of Burman, Chow and Nolan,
+    Biometrika 81, 1994).
+
+    Returns:
+        ``(folds, blocks)``: ``count`` (n_k,) int64 arrays of keyframe indices, and the
+        (G,) int64 block of each keyframe; None when there are fewer than two blocks per
+        fold.
+    """
+    g = len(groups)
+    if g < 2:
+        return None
+    spacing = max(float(np.median(np.diff(groups.reference))), 1.0)
+    block = max(1, int(np.ceil(2 * float(np.median(groups.stop - groups.start)) / spacing)))
+    blocks = np.arange(g) // block
+    if blocks[-1] + 1 < 2 * count:
+        return None
+    return [np.flatnonzero(blocks % count == k) for k in range(count)], blocks
+
+
+def _cross_validate(design: NDArray[np.float64], values: NDArray[np.float64], penalty: NDArray[np.float64],
+                    folds: list[NDArray[np.int64]], blocks: NDArray[np.int64]) -> NDArray[np.float64]:
+    """Each column's smoothness weight from :data:`SMOOTHNESS_GRID`, by blocked cross-validation.
+
+    For every weight, the penalised fit of the other folds (:func:`_folds`) predicts each
+    held-out keyframe. Of the weights whose mean squared prediction error is within one
+    standard error of the least, the largest wins (the one-standard-error rule: Breiman
+    et al., *Classification and Regression Trees*, 1984, Sec. 3.4.3; Hastie, Tibshirani
+    and Friedman, *The Elements of Statistical Learning*, 2009, Sec. 7.10), the standard
+    error taken over the blocks, whose errors are nearly independent. A camera whose
+    rotation, scale and perspective do not change (a pan) thus gets the stiffest spline,
+    one that turns, zooms or shakes by turning a supple one.
+
+    Args:
+        design: (G, K) float64 group means of the K basis functions.
+        values: (G, P) float64 keyframe parameters.
+        penalty: (K, K) float64 roughness penalty at weight 1.
+        folds: held-out keyframe indices of each fold.
+        blocks: (G,) int64 block of each keyframe.
+
+    Returns:
+        (P,) float64 weights.
+    """
+    errors = np.zeros((len(SMOOTHNESS_GRID),) + values.shape)  # (weights, G, P) squared prediction errors
+    for held in folds:
+        kept = np.ones(len(values), bool)
+        kept[held] = False
+        normal, right = design[kept].T @ design[kept], design[kept].T @ values[kept]
+        for i, weight in enumerate(SMOOTHNESS_GRID):
+            coef = np.linalg.solve(normal + weight * penalty, right)
+            errors[i, held] = (design[held] @ coef - values[held]) ** 2
+    per_block = np.zeros((len(SMOOTHNESS_GRID), blocks[-1] + 1, values.shape[1]))
+    np.add.at(per_block, (slice(None), blocks), errors)
+    n_blocks = per_block.shape[1]
+    mean = per_block.mean(axis=1)  # (weights, P)
+    best = np.argmin(mean, axis=0)
+    columns = np.arange(values.shape[1])
+    error = per_block[best, :, columns].std(axis=1, ddof=1) / np.sqrt(n_blocks)  # (P,)
+    within = mean <= (mean[best, columns] + error)[None]
+    chosen = np.array([np.flatnonzero(within[:, j]).max() for j in columns])
+    return np.asarray(SMOOTHNESS_GRID[chosen], np.float64)
+
+
 def _huber_fit(design: NDArray[np.float64], values: NDArray[np.float64], penalty: NDArray[np.float64],
-               threshold: float | None, floor: NDArray[np.float64], iterations: int = 4) -> NDArray[np.float64]:
-    """Penalised least squares ``min sum_g w_g |design_g c - values_g|^2 + c' penalty c`` with Huber weights.
+               weights: NDArray[np.float64], threshold: float | None, floor: NDArray[np.float64],
+               iterations: int = 4) -> NDArray[np.float64]:
+    """Penalised least squares ``min sum_g w_g |design_g c_j - values_gj|^2 + weights_j c_j' penalty c_j`` with Huber weights.
 
     Huber's M-estimator by iteratively reweighted least squares (Huber, "Robust estimation
     of a location parameter", 1964; Holland and Welsch, 1977): a keyframe whose residual,
@@ -156,7 +237,8 @@ def _huber_fit(design: NDArray[np.float64], values: NDArray[np.float64], penalty
     Args:
         design: (G, K) float64 group means of the K basis functions.
         values: (G, P) float64 keyframe parameters.
-        penalty: (K, K) float64 roughness penalty.
+        penalty: (K, K) float64 roughness penalty at weight 1.
+        weights: (P,) float64 smoothness weight of each column.
         threshold: Huber threshold; None: plain least squares.
         floor: (P,) float64 smallest standard deviation of each column (a fit closer than
             registration noise has no outliers).
@@ -165,17 +247,24 @@ def _huber_fit(design: NDArray[np.float64], values: NDArray[np.float64], penalty
     Returns:
         (K, P) float64 spline coefficients.
     """
-    weights = np.ones(len(values))
+    keyframe_weights = np.ones(len(values))
+    coef = np.empty((design.shape[1], values.shape[1]))
+    same = bool(np.all(weights == weights[0]))
     for _ in range(iterations if threshold is not None else 1):
-        weighted = design * weights[:, None]
-        coef = np.asarray(np.linalg.solve(design.T @ weighted + float(np.mean(weights)) * penalty,
-                                          weighted.T @ values), np.float64)
+        weighted = design * keyframe_weights[:, None]
+        normal, right = design.T @ weighted, weighted.T @ values
+        scale = float(np.mean(keyframe_weights))
+        if same:  # one factorisation for every column
+            coef[:] = np.linalg.solve(normal + scale * weights[0] * penalty, right)
+        else:
+            for j, weight in enumerate(weights):
+                coef[:, j] = np.linalg.solve(normal + scale * weight * penalty, right[:, j])
         if threshold is None:
             break
         residual = design @ coef - values
         spread = np.maximum(1.4826 * np.median(np.abs(residual - np.median(residual, axis=0)), axis=0), floor)
         size = np.sqrt(np.mean((residual / spread) ** 2, axis=1))
-        weights = np.minimum(1.0, threshold / np.maximum(size, 1e-300))
+        keyframe_weights = np.minimum(1.0, threshold / np.maximum(size, 1e-300))
     return coef
 
 
