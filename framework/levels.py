@@ -19,6 +19,7 @@ from . import geometry
 from .errors import StageError
 from .executor import Executor, SerialExecutor
 from .guards import guard_keyframes, plausible
+from .information import SHAPE, conditional_shift
 from .records import Groups, LevelResult
 from .schemes import LevelScheme, LevelTask
 from .stages import Interpolator, Merger, PhotonSource, Resampler
@@ -101,6 +102,9 @@ def estimate_motion(source: PhotonSource, resampler: Resampler, merger: Merger, 
             current = homographies[groups.reference]
             keyframes, rejected = guard_keyframes(current, located.keyframes, source.width, source.height)
             updated = _interpolate(interpolator, groups, keyframes, homographies, source, level)
+            if located.information is not None:  # each shift given the smoothed shape, then again
+                keyframes = _condition_shifts(keyframes, updated[groups.reference], located.information, source)
+                updated = _interpolate(interpolator, groups, keyframes, homographies, source, level)
             homographies = _gauge(updated)
             t3 = time.perf_counter()
             first = prepare_s if level == start_level else 0.0
@@ -166,6 +170,34 @@ def _interpolate(interpolator: Interpolator, groups: Groups, keyframes: NDArray[
         raise StageError("interpolator", type(interpolator).__name__,
                          f"level {level}: the interpolated update folds or rescales some frames")
     return updated
+
+
+def _condition_shifts(keyframes: NDArray[np.float64], fitted: NDArray[np.float64], information: NDArray[np.float64],
+                      source: PhotonSource) -> NDArray[np.float64]:
+    """Move each keyframe's shift to where its registration puts it given the fitted shape.
+
+    A registration's shift error is correlated with its shape error (the perspective
+    terms move pixels by ``x^2``, whose mean over the frame is not zero); the interpolator
+    smooths the shape over many keyframes, so each keyframe's shift is replaced by its
+    maximum-likelihood value given the fitted shape (:func:`~photonpano.information.conditional_shift`).
+
+    Args:
+        keyframes: (G, 3, 3) float64 registered keyframe homographies (frame to panorama).
+        fitted: (G, 3, 3) float64 the fitted trajectory at the keyframes' reference frames.
+        information: (G, 8, 8) float64 each registration's information, parameters about
+            the frame centre in sensor pixels (zero: left as is).
+        source: the capture (its frame size).
+
+    Returns:
+        (G, 3, 3) float64 keyframes with corrected shifts.
+    """
+    centre = geometry.translation((source.width - 1) / 2, (source.height - 1) / 2)
+    to_centre = np.linalg.inv(centre)
+    shape_error = geometry.params_from_homographies(to_centre @ np.linalg.inv(fitted) @ keyframes @ centre)[:, SHAPE]
+    shift = conditional_shift(information, shape_error)
+    move = np.repeat(np.eye(3)[None], len(keyframes), axis=0)
+    move[:, :2, 2] = shift
+    return geometry.normalize(keyframes @ centre @ move @ to_centre)
 
 
 def _gauge(updated: NDArray[np.float64]) -> NDArray[np.float64]:

@@ -264,6 +264,12 @@ class LocateResult:
             ``movers``: ``engaged``, whether a detection ran here, and the fraction of
             the template's covered canvas its robust merge left out; see
             :mod:`photonpano.schemes.mosaic`), or None where it is off.
+        information: (G, 8, 8) float64 information of each keyframe's registration about
+            the 8 parameters of its homography about the frame centre, in sensor pixels
+            (:func:`~photonpano.information.homography_information`; zero where the
+            registration failed), which lets the level loop correct each shift once the
+            shape is smoothed (:func:`~photonpano.information.conditional_shift`); None
+            where the scheme does not say (pairwise levels).
     """
 
     keyframes: NDArray[np.float64]
@@ -276,6 +282,7 @@ class LocateResult:
     crosscheck_index: NDArray[np.int64] | None = None
     check: dict[str, Any] | None = None
     movers: dict[str, Any] | None = None
+    information: NDArray[np.float64] | None = None
 
     @property
     def primary(self) -> NDArray[np.bool_]:

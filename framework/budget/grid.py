@@ -306,7 +306,7 @@ class RegistrationGrid:
         return geometry.normalize(self._to_sensor @ homographies @ self._to_binned)
 
     def located_outward(self, located: LocateResult) -> LocateResult:
-        """A scheme's result in sensor pixels: keyframes and registrations (pixel maps between frames).
+        """A scheme's result in sensor pixels: keyframes, registrations (pixel maps between frames), information.
 
         Only the merged frames it may hold stay binned (they are images of the binned grid).
         """
@@ -314,10 +314,15 @@ class RegistrationGrid:
             return located
         import dataclasses
 
+        from ..information import information_in_sensor_pixels
+
         regs = located.registrations
         regs = dataclasses.replace(regs, homographies=self.outward(regs.homographies))
         cross = located.crosscheck
         if cross is not None:
             cross = dataclasses.replace(cross, homographies=self.outward(cross.homographies))
+        information = located.information
+        if information is not None:
+            information = information_in_sensor_pixels(information, self.factor)
         return dataclasses.replace(located, keyframes=self.outward(located.keyframes), registrations=regs,
-                                   crosscheck=cross)
+                                   crosscheck=cross, information=information)

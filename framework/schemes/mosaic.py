@@ -48,11 +48,12 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .. import geometry
-from ..binomial import binary_exposure
+from ..binomial import binary_exposure, stabilised_detections
 from ..compose import compose
 from ..errors import StageError
 from ..executor import pure_task
 from ..guards import bridge, plausible
+from ..information import homography_information
 from ..locator import Locator, LocatorContext
 from ..records import LocateResult, MergedFrames, PairRegistrations, Panorama
 from ..stages import Compositor
@@ -81,6 +82,7 @@ class _WindowResult:
     total_s: float
     merged: MergedFrames | None
     crosscheck: PairRegistrations | None = None
+    information: NDArray[np.float64] | None = None
 
 
 class MosaicScheme(LevelScheme):
@@ -181,13 +183,14 @@ class MosaicScheme(LevelScheme):
                 merged = mask_disagreement(merged, views, reject)
             n = len(index)
             found = locator.register_to_template(views, merged, np.repeat(np.eye(3)[None], n, axis=0), once)
+            information = homography_information(_noise_even(views), views.masks & merged.masks)
             cross = None
             if task.crosscheck and n > 1:  # held out: consecutive merged frames against each other
                 names = merged.frame_ids()
                 cross = locator.register_pairs(merged, np.stack([names[:-1], names[1:]], axis=1), geometry.normalize(
                     np.linalg.inv(current[index[:-1]]) @ current[index[1:]]), once)
             return _WindowResult(found, locator.cache_stats(), merge_s, time.perf_counter() - start,
-                                 merged if task.keep_merged else None, cross)
+                                 merged if task.keep_merged else None, cross, information)
 
         windows = [np.arange(s, min(s + self.window, len(groups))) for s in range(0, len(groups), self.window)]
         started = time.perf_counter()
@@ -214,8 +217,21 @@ class MosaicScheme(LevelScheme):
             cross = PairRegistrations.concat(*(p.crosscheck for p in parts if p.crosscheck is not None))
             cross_index = np.concatenate([np.zeros((0, 2), np.int64)] + [
                 np.stack([w[:-1], w[1:]], axis=1) for w in windows if len(w) > 1])
+        information = np.concatenate([part.information for part in parts])
+        information[~ok] = 0.0
         return LocateResult(keyframes, regs, None, merged=merged, merge_s=merge_s, locator_cache=cache or None,
-                            crosscheck=cross, crosscheck_index=cross_index, movers=movers)
+                            crosscheck=cross, crosscheck_index=cross_index, movers=movers, information=information)
+
+
+def _noise_even(views: MergedFrames) -> NDArray[np.float32]:
+    """The views on a scale where their noise is about the same everywhere (what the locators register).
+
+    Stabilised detections for binary frames (:func:`~photonpano.binomial.stabilised_detections`),
+    the flux for intensity frames.
+    """
+    if views.exposure_s is None:
+        return views.flux
+    return stabilised_detections(views.flux, views.exposure_s)
 
 
 def _fractions(pano: Panorama | None) -> dict[str, float | None]:
