@@ -132,19 +132,80 @@ class CubicLKInterpolator(Interpolator):
         n_basis = len(knots) - 4
         integral = BSpline(knots, np.eye(n_basis), 3).antiderivative()
         lo, hi = groups.start - 0.5, groups.stop - 0.5
-        design = (integral(hi) - integral(lo)) / lengths[:, None]  # (G, K) group means
-        second = np.diff(np.eye(n_basis), 2, axis=0)
-        penalty = np.trace(design.T @ design) / n_basis * second.T @ second
+        design = _Design((integral(hi) - integral(lo)) / lengths[:, None])  # group means of the basis
         shape = self.config.shape_smoothness
         if shape == "auto":
             folds = _folds(groups)
-            shape = SHAPE_DEFAULT if folds is None else _cross_validate(design, params[:, SHAPE], penalty, *folds)
+            shape = SHAPE_DEFAULT if folds is None else _cross_validate(design, params[:, SHAPE], *folds)
         coef = np.empty((n_basis, params.shape[1]))
         for columns, weight in ((SHIFT, self.config.smoothness), (SHAPE, shape)):
             weights = np.broadcast_to(np.asarray(weight, np.float64), (len(columns),))
-            coef[:, columns] = _huber_fit(design, params[:, columns], penalty, weights,
-                                          self.config.outlier_threshold, NOISE_FLOOR[columns])
+            coef[:, columns] = _huber_fit(design, params[:, columns], weights, self.config.outlier_threshold,
+                                          NOISE_FLOOR[columns])
         return BSpline(knots, coef, 3)(np.arange(n_frames, dtype=np.float64))
+
+
+class _Design:
+    """The (G, K) design of a spline fit to group means, kept as its band, with banded normal equations.
+
+    Row g is non-zero only on the few basis functions whose support meets group g, so the
+    normal equations ``design' W design + weight * penalty`` are banded and solved in
+    O(K) (:func:`scipy.linalg.solveh_banded`) rather than O(K^3): a 100 000-frame capture
+    has about a thousand coefficients.
+
+    Args:
+        dense: (G, K) float64 group means of the K basis functions.
+    """
+
+    def __init__(self, dense: NDArray[np.float64]) -> None:
+        g, k = dense.shape
+        nonzero = dense != 0
+        first = nonzero.argmax(axis=1)
+        last = k - nonzero[:, ::-1].argmax(axis=1)
+        self.width = min(max(int((last - first).max()), 3), k)  # >= 3: the second-difference penalty's band
+        self.first = np.minimum(first, k - self.width)
+        self.values = np.take_along_axis(dense, self.first[:, None] + np.arange(self.width), axis=1)
+        self.n_basis = k
+        penalty = _Design.__new__(_Design)  # second differences of the coefficients
+        penalty.first, penalty.width, penalty.n_basis = np.arange(max(k - 2, 0)), 3, k
+        penalty.values = np.tile([1.0, -2.0, 1.0], (max(k - 2, 0), 1))
+        # relative to the data term: weight 1 balances the penalty against an average row
+        self.penalty = penalty.normal(np.ones(max(k - 2, 0)), self.width) * (np.sum(self.values ** 2) / k)
+
+    def __len__(self) -> int:
+        return len(self.first)
+
+    def take(self, rows: NDArray[np.bool_]) -> "_Design":
+        """The design of some rows (same basis, same penalty)."""
+        out = _Design.__new__(_Design)
+        out.first, out.values, out.width, out.n_basis, out.penalty = (
+            self.first[rows], self.values[rows], self.width, self.n_basis, self.penalty)
+        return out
+
+    def normal(self, weights: NDArray[np.float64], width: int) -> NDArray[np.float64]:
+        """``design' diag(weights) design`` in the upper banded form of ``solveh_banded`` with ``width - 1`` bands."""
+        bands = np.zeros((width, self.n_basis))
+        for i in range(self.width):
+            for j in range(i, self.width):
+                np.add.at(bands[width - 1 + i - j], self.first + j, weights * self.values[:, i] * self.values[:, j])
+        return bands
+
+    def transpose_times(self, values: NDArray[np.float64]) -> NDArray[np.float64]:
+        """``design' values`` for (G, P) values: (K, P)."""
+        out = np.zeros((self.n_basis, values.shape[1]))
+        for j in range(self.width):
+            np.add.at(out, self.first + j, self.values[:, j, None] * values)
+        return out
+
+    def times(self, coef: NDArray[np.float64]) -> NDArray[np.float64]:
+        """``design coef`` for (K, P) coefficients: (G, P)."""
+        return np.einsum("gj,gjp->gp", self.values, coef[self.first[:, None] + np.arange(self.width)])
+
+    def solve(self, normal: NDArray[np.float64], weight: float, right: NDArray[np.float64]) -> NDArray[np.float64]:
+        """Coefficients of ``(normal + weight * penalty) c = right`` (``normal`` from :meth:`normal`)."""
+        from scipy.linalg import solveh_banded
+
+        return np.asarray(solveh_banded(normal + weight * self.penalty, right), np.float64)
 
 
 SHAPE_DEFAULT = 1.0
@@ -179,8 +240,8 @@ def _folds(groups: Groups, count: int = 5) -> tuple[list[NDArray[np.int64]], NDA
     return [np.flatnonzero(blocks % count == k) for k in range(count)], blocks
 
 
-def _cross_validate(design: NDArray[np.float64], values: NDArray[np.float64], penalty: NDArray[np.float64],
-                    folds: list[NDArray[np.int64]], blocks: NDArray[np.int64]) -> NDArray[np.float64]:
+def _cross_validate(design: _Design, values: NDArray[np.float64], folds: list[NDArray[np.int64]],
+                    blocks: NDArray[np.int64]) -> NDArray[np.float64]:
     """Each column's smoothness weight from :data:`SMOOTHNESS_GRID`, by blocked cross-validation.
 
     For every weight, the penalised fit of the other folds (:func:`_folds`) predicts each
@@ -193,9 +254,8 @@ def _cross_validate(design: NDArray[np.float64], values: NDArray[np.float64], pe
     one that turns, zooms or shakes by turning a supple one.
 
     Args:
-        design: (G, K) float64 group means of the K basis functions.
+        design: the fit's design (:class:`_Design`).
         values: (G, P) float64 keyframe parameters.
-        penalty: (K, K) float64 roughness penalty at weight 1.
         folds: held-out keyframe indices of each fold.
         blocks: (G,) int64 block of each keyframe.
 
@@ -206,10 +266,11 @@ def _cross_validate(design: NDArray[np.float64], values: NDArray[np.float64], pe
     for held in folds:
         kept = np.ones(len(values), bool)
         kept[held] = False
-        normal, right = design[kept].T @ design[kept], design[kept].T @ values[kept]
+        fitted, predicted = design.take(kept), design.take(~kept)
+        normal = fitted.normal(np.ones(int(kept.sum())), design.width)
+        right = fitted.transpose_times(values[kept])
         for i, weight in enumerate(SMOOTHNESS_GRID):
-            coef = np.linalg.solve(normal + weight * penalty, right)
-            errors[i, held] = (design[held] @ coef - values[held]) ** 2
+            errors[i, held] = (predicted.times(design.solve(normal, weight, right)) - values[held]) ** 2
     per_block = np.zeros((len(SMOOTHNESS_GRID), blocks[-1] + 1, values.shape[1]))
     np.add.at(per_block, (slice(None), blocks), errors)
     n_blocks = per_block.shape[1]
@@ -222,9 +283,8 @@ def _cross_validate(design: NDArray[np.float64], values: NDArray[np.float64], pe
     return np.asarray(SMOOTHNESS_GRID[chosen], np.float64)
 
 
-def _huber_fit(design: NDArray[np.float64], values: NDArray[np.float64], penalty: NDArray[np.float64],
-               weights: NDArray[np.float64], threshold: float | None, floor: NDArray[np.float64],
-               iterations: int = 4) -> NDArray[np.float64]:
+def _huber_fit(design: _Design, values: NDArray[np.float64], weights: NDArray[np.float64], threshold: float | None,
+               floor: NDArray[np.float64], iterations: int = 4) -> NDArray[np.float64]:
     """Penalised least squares ``min sum_g w_g |design_g c_j - values_gj|^2 + weights_j c_j' penalty c_j`` with Huber weights.
 
     Huber's M-estimator by iteratively reweighted least squares (Huber, "Robust estimation
@@ -235,9 +295,8 @@ def _huber_fit(design: NDArray[np.float64], values: NDArray[np.float64], penalty
     that down-weighting does not shift the balance between data and smoothness.
 
     Args:
-        design: (G, K) float64 group means of the K basis functions.
+        design: the fit's design (:class:`_Design`, with its roughness penalty).
         values: (G, P) float64 keyframe parameters.
-        penalty: (K, K) float64 roughness penalty at weight 1.
         weights: (P,) float64 smoothness weight of each column.
         threshold: Huber threshold; None: plain least squares.
         floor: (P,) float64 smallest standard deviation of each column (a fit closer than
@@ -248,20 +307,17 @@ def _huber_fit(design: NDArray[np.float64], values: NDArray[np.float64], penalty
         (K, P) float64 spline coefficients.
     """
     keyframe_weights = np.ones(len(values))
-    coef = np.empty((design.shape[1], values.shape[1]))
-    same = bool(np.all(weights == weights[0]))
+    coef = np.empty((design.n_basis, values.shape[1]))
     for _ in range(iterations if threshold is not None else 1):
-        weighted = design * keyframe_weights[:, None]
-        normal, right = design.T @ weighted, weighted.T @ values
+        normal = design.normal(keyframe_weights, design.width)
+        right = design.transpose_times(values * keyframe_weights[:, None])
         scale = float(np.mean(keyframe_weights))
-        if same:  # one factorisation for every column
-            coef[:] = np.linalg.solve(normal + scale * weights[0] * penalty, right)
-        else:
-            for j, weight in enumerate(weights):
-                coef[:, j] = np.linalg.solve(normal + scale * weight * penalty, right[:, j])
+        for weight in np.unique(weights):  # one factorisation per distinct weight
+            columns = np.flatnonzero(weights == weight)
+            coef[:, columns] = design.solve(normal, scale * weight, right[:, columns])
         if threshold is None:
             break
-        residual = design @ coef - values
+        residual = design.times(coef) - values
         spread = np.maximum(1.4826 * np.median(np.abs(residual - np.median(residual, axis=0)), axis=0), floor)
         size = np.sqrt(np.mean((residual / spread) ** 2, axis=1))
         keyframe_weights = np.minimum(1.0, threshold / np.maximum(size, 1e-300))
