@@ -214,8 +214,10 @@ class Interpolator(abc.ABC):
         Args:
             keyframes: (G,) int64 strictly increasing frame indices, G >= 1.
             homographies: (G, 3, 3) float64 homographies at those frames (from the level
-                loop: corrections in each frame's pixels with the origin at the frame
-                centre, so ``p5, p6`` are its shift; :func:`photonpano.levels.estimate_motion`).
+                loop: each keyframe's pose, standing for its group's mean pose, in panorama
+                coordinates with the origin at the middle frame's centre, so ``p5, p6``
+                are the frame centre's position and ``p1..p4, p7, p8`` its shape;
+                :func:`photonpano.levels.estimate_motion`).
             n_frames: number of binary frames T.
             groups: the groups whose merged frames gave the keyframes (their
                 ``reference`` equals ``keyframes``), for interpolators that model a

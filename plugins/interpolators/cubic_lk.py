@@ -7,8 +7,10 @@ parameterisation of Baker and Matthews, 2004).
 What a keyframe homography measures matters (paper suppl. S.2): a locator registers a
 *merged* frame, which shows the scene where the group's frames were on average. With
 ``measurement: exposure-average`` (the default) a cubic B-spline is fitted so that its
-averages over each group's frames match the keyframes; with ``reference-frame`` the
-spline passes through the keyframes at their reference frames (the paper's main text).
+averages over each group's frames match the keyframes, with a roughness penalty whose
+weight for the frame's shape is chosen by cross-validation (``shape_smoothness: auto``);
+with ``reference-frame`` the spline passes through the keyframes at their reference
+frames (the paper's main text).
 """
 
 from __future__ import annotations
@@ -43,19 +45,24 @@ class CubicLKConfig(InterpolatorConfig):
     interpolating not-a-knot spline, the paper's main text)."""
     smoothness: Annotated[float, Field(ge=0)] = 1e-3
     """exposure-average: weight of the second-difference penalty on the spline
-    coefficients of ``p5, p6`` (the frame centre's shift, see below), relative to the
-    data term; it settles coefficients the groups do not pin down."""
+    coefficients of ``p5, p6`` (the frame centre's position, see below), relative to the
+    data term; it settles coefficients the groups do not pin down. A camera's position
+    changes fast (a 30 or 45 Hz vibration), and a stiffer spline biases it: 1e-2 raised the
+    evaluation suite's RMSE (geometric mean +8 %; a 45 Hz vibration 0.037 -> 0.071 px, a
+    120 Hz lamp over half the scene 0.037 -> 0.098)."""
     shape_smoothness: Annotated[float, Field(ge=0)] | Literal["auto"] = "auto"
-    """exposure-average: the same weight for ``p1..p4, p7, p8``, the shape of the
-    correction about the frame centre (the level loop hands the interpolator corrections
-    centred on the frame centre, :func:`photonpano.levels.estimate_motion`). A merged
-    frame pins its shape far less precisely than its position, and a camera's rotation,
-    zoom and tilt change more slowly than its position, so the shape is smoothed harder.
-    Set on the evaluation suite (``benchmarks/suite.py``) against 1e-3 for both: RMSE
-    animal_chelsea/base 0.083 -> 0.056 px, foliage_dandelions/base 0.135 -> 0.089,
-    highcontrast_hubble/long-100000 (a 45 Hz vibration) 0.095 -> 0.070, and a 2 deg
-    roll vibration at 30 Hz still followed (city_madison 0.044 -> 0.043 px; 10 instead
-    of 1 biases a 0.5 deg, 30 Hz roll: 0.036 -> 0.041 px). See docs/accuracy.md."""
+    """exposure-average: the same weight for ``p1..p4, p7, p8``, the frame's shape
+    (rotation, scale, shear, perspective; the level loop hands the interpolator poses
+    about the frame centre, :func:`photonpano.levels.estimate_motion`). ``auto``: chosen
+    per level and parameter by blocked cross-validation (:func:`_cross_validate`): a
+    merged frame pins its shape far less precisely than its position, and the shape of a
+    pan does not change at all, so where the held-out keyframes allow it the shape is a
+    nearly straight line over the capture, while a camera that rolls, zooms or shakes by
+    turning keeps a supple one. Against the fixed weight 1 of before (evaluation suite,
+    ``benchmarks/suite.py``): RMSE animal_chelsea/base 0.052 -> 0.030 px,
+    highcontrast_sunset/base 0.121 -> 0.070, interior_room/base 0.077 -> 0.034, rotation
+    + zoom foliage_dandelions 0.048 -> 0.040, a camera shaking by turning (city_madison,
+    ``vibration_model: rotation``) 0.073 -> 0.071. A number: that weight at every level."""
     outlier_threshold: Annotated[float, Field(gt=0)] | None = 2.0
     """exposure-average: keyframes that disagree with the fit by more than this many robust
     standard deviations are down-weighted (Huber's M-estimator, see :func:`_huber_fit`): a

@@ -219,10 +219,13 @@ def test_register_pairs_resolves_ids_and_refuses_what_it_cannot():
         assert "\n" not in str(raised.value)
 
 
-def test_the_interpolator_gets_corrections_centred_on_the_frame_centre():
-    """A keyframe turned about its own centre, far along a pan: its correction's shift is zero.
+def test_the_interpolator_gets_group_mean_poses_about_the_frame_centre():
+    """A keyframe turned about its own centre, far along a pan: its pose's shift is the centre's position.
 
-    In panorama coordinates the same turn, about the panorama's origin, reads as a large shift.
+    Poses are in panorama coordinates centred on the middle frame's centre, so the turn
+    reads as a turn (about the panorama's origin it would read as a large shift too), and
+    each keyframe stands for its group's mean pose: the group's frames moved 1 px per frame
+    under the current estimate, so the mean is half a frame before the reference frame.
     """
     from types import SimpleNamespace
 
@@ -240,12 +243,12 @@ def test_the_interpolator_gets_corrections_centred_on_the_frame_centre():
     c, s = np.cos(angle), np.sin(angle)
     centre = geometry.translation((width - 1) / 2, (height - 1) / 2)
     turn = centre @ np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]]) @ np.linalg.inv(centre)
-    current = np.repeat(geometry.translation(2000.0, 0)[None], 10, axis=0)
+    current = np.stack([geometry.translation(2000.0 + t, 0) for t in range(10)])
     groups = Groups(start=np.array([0]), stop=np.array([10]), reference=np.array([5]))
     hold = Hold()
-    updated = _interpolate(hold, groups, current[:1], current[:1] @ turn, current,
-                           SimpleNamespace(width=width, height=height), level=2)
-    shape = geometry.params_from_homographies(hold.seen)[0]
-    assert np.abs(shape[4:6]).max() < 1e-9 and abs(shape[1] - s) < 1e-9
+    updated = _interpolate(hold, groups, current[5:6] @ turn, current, SimpleNamespace(width=width, height=height),
+                           level=2)
+    pose = geometry.params_from_homographies(hold.seen)[0]
+    assert abs(pose[4] - 2004.5) < 1e-9 and abs(pose[5]) < 1e-9 and abs(pose[1] - s) < 1e-9
     middle = geometry.apply(updated, np.array([[(width - 1) / 2, (height - 1) / 2]]))
-    np.testing.assert_allclose(middle[:, 0], [[2000 + (width - 1) / 2, (height - 1) / 2]] * 10, atol=1e-9)
+    np.testing.assert_allclose(middle[:, 0], [[2004.5 + (width - 1) / 2, (height - 1) / 2]] * 10, atol=1e-9)
