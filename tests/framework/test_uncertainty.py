@@ -14,6 +14,7 @@ from photonpano.uncertainty import (
     _local_rms,
     frame_extents_travelled,
     frame_uncertainty,
+    level_change,
 )
 
 W, H = 64, 32
@@ -75,10 +76,25 @@ def test_the_last_level_moving_frames_adds_its_move_to_their_sigma():
     previous[200:400] = geometry.translation(0.0, 0.8) @ previous[200:400]
     unc = frame_uncertainty(level, W, H, previous=previous)
     local = RESIDUAL_TO_SIGMA * 0.05
-    assert unc.sigma_px[300] == pytest.approx(np.hypot(local, LEVEL_CHANGE_TO_SIGMA * 0.8))
-    assert unc.sigma_px[100] == pytest.approx(local) and unc.sigma_px[500] == pytest.approx(local)
+    change = level_change(level.homographies, previous, W, H)
+    assert change[300] == pytest.approx(0.8)
+    assert np.allclose(unc.sigma_px, np.hypot(local, LEVEL_CHANGE_TO_SIGMA * change))
+    # the global alignment spreads the move a little over the frames that did not move
+    assert change[100] < 0.4 and change[500] < 0.4
     with pytest.raises(ValueError, match="previous level"):
         frame_uncertainty(level, W, H, previous=previous[:10])
+
+
+def test_a_move_shared_by_every_frame_but_the_middle_one_is_seen_at_the_middle_too():
+    """The middle frame defines the panorama, so a move of all others relative to it leaves it in place."""
+    level = _level(shift=np.full(18, 0.05))
+    middle = len(level.homographies) // 2
+    previous = geometry.translation(0.5, 0.0) @ level.homographies
+    previous[middle] = level.homographies[middle]
+    in_panorama = geometry.mean_corner_distance(level.homographies, previous, W, H)
+    assert in_panorama[middle] == 0 and in_panorama[0] == pytest.approx(0.5)
+    change = level_change(level.homographies, previous, W, H)
+    assert change[middle] == pytest.approx(0.5, abs=0.01) and change.min() == pytest.approx(0.5, abs=0.01)
 
 
 def test_a_jump_is_located_and_named_by_frames_and_seconds():
