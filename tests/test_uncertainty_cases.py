@@ -14,10 +14,12 @@ def test_dim_zigzag_at_m500_is_degraded_and_names_its_frames():
     assert report["status"] == "degraded"
     unc = report["frame_uncertainty"]
     flagged = ~(unc.sigma_px <= 1.0)
-    # the frames flagged are worse than the others, and a third of those over 2 px are
-    # flagged (measured: 37 %; the held-out pairs see where the error changes, not its level)
-    assert error.per_frame_px[flagged].mean() > error.per_frame_px[~flagged].mean()
-    assert flagged[error.per_frame_px > 2.0].mean() > 0.3
+    # measured: every frame is 5.8-16 px off, and every frame is flagged (the held-out
+    # pairs alone flagged 37 %: they see where the error changes, not its level; the last
+    # level's move after the global alignment sees the rest)
+    assert flagged[error.per_frame_px > 2.0].mean() > 0.9
+    if not flagged.all():
+        assert error.per_frame_px[flagged].mean() > error.per_frame_px[~flagged].mean()
     assert any("frames" in line and " s)" in line for line in report["warnings"])
     assert report["uncertainty"]["above_limit"]
 
@@ -67,14 +69,19 @@ def test_the_level_change_term_is_the_move_since_the_first_level_after_level_1(o
 
 @pytest.mark.slow
 def test_a_fourth_level_does_not_hide_a_dark_scene_s_error():
-    """The suite's dark outdoor capture with levels=4: 0.86 px; the last step alone predicted 0.23 px and said ok."""
+    """The suite's dark outdoor capture with levels=4: the levels converge slowly, so the last step is small.
+
+    When it was 0.86 px, the last step alone predicted 0.23 px and said ok. Measured now:
+    0.31 px (levels 1-4: 1.14, 0.55, 0.41, 0.31), median sigma 0.26 px, 99.8 % of the
+    frames within 2 sigma, ``degraded`` (a few frames' sigma over 1 px).
+    """
     from capture_helpers import load_suite
 
     suite = load_suite()
     capture = next(c for c in suite.captures() if c.name == "outdoor_camera/dark")
     row = suite.run_capture(capture, overrides=["levels=4"])
-    assert row["rmse"] > 0.6  # measured 0.855 px
-    assert row["status"] == "degraded", row
+    assert row["rmse"] > 0.2, row  # still an error the fourth level's move alone understates
+    assert row["within_2_sigma"] >= 0.8 and row["sigma_median"] >= row["rmse"] / 2, row
 
 
 @pytest.mark.slow
