@@ -140,10 +140,12 @@ class CubicLKInterpolator(Interpolator):
         integral = BSpline(knots, np.eye(n_basis), 3).antiderivative()
         lo, hi = groups.start - 0.5, groups.stop - 0.5
         design = _Design((integral(hi) - integral(lo)) / lengths[:, None])  # group means of the basis
-        shape = self.config.shape_smoothness
-        if shape == "auto":
+        shape: float | NDArray[np.float64]
+        if self.config.shape_smoothness == "auto":
             folds = _folds(groups)
             shape = SHAPE_DEFAULT if folds is None else _cross_validate(design, params[:, SHAPE], *folds)
+        else:
+            shape = self.config.shape_smoothness
         coef = np.empty((n_basis, params.shape[1]))
         for columns, weight in ((SHIFT, self.config.smoothness), (SHAPE, shape)):
             weights = np.broadcast_to(np.asarray(weight, np.float64), (len(columns),))
@@ -278,8 +280,9 @@ def _cross_validate(design: _Design, values: NDArray[np.float64], folds: list[ND
         right = fitted.transpose_times(values[kept])
         for i, weight in enumerate(SMOOTHNESS_GRID):
             errors[i, held] = (predicted.times(design.solve(normal, weight, right)) - values[held]) ** 2
-    per_block = np.zeros((len(SMOOTHNESS_GRID), blocks[-1] + 1, values.shape[1]))
-    np.add.at(per_block, (slice(None), blocks), errors)
+    per_block = np.zeros((blocks[-1] + 1, len(SMOOTHNESS_GRID), values.shape[1]))
+    np.add.at(per_block, blocks, errors.transpose(1, 0, 2))
+    per_block = per_block.transpose(1, 0, 2)  # (weights, blocks, P) summed squared errors
     n_blocks = per_block.shape[1]
     mean = per_block.mean(axis=1)  # (weights, P)
     best = np.argmin(mean, axis=0)
@@ -292,7 +295,7 @@ def _cross_validate(design: _Design, values: NDArray[np.float64], folds: list[ND
 
 def _huber_fit(design: _Design, values: NDArray[np.float64], weights: NDArray[np.float64], threshold: float | None,
                floor: NDArray[np.float64], iterations: int = 4) -> NDArray[np.float64]:
-    """Penalised least squares ``min sum_g w_g |design_g c_j - values_gj|^2 + weights_j c_j' penalty c_j`` with Huber weights.
+    """Penalised least squares ``min sum_g w_g |design_g c_j - values_gj|^2 + weights_j c_j' penalty c_j``.
 
     Huber's M-estimator by iteratively reweighted least squares (Huber, "Robust estimation
     of a location parameter", 1964; Holland and Welsch, 1977): a keyframe whose residual,
