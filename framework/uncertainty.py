@@ -234,6 +234,9 @@ def level_change(homographies: NDArray[np.float64], previous: NDArray[np.float64
         (T,) float64 per-frame mean corner distance in panorama pixels: the larger of the
         distance as it stands and after the least-squares homography that aligns
         ``homographies`` with ``previous`` over all frames' corners.
+
+    Raises:
+        ValueError: if the two stacks differ in shape.
     """
     aligned = trajectory_error(homographies, previous, width, height).per_frame_px
     return np.maximum(geometry.mean_corner_distance(homographies, previous, width, height), aligned)
