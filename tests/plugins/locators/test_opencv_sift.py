@@ -80,3 +80,22 @@ def test_threaded_runs_keep_the_blas_to_one_thread_and_restore_it():
         inside = executor.map(lambda _: blas_threads(), range(2))
     assert all(threads == 1 for pools in inside for threads in pools)
     assert blas_threads() == before
+
+
+def test_auto_feature_budget_follows_the_frame_size_not_its_texture():
+    from photonpano.plugins.locators.opencv_sift import MIN_FEATURES, PIXELS_PER_FEATURE, feature_budget
+
+    assert feature_budget("auto", (127, 248)) == 493 == -(-127 * 248 // PIXELS_PER_FEATURE)
+    assert feature_budget("auto", (40, 60)) == MIN_FEATURES and feature_budget(0, (127, 248)) == 0
+    # a texture-rich image: the automatic budget binds, the former default (2000) did not
+    rng = np.random.default_rng(1)
+    texture = cv2.GaussianBlur((rng.random((127, 248)) * 255).astype(np.uint8), (3, 3), 0)
+    mask = np.ones(texture.shape, bool)
+    points, _ = OpenCVSiftConfig().build().features(texture, mask)
+    unlimited, _ = OpenCVSiftConfig(max_features=0).build().features(texture, mask)
+    assert len(unlimited) > 600 and len(points) == 493
+    # and the warp is still recovered on the real pair with the budget of its size
+    source, target = cv2.imread(str(DATA / "source.png")), cv2.imread(str(DATA / "target.png"))
+    result = OpenCVSiftConfig().build().register_pairs(_frames(source, target), np.array([[0, 1]]), np.eye(3)[None])
+    h, w = target.shape[:2]
+    assert result.ok[0] and _corner_error(result.homographies[0], H_TARGET_TO_SOURCE, w, h) <= 0.5
