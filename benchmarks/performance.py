@@ -29,6 +29,7 @@ Usage::
     python benchmarks/performance.py --path zigzag --frames 25000
     python benchmarks/performance.py --path pan,zigzag,shake   # one row per path
     python benchmarks/performance.py --scene office,city,dark --path pan,zigzag,shake  # 9 rows
+    python benchmarks/performance.py --scene highcontrast_hubble   # any suite photo, by its stem
     python benchmarks/performance.py --scaling        # 12.5k, 25k, 50k, 100k, 200k frames
     python benchmarks/performance.py --set locator.max_features=2000   # spec overrides
 """
@@ -55,9 +56,24 @@ SCENES = {"office": {}, "city": {"photo": str(PHOTOS / "city_madison.jpg")},
 """Scene -> simulate settings added to :data:`SIMULATION` (``office``: the bundled photo)."""
 
 
+def scene_settings(scene: str) -> dict:
+    """Simulate settings of ``scene``: one of :data:`SCENES`, or the stem of an evaluation-suite photo.
+
+    Raises:
+        SystemExit: for a name that is neither (naming the choices).
+    """
+    if scene in SCENES:
+        return SCENES[scene]
+    photo = PHOTOS / f"{scene}.jpg"
+    if not photo.exists():
+        choices = sorted(SCENES) + sorted(p.stem for p in PHOTOS.glob("*.jpg"))
+        raise SystemExit(f"--scene {scene!r}: expected one of {', '.join(choices)}")
+    return {"photo": str(photo)}
+
+
 def simulation(path: str, frames: int, scene: str = "office") -> dict:
     """The simulate settings of the capture of ``frames`` frames of ``scene`` on camera path ``path``."""
-    return {**SIMULATION, **SCENES[scene], **PATHS[path], "frames": frames}
+    return {**SIMULATION, **scene_settings(scene), **PATHS[path], "frames": frames}
 
 
 def cube_path(frames: int, camera: str = "pan", scene: str = "office") -> Path:
@@ -162,7 +178,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--frames", type=int, default=100_000)
     parser.add_argument("--path", default="pan", help="camera path(s), comma-separated: pan, zigzag, shake")
-    parser.add_argument("--scene", default="office", help="scene(s), comma-separated: office, city, dark")
+    parser.add_argument("--scene", default="office", help="scene(s), comma-separated: office, city, dark or a suite photo's stem")
     parser.add_argument("--scaling", action="store_true", help="print the 12.5k..200k scaling table")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                         help="spec override, as in `photonpano run --set` (repeatable)")
@@ -172,8 +188,8 @@ def main() -> None:
     scenes = [c.strip() for c in args.scene.split(",") if c.strip()]
     if unknown := set(cameras) - set(PATHS):
         parser.error(f"--path: unknown {sorted(unknown)}; expected {', '.join(PATHS)}")
-    if unknown := set(scenes) - set(SCENES):
-        parser.error(f"--scene: unknown {sorted(unknown)}; expected {', '.join(SCENES)}")
+    for scene in scenes:
+        scene_settings(scene)  # an unknown name exits here, naming the choices
     if args.worker:
         print(json.dumps(run_once(args.worker, args.set, cameras[0], scenes[0])))
         return
