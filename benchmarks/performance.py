@@ -178,7 +178,8 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--frames", type=int, default=100_000)
     parser.add_argument("--path", default="pan", help="camera path(s), comma-separated: pan, zigzag, shake")
-    parser.add_argument("--scene", default="office", help="scene(s), comma-separated: office, city, dark or a suite photo's stem")
+    parser.add_argument("--scene", default="office",
+                        help="scene(s), comma-separated: office, city, dark or a suite photo's stem")
     parser.add_argument("--scaling", action="store_true", help="print the 12.5k..200k scaling table")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                         help="spec override, as in `photonpano run --set` (repeatable)")

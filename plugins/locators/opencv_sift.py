@@ -112,6 +112,8 @@ class OpenCVSiftLocator(FeatureLocator):
     :meth:`cache_stats` counts hits and misses.
     """
 
+    config: OpenCVSiftConfig
+
     def __init__(self, config: OpenCVSiftConfig) -> None:
         import cv2
 
