@@ -214,6 +214,22 @@ class BilinearCompositor(Compositor):
 
         join_exposures(self._accs, other._accs, lambda mine, theirs: mine.merge(theirs))
 
+    def exposure_sums(self) -> tuple[NDArray[np.float32], NDArray[np.float32], NDArray[np.float64]]:
+        """The sums of each virtual exposure apart, once every frame is fed (and the forks joined).
+
+        Returns:
+            ``(counts, frames, homographies)``: (E, H, W) float32 photon detections and
+            binary frames per canvas pixel for each of the ``exposures`` runs of frames, in
+            frame order (zeros for a run never fed), and the canvas's (T, 3, 3) float64
+            frame-to-canvas homographies.
+        """
+        shape = (self.exposures, self._canvas.height, self._canvas.width)
+        counts, frames = np.zeros(shape, np.float32), np.zeros(shape, np.float32)
+        for k, acc in enumerate(self._accs):
+            if acc is not None:
+                counts[k], frames[k] = acc.counts, acc.frames
+        return counts, frames, self._canvas.homographies
+
     def finish(self) -> Panorama:
         """The flux MLE per canvas pixel (see :meth:`Compositor.finish`); robust: the exposures that agree."""
         from .intensity import estimate_radiance

@@ -97,7 +97,8 @@ class Stages:
                  "mosaic": MosaicScheme(in_merged_pixels(spec.mosaic.locator, budget.mosaic_binning).build,
                                         spec.mosaic.template.build, subbatch_px=spec.mosaic.subbatch_px,
                                         reject_movers=reject, make_robust=_robust_template(spec.mosaic).build,
-                                        detect_movers=spec.mosaic.reject_movers == "auto")}
+                                        detect_movers=spec.mosaic.reject_movers == "auto",
+                                        holdout=spec.mosaic.holdout)}
         self.schemes = [built[name] for name in level_schemes(spec)]
         self.notes: list[str] = []
         plan = budget.plan

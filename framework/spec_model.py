@@ -251,6 +251,11 @@ def _mosaic_model(host: PluginHost) -> type[BaseModel]:
             "canvas (a mover was found; run.json `movers`), else every pixel is used as with null. A number: always "
             "on (it untrusts bright regions of static high-contrast scenes too: Hubble field 0.100 -> 0.116 "
             "px; docs/real_scenes.md). null: every pixel is used.")], "auto"),
+        "holdout": (Annotated[int, Field(ge=1, le=64, description="Runs of consecutive frames the template is "
+            "cut into: each merged frame is registered against the panorama of the runs its frames do not fall in "
+            "(a leave-one-out template: its own photons, and those of the neighbours that share its pose error, "
+            "do not pull it toward the current estimate; photonpano.schemes.mosaic.HoldoutTemplate). With the "
+            "flux-canvas template, while movers are not rejected. 1: every photon.")], 4),
         "registration_binning": (Annotated[Union[Literal["auto"], Annotated[int, Field(ge=1, le=8)]], Field(  # noqa: UP007
             description="Binning k of the merged frames and templates of the mosaic levels (see the top-level "
             "`registration_binning`). auto: the top-level value where that is set in the spec; else full "
