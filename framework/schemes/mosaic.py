@@ -19,13 +19,18 @@ landscape_mountains 0.13 -> 0.11, text_handwriting 0.16 -> 0.16).
 A template made from every photon holds each merged frame's own photons, and those of its
 neighbours in time, placed with the errors of the estimate being corrected: the
 registration is pulled toward that estimate, and where the canvas is seen by those frames
-alone (the new strip at a panorama's end) it can only agree with it. With ``holdout``
-(spec ``mosaic.holdout``, default 4) the capture is cut into that many runs of consecutive
-frames and each group is registered against the panorama of the runs its frames do not
-fall in, a leave-one-out (jackknife) template made from the runs' sums at no extra pass.
-On the suite's base captures (flux 0.5) it lowered the RMSE of the bundled office from
-0.124 to 0.033 px (its last frames end on a strip only they see), dandelions 0.051 -> 0.040,
-coffee 0.052 -> 0.044 (docs/accuracy.md).
+alone (the new strip at the end of a pan) it can only agree with it. With ``holdout``
+(spec ``mosaic.holdout``, off by default) the capture is cut into that many runs of
+consecutive frames and each group is registered against the panorama of the runs its
+frames do not fall in, a leave-one-out (jackknife) template made from the runs' sums at no
+extra pass (:class:`HoldoutTemplate`). Measured on the evaluation suite (2026-11-25), 4
+runs: the bundled office's pan, which ends on a strip of corridor only its last frames
+see, 0.124 -> 0.033 px, dandelions 0.051 -> 0.040, coffee 0.052 -> 0.044; but the
+unbiased registrations are noisier than the ones pulled toward the estimate, and most
+captures lost (the room 0.023 -> 0.046 px, Hubble 0.047 -> 0.064, the sunset's zigzag at
+flux 0.05 0.138 -> 0.296, the room's fast pan 0.54 -> 2.46); 8 and 16 runs, the leave-out
+at the first mosaic level only, and untrusting only the template pixels the group's own
+runs dominate did not remove the losses.
 
 Groups go to the executor in windows; each window is a pure task (it builds its own
 locator and returns what it found), so the windows can run on threads or processes.
@@ -115,7 +120,8 @@ class MosaicScheme(LevelScheme):
         holdout: runs of consecutive frames the plain template is cut into; each group is
             registered against the runs its frames do not fall in (:class:`HoldoutTemplate`;
             templates from ``flux-canvas``, i.e. :class:`~photonpano.compose.BilinearCompositor`,
-            only: another compositor's template holds every photon). 1: every photon.
+            only: another compositor's template holds every photon). 1 (the default): every
+            photon.
     """
 
     name = "mosaic"
