@@ -254,7 +254,7 @@ def _mosaic_model(host: PluginHost) -> type[BaseModel]:
         "holdout": (Annotated[int, Field(ge=1, le=64, description="Runs of consecutive frames the template is "
             "cut into: each merged frame is registered against the panorama of the runs its frames do not fall in "
             "(a leave-one-out template: its own photons, and those of the neighbours that share its pose error, "
-            "do not pull it toward the current estimate; photonpano.schemes.mosaic.HoldoutTemplate). With the "
+            "do not pull it toward the current estimate; photonpano.schemes.holdout.HoldoutTemplate). With the "
             "flux-canvas template, while movers are not rejected. 1 (the default): every photon. 4 suits a pan "
             "that ends on scenery only its last frames see (the bundled office: 0.124 -> 0.033 px); on most "
             "suite captures the unbiased registrations are noisier and the RMSE rises (docs/accuracy.md).")], 1),

@@ -263,7 +263,7 @@ def test_holdout_template_leaves_out_the_runs_a_group_falls_in():
     flux agrees with the full panorama's within photon noise.
     """
     from photonpano.compose import BilinearCompositor, compose
-    from photonpano.schemes.mosaic import HoldoutTemplate
+    from photonpano.schemes.holdout import HoldoutTemplate
 
     source = validate_spec({"source": {"plugin": "simulate", "frames": 4000, "height": 48, "width": 96,
                                        "speed_px_per_frame": 0.05, "vibration_px": 0.0, "flux": 0.5}},
