@@ -98,7 +98,8 @@ class Stages:
                                         spec.mosaic.template.build, subbatch_px=spec.mosaic.subbatch_px,
                                         reject_movers=reject, make_robust=_robust_template(spec.mosaic).build,
                                         detect_movers=spec.mosaic.reject_movers == "auto",
-                                        holdout=spec.mosaic.holdout)}
+                                        holdout=spec.mosaic.holdout,
+                                        correct_bias=spec.mosaic.correct_template_bias)}
         self.schemes = [built[name] for name in level_schemes(spec)]
         self.notes: list[str] = []
         plan = budget.plan
@@ -201,6 +202,8 @@ class Stages:
             row["registration_check"] = result.located.check
         if result.located.movers is not None:
             row["movers"] = result.located.movers
+        if result.located.template_bias is not None:
+            row["template_bias"] = result.located.template_bias
         if self.source.ground_truth is not None:
             row["trajectory_rmse_px"] = source_trajectory_error(result.homographies, self.source).rmse_px
         return row

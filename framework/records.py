@@ -270,6 +270,10 @@ class LocateResult:
             registration failed), which lets the level loop correct each shift once the
             shape is smoothed (:func:`~photonpano.information.conditional_shift`); None
             where the scheme does not say (pairwise levels).
+        template_bias: the mosaic scheme's correction of its registrations for the
+            template's own error (``run.json``'s ``levels[k].template_bias``: ``knots``,
+            ``prior_px``, ``correction_px``; :mod:`photonpano.schemes.template_bias`), or
+            None where none was made.
     """
 
     keyframes: NDArray[np.float64]
@@ -283,6 +287,7 @@ class LocateResult:
     check: dict[str, Any] | None = None
     movers: dict[str, Any] | None = None
     information: NDArray[np.float64] | None = None
+    template_bias: dict[str, Any] | None = None
 
     @property
     def primary(self) -> NDArray[np.bool_]:

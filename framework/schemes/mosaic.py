@@ -44,6 +44,7 @@ The decision and the fractions go to :attr:`~photonpano.records.LocateResult.mov
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from dataclasses import dataclass
 from typing import Any, Callable
@@ -65,6 +66,7 @@ from ..views import panorama_views
 from ..watchdog import watched
 from .base import LevelScheme, LevelTask
 from .holdout import HoldoutTemplate
+from .template_bias import correct_template_bias
 
 __all__ = ["MOVERS_MIN_FRACTION", "MOVERS_SIGMAS", "MosaicScheme", "mask_disagreement",
            "moving_fraction"]
@@ -106,6 +108,8 @@ class MosaicScheme(LevelScheme):
             rejection is on); None: ``make_compositor``'s.
         detect_movers: engage ``reject_movers`` only where the first mosaic level's robust
             template finds a mover (see the module); False: always.
+        correct_bias: correct each registration for the template's own error
+            (:mod:`photonpano.schemes.template_bias`; not with a ``holdout`` template).
         holdout: runs of consecutive frames the plain template is cut into; each group is
             registered against the runs its frames do not fall in (:class:`~photonpano.schemes.holdout.HoldoutTemplate`;
             templates from ``flux-canvas``, i.e. :class:`~photonpano.compose.BilinearCompositor`,
@@ -119,9 +123,10 @@ class MosaicScheme(LevelScheme):
     def __init__(self, make_locator: Callable[[], Locator], make_compositor: Callable[[], Compositor], *,
                  subbatch_px: float = 0.5, window: int = 16, reject_movers: float | None = None,
                  make_robust: Callable[[], Compositor] | None = None, detect_movers: bool = False,
-                 holdout: int = 1) -> None:
+                 holdout: int = 1, correct_bias: bool = False) -> None:
         """Create the scheme from factories of its locator and template compositor."""
         self.holdout = holdout
+        self.correct_bias = correct_bias
         self.reject_movers = reject_movers
         self.make_locator = make_locator
         self.make_compositor = make_compositor
@@ -230,6 +235,14 @@ class MosaicScheme(LevelScheme):
             raise StageError("locator", "mosaic", f"level {task.level}: none of the {len(ok)} merged frames "
                              "registered against the panorama of the current estimate")
         regs = regs.with_ok(ok)
+        bias = None
+        if self.correct_bias and isinstance(template, Panorama) and template.flux.ndim == 2:
+            exposure = binary_exposure(source)
+            image = template.flux if exposure is None else stabilised_detections(template.flux, exposure)
+            corrected, found = correct_template_bias(template.homographies, image, groups.start, groups.stop,
+                                                     groups.reference, regs.homographies, ok, source.width,
+                                                     source.height)
+            regs, bias = dataclasses.replace(regs, homographies=corrected), found.record()
         keyframes = bridge(current, geometry.normalize(current @ regs.homographies), ok)
         cache: dict[str, int] = {}
         for part in parts:
@@ -247,7 +260,8 @@ class MosaicScheme(LevelScheme):
         information = np.concatenate([part.information for part in parts])
         information[~ok] = 0.0
         return LocateResult(keyframes, regs, None, merged=merged, merge_s=merge_s, locator_cache=cache or None,
-                            crosscheck=cross, crosscheck_index=cross_index, movers=movers, information=information)
+                            crosscheck=cross, crosscheck_index=cross_index, movers=movers, information=information,
+                            template_bias=bias)
 
 
 def _noise_even(views: MergedFrames) -> NDArray[np.float32]:
