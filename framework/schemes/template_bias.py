@@ -30,22 +30,27 @@ The bias is linear in the error for sub-pixel errors, so it is modelled and remo
    ``S``: ``P_g[u] = inv(sum J' S J) sum J' S u`` (the Gauss-Newton step; Baker and
    Matthews, IJCV 56, 2004). Group ``g`` sees its mean error ``e_g`` against the
    template's, so its registration measures ``m_g = -e_g + P_g[L a] + noise``.
-4. ``a`` is the maximum a-posteriori fit of all registrations (weighted by each one's
+4. ``a`` is the maximum a-posteriori fit of the registrations (weighted by each one's
    information; Gaussian prior of one standard deviation per knot parameter, in pixels at
    the frame corner, chosen by maximising the marginal likelihood: MacKay, "Bayesian
    interpolation", Neural Computation 4, 1992), and each registration is corrected by its
    bias: ``m_g - P_g[L a]``.
 
-Measured on the evaluation suite's 32 base captures at flux 0.5 and 0.05 (2026-11-25,
-default levels): trajectory RMSE geometric mean -19 %, 15 captures better by more than
-15 % (the bundled office 0.124 -> 0.083 px, the clock 0.441 -> 0.205, coffee 0.052 ->
-0.034, grass 0.022 -> 0.011; at flux 0.05 the sunset 0.224 -> 0.143, coffee 0.200 ->
-0.089, dandelions 0.153 -> 0.071, the astronaut 0.127 -> 0.061), 4 worse (Hubble 0.047 ->
-0.058, the astronaut 0.016 -> 0.019; at flux 0.05 chelsea 0.079 -> 0.122, the room 0.087
--> 0.144): where the template's error is small, the fitted bias is mostly noise. Fitting
-only the error modes the registrations see well (a truncated generalised eigenbasis) kept
-the losses away but lost most of the gains, and so did summing the bias as further
-virtual levels (a truncated Neumann series).
+Two guards, each chosen on the suite. The short anchor groups at the capture's ends
+(``midpoint``'s ``anchor_ends``) are corrected but not fitted: under a lamp flickering
+over half the field they span half a period and are biased by it (the facade at 120 Hz:
+0.061 px without the correction, 0.092 with them in the fit, 0.063 without). And a
+correction larger than the registrations' own moves (root mean square over the level, in
+pixels at the frame corner) is scaled down to that size: the template's share of an error
+cannot exceed the error, and a larger fit is a mode of the error the registrations hardly
+see (the Hubble field's first mosaic level moved its frames by 3.9 px, 0.063 -> 0.189 px).
+The knots are one per 4 groups, so that the model follows what level 1 left (a 45 Hz
+vibration aliased into 40 knots over 100 000 frames: 0.037 -> 0.059 px); levels of more
+than 256 groups (100 000-frame captures, fast pans) are not corrected, where the fit
+would cost seconds and the suite showed no gain. Fitting only the error modes the
+registrations see well (a truncated generalised eigenbasis) kept the losses away but lost
+most of the gains, and so did summing the bias as further virtual levels (a truncated
+Neumann series).
 """
 
 from __future__ import annotations
@@ -59,12 +64,10 @@ from .. import geometry
 
 __all__ = ["TemplateBias", "correct_template_bias", "template_displacement", "structure_tensors", "knot_weights"]
 
-MAX_KNOTS = 40
-"""Most knots of the error model (at least 4; one per 4 groups below that)."""
+MAX_KNOTS = 64
+"""Most knots of the error model (one per 4 groups; levels of more groups are left as they are)."""
 MAX_SAMPLED_FRAMES = 400
 """Most binary frames sampled for the template's displacement (evenly spread; errors are smooth in time)."""
-MAX_FIT_GROUPS = 192
-"""Most registrations the smooth error is fitted to (evenly spread; every one is then corrected)."""
 PRIOR_GRID_PX = np.geomspace(0.005, 2.0, 40)
 """Prior standard deviations of a knot parameter tried by the marginal likelihood, in pixels at the frame corner."""
 
@@ -214,7 +217,8 @@ def correct_template_bias(homographies: NDArray[np.float64], image: NDArray[np.f
     Returns:
         ``(corrected, record)``: (G, 3, 3) float64 registrations (unchanged where ``ok`` is
         False, or the registration's information is singular) and what was done. With
-        fewer than 8 usable registrations nothing is corrected (``record.knots`` 0).
+        fewer than 16 or more than ``4 * MAX_KNOTS`` groups, or fewer than 8 usable
+        registrations, nothing is corrected (``record.knots`` 0).
     """
     g = len(references)
     centre = geometry.translation((width - 1) / 2, (height - 1) / 2)
@@ -223,7 +227,9 @@ def correct_template_bias(homographies: NDArray[np.float64], image: NDArray[np.f
     unchanged = np.asarray(registrations, np.float64).copy(), TemplateBias(0, 0.0, 0.0)
     if int(np.count_nonzero(ok)) < 8:
         return unchanged
-    n_knots = int(np.clip(g // 4, 4, MAX_KNOTS))
+    n_knots = g // 4
+    if not 4 <= n_knots <= MAX_KNOTS:
+        return unchanged
     knots = np.linspace(0, len(homographies) - 1, n_knots)
     cell = max(4, int(round(min(width, height) / 16)))
     x_canvas, y_canvas = _cell_centres(image.shape, cell)
@@ -237,9 +243,8 @@ def correct_template_bias(homographies: NDArray[np.float64], image: NDArray[np.f
     def conditioned(information: NDArray[np.float64]) -> NDArray[np.bool_]:
         return np.asarray(np.linalg.cond(information / (corner[:, None] * corner[None, :])) < 1e10)
 
-    # the fit: at most MAX_FIT_GROUPS registrations, evenly spread over the capture
-    fit = np.flatnonzero(ok)
-    fit = fit[np.unique(np.linspace(0, len(fit) - 1, min(len(fit), MAX_FIT_GROUPS)).round().astype(np.int64))]
+    lengths = stops - starts
+    fit = np.flatnonzero(ok & (lengths >= np.median(lengths)))  # not the short anchor groups at the ends
     information, response = _projections(references_h[fit], *cells, displacement=displacement)  # (F, 8, K * 8)
     keep = conditioned(information)
     if int(np.count_nonzero(keep)) < 8:
@@ -253,8 +258,13 @@ def correct_template_bias(homographies: NDArray[np.float64], image: NDArray[np.f
     # every registration's bias: its response to the template's fitted displacement field
     information, response = _projections(references_h, *cells, field=(displacement @ errors).reshape(-1, 2))
     usable = ok & conditioned(information)
+    if not usable.any():
+        return unchanged
     bias = np.zeros((g, 8))
     bias[usable] = np.linalg.solve(information[usable], response[usable][..., None])[..., 0]
+    size, measured_size = (float(np.sqrt(np.mean((v[usable] * corner) ** 2))) for v in (bias, measured))
+    if size > measured_size:  # a share larger than what the registrations moved: scaled down to it
+        bias *= measured_size / size
     corrected = geometry.normalize(centre @ geometry.homographies_from_params(measured - bias) @ to_centre)
     corrected[~usable] = unchanged[0][~usable]
     moved = geometry.mean_corner_distance(corrected[usable], registrations[usable], width, height)
