@@ -86,7 +86,7 @@ def test_the_correction_takes_the_template_s_share_out_of_a_mosaic_level(driftin
 
     The estimate drifts along the pan by up to 0.6 px and rolls (0.369 px RMSE after global
     alignment); one mosaic level's keyframes keep 0.164 px of it against the plain template
-    (the frames that see the same canvas share their drift) and 0.069 px once each
+    (the frames that see the same canvas share their drift) and 0.068 px once each
     registration is corrected for the template's share (measured, 254x496 frames).
     """
     spec, source, estimate = drifting_estimate
