@@ -12,7 +12,7 @@ model validation (cross-validation of a fit by measurements it did not see; Hast
 Tibshirani and Friedman, *The Elements of Statistical Learning*, Sec. 7.10).
 
 From the held-out residuals and the level loop's own history :func:`frame_uncertainty`
-predicts a 1-sigma error for every binary frame from three terms, added in quadrature:
+predicts a 1-sigma error for every binary frame from three terms, added in quadrature, and a floor:
 
 - *local*: the root mean square of the held-out residuals near the frame, times
   :data:`RESIDUAL_TO_SIGMA`;
@@ -24,6 +24,10 @@ predicts a 1-sigma error for every binary frame from three terms, added in quadr
   height along the displacement): :data:`CHAIN_DRIFT_PER_FRAME_EXTENT` times level 1's
   pose-graph residual. A fast pan across three frame widths drifted by 1-2 px at its ends
   while its local residuals predicted 0.4 px.
+- *jump*: where one held-out pair disagrees by more than :data:`LIMIT_PX`, one of its two
+  groups is off by at least half of that, so the frames between them get at least that
+  sigma (the local RMS, at :data:`RESIDUAL_TO_SIGMA`, dilutes a single 6 px disagreement
+  among its neighbours to 0.44 px);
 - *level change*: how far the mosaic levels moved each frame, from the first mosaic
   level's trajectory to the last's, times :data:`LEVEL_CHANGE_TO_SIGMA` (with the
   default three levels, the move of level 3), measured both in the panorama's frame and
@@ -210,6 +214,10 @@ def frame_uncertainty(result: LevelResult, width: int, height: int, chain_residu
     else:
         sigma = np.full(n, np.inf)
     reference = result.groups.reference
+    # a held-out pair off by more than the limit: one of its two groups is off by at least half of it
+    for (a, b), off in zip(index[ok], residual[ok]):
+        if off > LIMIT_PX:
+            sigma[reference[a]:reference[b] + 1] = np.maximum(sigma[reference[a]:reference[b] + 1], off / 2)
     unverified = np.zeros(n, bool)
     for a, b in index[~ok]:
         unverified[reference[a]:reference[b] + 1] = True

@@ -98,10 +98,11 @@ def test_a_move_shared_by_every_frame_but_the_middle_one_is_seen_at_the_middle_t
 
 
 def test_a_jump_is_located_and_named_by_frames_and_seconds():
-    """One held-out pair 6 px off: the frames around it exceed the limit, the warning names them.
+    """One held-out pair 6 px off: the frames between its groups exceed the limit, the warning names them.
 
-    Its local RMS over 17 pairs is 6 / sqrt(17) = 1.46 px, times ``RESIDUAL_TO_SIGMA`` (0.8):
-    1.16 px (5 px gave 1.09 px at 0.9, 0.97 at 0.8).
+    Its local RMS over 17 pairs is 6 / sqrt(17) = 1.46 px, times ``RESIDUAL_TO_SIGMA`` (0.3)
+    0.44 px, under the limit; but one of the pair's groups is off by at least 3 px (the jump
+    floor), so the frames between the two are flagged.
     """
     shift = np.full(58, 0.05)
     shift[10] = 6.0
