@@ -5,18 +5,25 @@ an arbitrary exception from deep inside the pipeline. :func:`plugin_failure` wal
 traceback from the innermost frame outwards to the first frame in a plugin's module,
 names that plugin and its stage (or hook), writes the full traceback to a log file and
 returns a :class:`~photonpano.errors.PluginError` whose message is one line.
+
+Ctrl-C that lands while a compiled kernel (numba) runs does not arrive as
+``KeyboardInterrupt``: the kernel returns with the interrupt pending and CPython raises
+``SystemError: ... returned a result with an exception set`` with the interrupt as its
+cause. :func:`unwrapped_interrupts` turns it back into the interrupt it is.
 """
 
 from __future__ import annotations
 
+import contextlib
 import os
 import tempfile
 import traceback
+from collections.abc import Iterator
 from typing import Any
 
 from .errors import PluginError
 
-__all__ = ["plugin_failure", "short_repr"]
+__all__ = ["plugin_failure", "short_repr", "unwrapped_interrupts"]
 
 
 def short_repr(value: Any, limit: int = 80) -> str:
@@ -24,6 +31,27 @@ def short_repr(value: Any, limit: int = 80) -> str:
     text = repr(value) if not isinstance(value, (dict, list, tuple, set)) or len(value) < 50 else (
         f"<{type(value).__name__} of {len(value)} items>")
     return text if len(text) <= limit else f"{text[:limit - 3]}..."
+
+
+@contextlib.contextmanager
+def unwrapped_interrupts() -> Iterator[None]:
+    """Re-raise as ``KeyboardInterrupt`` an exception whose cause or context is one.
+
+    Raises:
+        KeyboardInterrupt: the block raised an exception caused by Ctrl-C (e.g. the
+            ``SystemError`` of a numba kernel interrupted while it ran), from that exception.
+    """
+    try:
+        yield
+    except Exception as exc:
+        seen: set[int] = set()
+        link: BaseException | None = exc
+        while link is not None and id(link) not in seen:
+            if isinstance(link, KeyboardInterrupt):
+                raise KeyboardInterrupt from exc
+            seen.add(id(link))
+            link = link.__cause__ or link.__context__
+        raise
 
 
 def _plugin_modules(host: Any) -> dict[str, tuple[str, str]]:

@@ -29,6 +29,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .errors import PhotonpanoError
+from .faults import unwrapped_interrupts
 from .hdr import write_flux_tiff
 from .host import PluginHost
 from .metrics import ground_truth_report, plot_trajectory, source_trajectory_error
@@ -139,8 +140,10 @@ def run_pipeline(spec: PipelineSpec, out_dir: Path | None, host: PluginHost, *, 
         require_av()  # before the run, not after it
     with guarding(host), reporting(host):  # a hung plugin call: PluginHung, outside the folder (kept as on Ctrl-C)
         if out_dir is None:
-            return _run_into(spec, None, host)
-        with RunFolder(out_dir, force=force, resume=resume, inputs=_input_paths(spec)) as folder:
+            with unwrapped_interrupts():
+                return _run_into(spec, None, host)
+        with RunFolder(out_dir, force=force, resume=resume, inputs=_input_paths(spec)) as folder, \
+                unwrapped_interrupts():  # Ctrl-C inside a compiled kernel: an interrupt, checkpoints kept
             return _run_into(spec, folder, host)
 
 

@@ -63,10 +63,18 @@ def test_kill_9_at_random_moments_then_resume(reference, tmp_path):
     assert np.array_equal(np.load(out / "homographies.npy"), expected)
 
 
+def _interrupted_kernel():
+    """What Ctrl-C inside a numba kernel raises: SystemError caused by the interrupt."""
+    try:
+        raise KeyboardInterrupt
+    except KeyboardInterrupt as interrupt:
+        raise SystemError("CPUDispatcher(<function kernel>) returned a result with an exception set") from interrupt
+
+
 @pytest.mark.slow
-@pytest.mark.parametrize("stop_after", [1, 2])
+@pytest.mark.parametrize("stop_after, raised", [(1, "interrupt"), (2, "interrupt"), (1, "in-kernel")])
 def test_resume_after_an_interrupted_level_equals_an_uninterrupted_run(reference, tmp_path, monkeypatch,
-                                                                       stop_after):
+                                                                       stop_after, raised):
     from photonpano.host import PluginHost
     from photonpano.pipeline import run_pipeline
     from photonpano.spec import load_spec
@@ -79,6 +87,8 @@ def test_resume_after_an_interrupted_level_equals_an_uninterrupted_run(reference
     def interrupt(self, checkpoint):
         save(self, checkpoint)
         if checkpoint.level == stop_after:
+            if raised == "in-kernel":
+                _interrupted_kernel()
             raise KeyboardInterrupt
 
     monkeypatch.setattr(outputs.RunFolder, "save_checkpoint", interrupt)

@@ -119,11 +119,15 @@ def test_a_base_exception_on_a_dask_worker_names_the_locator(tmp_path):
     assert not (tmp_path / "out").exists()
 
 
-@pytest.mark.parametrize("kind,exit_code", [(KeyboardInterrupt, 130), (SystemExit, 7)])
-def test_interrupts_from_a_locator_still_propagate(monkeypatch, tmp_path, kind, exit_code):
-    """Ctrl-C (click's exit 130) and sys.exit(7) are not reported as the plugin's bug."""
-    code = BOOM_LOCATOR.replace('raise RuntimeError("boom in register_pairs " + "x" * 5000)',
-                                f"raise {kind.__name__}(7)")
+IN_KERNEL = 'raise SystemError("CPUDispatcher(<function k>) returned a result with an exception set") from ' \
+    "KeyboardInterrupt()"  # Ctrl-C while a numba kernel ran
+
+
+@pytest.mark.parametrize("raised,exit_code", [("raise KeyboardInterrupt(7)", 130), ("raise SystemExit(7)", 7),
+                                              (IN_KERNEL, 130)])
+def test_interrupts_from_a_locator_still_propagate(monkeypatch, tmp_path, raised, exit_code):
+    """Ctrl-C (exit 130), also inside a compiled kernel, and sys.exit(7) are not reported as the plugin's bug."""
+    code = BOOM_LOCATOR.replace('raise RuntimeError("boom in register_pairs " + "x" * 5000)', raised)
     _host_with(monkeypatch, tmp_path, boom_locator=code)
     result = invoke("demo", "-o", tmp_path / "out", *TINY, "--set", "locator=boom-locator")
     assert result.exit_code == exit_code and "plugin code raised" not in result.stderr
