@@ -112,13 +112,19 @@ def knot_weights(frames: NDArray[np.float64], knots: NDArray[np.float64]) -> NDA
         (F, K) float64 weights (each row sums to 1; frames outside the knots take the
         nearest end).
     """
-    index = np.clip(np.searchsorted(knots, frames, side="right") - 1, 0, len(knots) - 2)
-    fraction = np.clip((frames - knots[index]) / (knots[index + 1] - knots[index]), 0.0, 1.0)
+    index, fraction = _knot_bracket(frames, knots)
     weights = np.zeros((len(frames), len(knots)))
     rows = np.arange(len(frames))
     weights[rows, index] = 1 - fraction
     weights[rows, index + 1] += fraction
     return weights
+
+
+def _knot_bracket(frames: NDArray[np.floating], knots: NDArray[np.float64]) -> tuple[NDArray[np.int64],
+                                                                                     NDArray[np.float64]]:
+    """(F,) int64 index of the knot before each frame (at most K - 2), (F,) float64 the way to the next (0-1)."""
+    index = np.clip(np.searchsorted(knots, frames, side="right") - 1, 0, len(knots) - 2)
+    return index.astype(np.int64), np.clip((frames - knots[index]) / (knots[index + 1] - knots[index]), 0.0, 1.0)
 
 
 def _cell_centres(shape: tuple[int, int], cell: int) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
@@ -190,10 +196,9 @@ def template_displacement(homographies: NDArray[np.float64], x_canvas: NDArray[n
 
     n, k = len(homographies), len(knots)
     sampled = np.unique(np.linspace(0, n - 1, min(n, max_frames)).round().astype(np.int64))
-    lower = np.clip(np.searchsorted(knots, sampled, side="right") - 1, 0, k - 2)
-    weight = 1 - np.clip((sampled - knots[lower]) / (knots[lower + 1] - knots[lower]), 0.0, 1.0)
+    lower, fraction = _knot_bracket(sampled, knots)
     frame_h = np.ascontiguousarray(homographies[sampled], np.float64)
-    total, frames = accumulate_displacement(frame_h, geometry.invert(frame_h), lower.astype(np.int64), weight,
+    total, frames = accumulate_displacement(frame_h, geometry.invert(frame_h), lower, 1 - fraction,
                                             x_canvas, y_canvas, width, height, k)
     total /= np.maximum(frames, 1)[None, :, None, None]
     return total.transpose(1, 2, 0, 3).reshape(len(x_canvas) * 2, k * 8), frames
