@@ -120,8 +120,8 @@ def knot_weights(frames: NDArray[np.float64], knots: NDArray[np.float64]) -> NDA
     return weights
 
 
-def _knot_bracket(frames: NDArray[np.floating], knots: NDArray[np.float64]) -> tuple[NDArray[np.int64],
-                                                                                     NDArray[np.float64]]:
+def _knot_bracket(frames: NDArray[np.floating] | NDArray[np.integer],
+                  knots: NDArray[np.float64]) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
     """(F,) int64 index of the knot before each frame (at most K - 2), (F,) float64 the way to the next (0-1)."""
     index = np.clip(np.searchsorted(knots, frames, side="right") - 1, 0, len(knots) - 2)
     return index.astype(np.int64), np.clip((frames - knots[index]) / (knots[index + 1] - knots[index]), 0.0, 1.0)
