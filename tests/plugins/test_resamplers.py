@@ -3,12 +3,24 @@ import pytest
 from photonpano.plugins.resamplers.midpoint import ConstantConfig, MidpointConfig
 
 
-def test_midpoint_level_one_is_floor_n_over_m_centred_groups():
-    g = MidpointConfig().build().groups(10_250, 500, 1)
+def test_midpoint_level_one_is_n_over_m_centred_groups():
+    g = MidpointConfig().build().groups(10_000, 500, 1)
     assert len(g) == 20
     np.testing.assert_array_equal(g.reference, np.arange(20) * 500 + 250)
     np.testing.assert_array_equal(g.stop - g.start, 500)
     np.testing.assert_array_equal(g.reference - g.start, 250)
+
+
+@pytest.mark.parametrize("n_frames, group_size", [(20_000, 838), (10_250, 500), (10_240, 500), (5, 2), (101, 2)])
+def test_midpoint_level_one_spreads_its_groups_over_the_whole_capture(n_frames, group_size):
+    # floor(n / m) groups end to end left up to m - 1 frames after the last one, where the
+    # trajectory was extrapolated (a half-lit capture with m = 838 whole lamp periods: 726 frames)
+    g = MidpointConfig().build().groups(n_frames, group_size, 1)
+    assert len(g) == max(2, round(n_frames / group_size + 1e-9))
+    assert (g.start[0], g.stop[-1]) == (0, n_frames)
+    np.testing.assert_array_equal(g.stop - g.start, group_size)
+    spacing = np.diff(g.reference)
+    assert np.all(spacing > 0) and spacing.max() - spacing.min() <= 1
 
 
 def test_midpoint_adds_groups_between_previous_ones():
