@@ -16,6 +16,8 @@ __all__ = [
     "invert",
     "params_from_homographies",
     "homographies_from_params",
+    "about_centre",
+    "from_centre",
     "corners",
     "apply",
     "scale_matrix",
@@ -184,6 +186,42 @@ def scale_matrix(scale: float) -> NDArray[np.float64]:
 def translation(dx: float, dy: float) -> NDArray[np.float64]:
     """Return the (3, 3) float64 homography translating by ``(dx, dy)`` pixels."""
     return np.array([[1.0, 0, dx], [0, 1.0, dy], [0, 0, 1.0]])
+
+
+def about_centre(homographies: NDArray[np.float64], width: int, height: int) -> NDArray[np.float64]:
+    """Return ``inv(T_c) @ H @ T_c``: the homographies with the frame centre as origin.
+
+    ``T_c`` translates by the frame centre ``((width - 1) / 2, (height - 1) / 2)`` (pixel
+    centres at integer coordinates). About the centre, ``p5, p6`` of
+    :func:`params_from_homographies` are the frame centre's displacement in pixels and
+    ``p1..p4`` the frame's rotation, scale and shear wherever it is (the parameters the
+    levels interpolate and the registrations' information is given in).
+
+    Args:
+        homographies: (..., 3, 3) float array mapping pixel coordinates to pixel coordinates.
+        width: frame width in pixels.
+        height: frame height in pixels.
+
+    Returns:
+        (..., 3, 3) float64, not normalised.
+    """
+    cx, cy = (width - 1) / 2, (height - 1) / 2
+    return translation(-cx, -cy) @ np.asarray(homographies, np.float64) @ translation(cx, cy)
+
+
+def from_centre(homographies: NDArray[np.float64], width: int, height: int) -> NDArray[np.float64]:
+    """Inverse of :func:`about_centre`: ``T_c @ H @ inv(T_c)``, back to pixel coordinates.
+
+    Args:
+        homographies: (..., 3, 3) float array about the frame centre.
+        width: frame width in pixels.
+        height: frame height in pixels.
+
+    Returns:
+        (..., 3, 3) float64, not normalised.
+    """
+    cx, cy = (width - 1) / 2, (height - 1) / 2
+    return translation(cx, cy) @ np.asarray(homographies, np.float64) @ translation(-cx, -cy)
 
 
 def footprint_bounds(

@@ -155,17 +155,16 @@ def _interpolate(interpolator: Interpolator, groups: Groups, keyframes: NDArray[
     (the exposure-average measurement of paper suppl. S.2; at level 1, where the estimate
     is the identity, this is the keyframe itself).
     """
-    centre = geometry.translation((source.width - 1) / 2, (source.height - 1) / 2)
-    to_centre = np.linalg.inv(centre)
-    trajectory = geometry.params_from_homographies(to_centre @ homographies @ centre)
+    w, h = source.width, source.height
+    trajectory = geometry.params_from_homographies(geometry.about_centre(homographies, w, h))
     cumulative = np.concatenate([np.zeros((1, 8)), np.cumsum(trajectory, axis=0)])
     mean = (cumulative[groups.stop] - cumulative[groups.start]) / (groups.stop - groups.start)[:, None]
-    poses = (geometry.params_from_homographies(to_centre @ keyframes @ centre)
+    poses = (geometry.params_from_homographies(geometry.about_centre(keyframes, w, h))
              - trajectory[groups.reference] + mean)
     with watched("interpolator", interpolator, "interpolate"):
         fitted = interpolator.interpolate(groups.reference, geometry.homographies_from_params(poses),
                                           len(homographies), groups)
-    updated = geometry.normalize(centre @ fitted @ to_centre)
+    updated = geometry.normalize(geometry.from_centre(fitted, w, h))
     if not plausible(geometry.invert(homographies) @ updated, source.width, source.height).all():
         raise StageError("interpolator", type(interpolator).__name__,
                          f"level {level}: the interpolated update folds or rescales some frames")
@@ -191,13 +190,13 @@ def _condition_shifts(keyframes: NDArray[np.float64], fitted: NDArray[np.float64
     Returns:
         (G, 3, 3) float64 keyframes with corrected shifts.
     """
-    centre = geometry.translation((source.width - 1) / 2, (source.height - 1) / 2)
-    to_centre = np.linalg.inv(centre)
-    shape_error = geometry.params_from_homographies(to_centre @ np.linalg.inv(fitted) @ keyframes @ centre)[:, SHAPE]
+    w, h = source.width, source.height
+    relative = geometry.about_centre(np.linalg.inv(fitted) @ keyframes, w, h)
+    shape_error = geometry.params_from_homographies(relative)[:, SHAPE]
     shift = conditional_shift(information, shape_error)
     move = np.repeat(np.eye(3)[None], len(keyframes), axis=0)
     move[:, :2, 2] = shift
-    return geometry.normalize(keyframes @ centre @ move @ to_centre)
+    return geometry.normalize(keyframes @ geometry.from_centre(move, w, h))
 
 
 def _gauge(updated: NDArray[np.float64]) -> NDArray[np.float64]:

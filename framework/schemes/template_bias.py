@@ -245,9 +245,7 @@ def _correct(homographies: NDArray[np.float64], image: NDArray[np.floating], sta
              ok: NDArray[np.bool_], width: int, height: int) -> tuple[NDArray[np.float64], TemplateBias]:
     """:func:`correct_template_bias`'s work."""
     g = len(references)
-    centre = geometry.translation((width - 1) / 2, (height - 1) / 2)
-    to_centre = np.linalg.inv(centre)
-    measured = geometry.params_from_homographies(geometry.normalize(to_centre @ registrations @ centre))  # (G, 8)
+    measured = geometry.params_from_homographies(geometry.about_centre(registrations, width, height))  # (G, 8)
     unchanged = np.asarray(registrations, np.float64).copy(), TemplateBias(0, 0.0, 0.0)
     if int(np.count_nonzero(ok)) < 8:
         return unchanged
@@ -289,7 +287,8 @@ def _correct(homographies: NDArray[np.float64], image: NDArray[np.floating], sta
     size, measured_size = (float(np.sqrt(np.mean((v[usable] * corner) ** 2))) for v in (bias, measured))
     if size > measured_size:  # a share larger than what the registrations moved: scaled down to it
         bias *= measured_size / size
-    corrected = geometry.normalize(centre @ geometry.homographies_from_params(measured - bias) @ to_centre)
+    corrected = geometry.normalize(geometry.from_centre(geometry.homographies_from_params(measured - bias), width,
+                                                        height))
     corrected[~usable] = unchanged[0][~usable]
     moved = geometry.mean_corner_distance(corrected[usable], registrations[usable], width, height)
     return corrected, TemplateBias(n_knots, prior, float(np.sqrt(np.mean(moved ** 2))))

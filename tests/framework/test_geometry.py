@@ -44,3 +44,17 @@ def test_invert_equals_numpy_inverse():
     h = geometry.homographies_from_params(rng.normal(0, [1e-2] * 4 + [200, 100] + [1e-5] * 2, (500, 8)))
     np.testing.assert_allclose(geometry.invert(h), np.linalg.inv(h), rtol=1e-12, atol=1e-12)
     np.testing.assert_allclose(geometry.invert(h[0]) @ h[0], np.eye(3), atol=1e-12)
+
+
+def test_about_centre_puts_the_origin_at_the_frame_centre():
+    # a rotation about the frame centre: no displacement of the centre (p5 = p6 = 0) about it
+    w, h = 496, 254
+    cx, cy = (w - 1) / 2, (h - 1) / 2
+    angle = 0.01
+    rotation = np.array([[np.cos(angle), -np.sin(angle), 0], [np.sin(angle), np.cos(angle), 0], [0, 0, 1.0]])
+    about_pixel_origin = geometry.translation(cx, cy) @ rotation @ geometry.translation(-cx, -cy)
+    params = geometry.params_from_homographies(geometry.about_centre(about_pixel_origin[None], w, h))[0]
+    np.testing.assert_allclose(params[4:6], 0, atol=1e-12)
+    np.testing.assert_allclose(params[[1, 2]], [np.sin(angle), -np.sin(angle)], atol=1e-12)
+    np.testing.assert_allclose(geometry.from_centre(geometry.about_centre(about_pixel_origin, w, h), w, h),
+                               about_pixel_origin, atol=1e-12)

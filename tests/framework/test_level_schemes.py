@@ -292,11 +292,12 @@ def test_holdout_template_leaves_out_the_runs_a_group_falls_in():
 def test_holdout_template_frees_the_end_of_a_pan_from_its_own_photons():
     """The bundled office's 20 000-frame pan ends on a strip of corridor only its last frames see.
 
-    Against a template of every photon, taken as it is, the mosaic levels keep level 1's
-    error there (measured 0.124 px RMSE over the capture, 0.3 px at its end); against the
-    leave-one-out template of 4 runs they correct it (0.033 px). (The default, a template
-    of every photon with its own error modelled and taken out of the registrations, 0.068
-    px: photonpano.schemes.template_bias.)
+    Against a template of every photon, taken as it is, the mosaic levels keep part of
+    level 1's error there (measured 0.066 px RMSE over the capture; 0.124 px, 0.3 px at its
+    end, while level 1 left the capture's last 200 frames out of its groups); against the
+    leave-one-out template of 4 runs they correct it (0.028 px). (The default, a template
+    of every photon with its own error modelled and taken out of the registrations:
+    photonpano.schemes.template_bias.)
     """
     from photonpano.pipeline import reconstruct
 
@@ -305,4 +306,4 @@ def test_holdout_template_frees_the_end_of_a_pan_from_its_own_photons():
     for holdout in (1, 4):
         spec = _spec(mosaic={"holdout": holdout, "correct_template_bias": False})
         rmse[holdout] = reconstruct(spec, source)[1][-1]["trajectory_rmse_px"]
-    assert rmse[1] > 0.1 and rmse[4] < 0.06, rmse
+    assert rmse[4] < 0.06 and rmse[1] > 1.5 * rmse[4], rmse
