@@ -21,23 +21,22 @@ def level_one_references(n_frames: int, group_size: int) -> np.ndarray:
 
     G1 = n / m rounded (at least 2) groups of m frames spread evenly from the first
     frame to the last: ``m // 2 + k * (n - m) / (G1 - 1)``, rounded; exactly m apart
-    where m divides n, a few frames more or less apart otherwise. Groups cut back to the
-    floor(n / m) that fit end to end left up to m - 1 frames after the last group, all at
-    the end of the capture, where level 1 then extrapolated and every later level only
-    anchored the end frame (measured: a 120 Hz lamp over half the scene, m = 838 whole
-    periods, 726 frames left over: the outdoor camera 0.17 px, 1.3 px at its end, now
-    0.04 px over three seeds).
+    where m divides n, a few frames more or less apart otherwise. (floor(n / m) groups end
+    to end, as before, left up to m - 1 frames after the last group, all at the end of the
+    capture, where level 1 extrapolated and every later level only anchored the end frame;
+    measured: a 120 Hz lamp over half the scene, m = 838 whole periods, 726 frames left
+    over: the outdoor camera 0.17 px, 1.3 px at its end, now 0.04 px over three seeds.)
 
     Raises:
         ValueError: if the capture holds fewer than ``2 * group_size`` frames (fewer
             than 4, the shortest capture anything can be registered in, say so).
     """
-    count = n_frames // group_size
+    end_to_end = n_frames // group_size
     if n_frames < 4:
         raise ValueError(f"a capture of {n_frames} frame{'s' if n_frames != 1 else ''} is too short to register: "
                          "at least 4 are needed (2 groups of at least 2 frames)")
-    if count < 2:
-        raise ValueError(f"a capture of {n_frames} frames gives {count} group(s) of "
+    if end_to_end < 2:
+        raise ValueError(f"a capture of {n_frames} frames gives {end_to_end} group(s) of "
                          f"{group_size} frames; at least 2 are needed (lower group_size to at most "
                          f"{n_frames // 2})")
     count = max(2, int(n_frames / group_size + 0.5))
