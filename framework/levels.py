@@ -165,7 +165,7 @@ def _interpolate(interpolator: Interpolator, groups: Groups, keyframes: NDArray[
         fitted = interpolator.interpolate(groups.reference, geometry.homographies_from_params(poses),
                                           len(homographies), groups)
     updated = geometry.normalize(geometry.from_centre(fitted, w, h))
-    if not plausible(geometry.invert(homographies) @ updated, source.width, source.height).all():
+    if not plausible(geometry.invert(homographies) @ updated, w, h).all():
         raise StageError("interpolator", type(interpolator).__name__,
                          f"level {level}: the interpolated update folds or rescales some frames")
     return updated
