@@ -19,7 +19,7 @@ from pydantic import Field
 def level_one_references(n_frames: int, group_size: int) -> np.ndarray:
     """Return the (G1,) int64 centre frames of the level-1 groups.
 
-    G1 = n / m rounded (at least 2) groups of m frames spread evenly from the first
+    G1 = n / m rounded groups of m frames spread evenly from the first
     frame to the last: ``m // 2 + k * (n - m) / (G1 - 1)``, rounded; exactly m apart
     where m divides n, a few frames more or less apart otherwise. (floor(n / m) groups end
     to end, as before, left up to m - 1 frames after the last group, all at the end of the
@@ -39,7 +39,7 @@ def level_one_references(n_frames: int, group_size: int) -> np.ndarray:
         raise ValueError(f"a capture of {n_frames} frames gives {end_to_end} group(s) of "
                          f"{group_size} frames; at least 2 are needed (lower group_size to at most "
                          f"{n_frames // 2})")
-    count = max(2, int(n_frames / group_size + 0.5))
+    count = int(n_frames / group_size + 0.5)  # >= 2: end_to_end is
     first = group_size // 2
     return np.rint(np.linspace(first, n_frames - group_size + first, count)).astype(np.int64)
 
