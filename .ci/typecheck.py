@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import argparse
 import collections
+import importlib.util
 import re
 import shutil
 import subprocess
@@ -78,6 +79,10 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--strict-only", action="store_true", help="skip counting the errors elsewhere")
     args = parser.parse_args()
+    if importlib.util.find_spec("mypy") is None:  # else mypy's own exit 1 read as 0 errors found
+        print(f"typecheck: FAILED: mypy is not installed for {sys.executable} (it comes with the `test` extra: "
+              "pip install -c constraints.txt -e '.[test]')", file=sys.stderr)
+        return 1
     with tempfile.TemporaryDirectory(prefix="photonpano-mypy-") as folder:
         scratch = layout(Path(folder))
         modules = [item for name in STRICT for item in ("-m", name)]
