@@ -157,22 +157,36 @@ class BilinearCompositor(Compositor):
             (:func:`~photonpano.robust_merge.robust_combine`; fed through
             :meth:`feed_ranges`, a plain :meth:`feed` goes to the first); None or 1:
             every photon merged.
+
+    Attributes:
+        period_frames: the flicker period in binary frames the exposures span whole
+            periods of (:meth:`expect_flicker`), or None.
+        bounds: once prepared, (E + 1,) int64 first frame of each virtual exposure, then
+            the frame count (:func:`~photonpano.robust_merge.exposure_bounds`).
     """
 
     def __init__(self, scale: float = 1.0, exposures: int | None = None) -> None:
         """Create an unprepared compositor at ``scale``."""
         self.scale = scale
         self.exposures = max(1, int(exposures or 1))
+        self.period_frames: float | None = None
         self._source: PhotonSource | None = None
+
+    def expect_flicker(self, period_frames: float) -> None:
+        """Cut the virtual exposures at whole flicker periods (see :meth:`Compositor.expect_flicker`)."""
+        self.period_frames = float(period_frames)
 
     def prepare(self, canvas: Canvas, source: PhotonSource) -> None:
         """Start empty accumulators on ``canvas`` (see :meth:`Compositor.prepare`)."""
+        from .robust_merge import exposure_bounds
         from .warping import WarpAccumulator
 
         self._canvas, self._source = canvas, source
+        self.bounds = exposure_bounds(len(canvas.homographies), self.exposures, source.frame_step,
+                                       self.period_frames)
         self._acc = WarpAccumulator(canvas.height, canvas.width)  # plain feeds; the first exposure
         # the robust merge's other exposures, made when first fed (a fork holds the few its run spans)
-        self._accs: list[WarpAccumulator | None] = [self._acc] + [None] * (self.exposures - 1)
+        self._accs: list[WarpAccumulator | None] = [self._acc] + [None] * (len(self.bounds) - 2)
 
     def feed(self, counts: NDArray, n_frames: NDArray[np.int64], homographies: NDArray[np.float64],
              weights: NDArray[np.float32] | None = None) -> None:
@@ -181,11 +195,7 @@ class BilinearCompositor(Compositor):
 
     def frame_breaks(self, n_frames: int, frame_step: int = 1) -> NDArray[np.int64] | None:
         """The virtual exposures' boundaries (see :meth:`Compositor.frame_breaks`); None without the robust merge."""
-        if self.exposures == 1:
-            return None
-        from .robust_merge import exposure_breaks
-
-        return exposure_breaks(n_frames, self.exposures, frame_step)
+        return self.bounds[1:-1] if self.exposures > 1 else None
 
     def feed_ranges(self, edges: NDArray[np.int64], counts: NDArray, homographies: NDArray[np.float64]) -> None:
         """Warp and add a sub-batch into its virtual exposures (see :meth:`Compositor.feed_ranges`)."""
@@ -198,11 +208,12 @@ class BilinearCompositor(Compositor):
 
         # a partial, not a lambda: robust_merge calls the accumulator's constructor, not back into this module
         feed_exposures(self._accs, partial(WarpAccumulator, self._canvas.height, self._canvas.width),
-                       WarpAccumulator.add_many, edges, counts, homographies, len(self._canvas.homographies))
+                       WarpAccumulator.add_many, edges, counts, homographies, self.bounds)
 
     def fork(self) -> BilinearCompositor:
         """An empty copy on the same canvas (see :meth:`Compositor.fork`)."""
         other = BilinearCompositor(self.scale, self.exposures)
+        other.period_frames = self.period_frames
         other.prepare(self._canvas, self._source)
         return other
 
@@ -219,11 +230,11 @@ class BilinearCompositor(Compositor):
 
         Returns:
             ``(counts, frames, homographies)``: (E, H, W) float32 photon detections and
-            binary frames per canvas pixel for each of the ``exposures`` runs of frames, in
-            frame order (zeros for a run never fed), and the canvas's (T, 3, 3) float64
+            binary frames per canvas pixel for each of the E runs of frames (:attr:`bounds`),
+            in frame order (zeros for a run never fed), and the canvas's (T, 3, 3) float64
             frame-to-canvas homographies.
         """
-        shape = (self.exposures, self._canvas.height, self._canvas.width)
+        shape = (len(self.bounds) - 1, self._canvas.height, self._canvas.width)
         counts, frames = np.zeros(shape, np.float32), np.zeros(shape, np.float32)
         for k, acc in enumerate(self._accs):
             if acc is not None:
@@ -238,10 +249,12 @@ class BilinearCompositor(Compositor):
         if self.exposures > 1:
             from .robust_merge import robust_combine
 
-            fed = [a for a in self._accs if a is not None]
+            fed = [k for k, a in enumerate(self._accs) if a is not None]
+            accs = [a for a in self._accs if a is not None]
             sums, frames, moving = robust_combine(
-                np.stack([a.counts for a in fed]), np.stack([a.frames for a in fed]),
-                binary=getattr(self._source, "kind", "binary") == "binary", scale=self.scale)
+                np.stack([a.counts for a in accs]), np.stack([a.frames for a in accs]),
+                binary=getattr(self._source, "kind", "binary") == "binary", scale=self.scale,
+                exposure_frames=np.diff(self.bounds)[fed] if self.period_frames is not None else None)
         else:
             sums, frames = self._acc.counts, self._acc.frames
         flux = estimate_radiance(self._source, sums, frames)

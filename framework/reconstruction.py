@@ -17,7 +17,7 @@ from numpy.typing import NDArray
 from .errors import StageError
 from .executor import Executor
 from .records import LevelResult, Panorama
-from .stages import PhotonSource
+from .stages import Compositor, PhotonSource
 from .watchdog import watched
 
 if TYPE_CHECKING:
@@ -40,6 +40,25 @@ def _robust_template(mosaic: Any) -> Any:
     if "robust" in type(template).model_fields:
         template = template.model_copy(update={"robust": True})
     return template
+
+
+def _told_of_flicker(build: Callable[[], Compositor], flicker: Any) -> Callable[[], Compositor]:
+    """``build``, its compositors told of the capture's flicker (:meth:`~photonpano.stages.Compositor.expect_flicker`).
+
+    Args:
+        build: builds a compositor.
+        flicker: the :class:`~photonpano.flicker.Flicker` found in the capture, or None
+            (``build`` is returned as it is).
+    """
+    if flicker is None:
+        return build
+
+    def make() -> Compositor:
+        compositor = build()
+        compositor.expect_flicker(flicker.period_frames)
+        return compositor
+
+    return make
 
 
 def _movers_record(stats: list[dict[str, Any]]) -> dict[str, Any] | None:
@@ -88,6 +107,7 @@ class Stages:
 
         self.spec, self.source = spec, source
         self.budget = budget = Budget.for_capture(spec, source)
+        flicker = budget.plan.flicker
         self.locator = in_merged_pixels(spec.locator, budget.register_binning).build()
         check = PairCheck(budget.check_binning) if budget.check_binning is not None else None
         self.resampler, self.merger = spec.resampler.build(), spec.merger.build()
@@ -95,8 +115,9 @@ class Stages:
         self.interpolator = spec.interpolator.build()
         built = {"pairwise": PairwiseScheme(self.locator, tuple(spec.pair_offsets), check),
                  "mosaic": MosaicScheme(in_merged_pixels(spec.mosaic.locator, budget.mosaic_binning).build,
-                                        spec.mosaic.template.build, subbatch_px=spec.mosaic.subbatch_px,
-                                        reject_movers=reject, make_robust=_robust_template(spec.mosaic).build,
+                                        _told_of_flicker(spec.mosaic.template.build, flicker),
+                                        subbatch_px=spec.mosaic.subbatch_px, reject_movers=reject,
+                                        make_robust=_told_of_flicker(_robust_template(spec.mosaic).build, flicker),
                                         detect_movers=spec.mosaic.reject_movers == "auto",
                                         holdout=spec.mosaic.holdout,
                                         correct_bias=spec.mosaic.correct_template_bias)}
@@ -182,8 +203,11 @@ class Stages:
         """The panorama of every binary frame by the spec's compositor (:func:`photonpano.compose.compose`)."""
         from .compose import compose
 
-        return compose(self.source, homographies, self.spec.source.panorama_compositor(self.spec.compositor.build),
-                       subbatch_px=self.spec.panorama_subbatch_px, progress=progress, executor=executor)
+        compositor = self.spec.source.panorama_compositor(self.spec.compositor.build)
+        if self.budget.plan.flicker is not None:
+            compositor.expect_flicker(self.budget.plan.flicker.period_frames)
+        return compose(self.source, homographies, compositor, subbatch_px=self.spec.panorama_subbatch_px,
+                       progress=progress, executor=executor)
 
     def level_statistics(self, result: LevelResult) -> dict[str, Any]:
         """One level's ``run.json`` row.

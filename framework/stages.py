@@ -298,6 +298,18 @@ class Compositor(abc.ABC):
                 pixel out, e.g. pixels behind another colour filter); None: all 1.
         """
 
+    def expect_flicker(self, period_frames: float) -> None:
+        """Be told, before :meth:`prepare`, that a lamp flickers with this period while the capture runs.
+
+        :func:`~photonpano.flicker.detect_flicker` found it (part of the scene or all of
+        it). A compositor that merges by time (the robust merge of
+        :mod:`photonpano.robust_merge`) then cuts the capture at whole periods, so that
+        each run of frames averages the lamp alike; the default ignores it.
+
+        Args:
+            period_frames: the flicker period in binary frames (> 0, not necessarily whole).
+        """
+
     def frame_breaks(self, n_frames: int, frame_step: int = 1) -> NDArray[np.int64] | None:
         """Frame indices where the sub-batches fed to :meth:`feed_ranges` must end (None: anywhere).
 

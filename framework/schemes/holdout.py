@@ -35,7 +35,7 @@ class HoldoutTemplate:
     """A leave-one-out template: the panorama of every run of frames but those a group falls in.
 
     The capture's frames are cut into E runs of consecutive frames (the compositor's
-    virtual exposures, :func:`~photonpano.robust_merge.exposure_breaks`), each summed on
+    virtual exposures, :func:`~photonpano.robust_merge.exposure_bounds`), each summed on
     the canvas apart; the template of a group of frames ``[start, stop)`` is the flux MLE
     (paper Eq. 3) of the sums of the other runs, so neither its own photons nor those of
     the neighbours sharing its pose error are in what it is registered against (the
@@ -54,12 +54,9 @@ class HoldoutTemplate:
 
     def __init__(self, compositor: BilinearCompositor, source: Any) -> None:
         """Take the runs' sums from a fed compositor."""
-        from ..robust_merge import exposure_breaks
-
         counts, frames, self.homographies = compositor.exposure_sums()
-        n = len(self.homographies)
-        self.bounds = np.concatenate([[0], exposure_breaks(n, compositor.exposures, source.frame_step), [n]])
-        self._counts, self._frames = counts[:len(self.bounds) - 1], frames[:len(self.bounds) - 1]
+        self.bounds = compositor.bounds
+        self._counts, self._frames = counts, frames
         self._source = source
         self._panoramas: dict[tuple[int, ...], Panorama] = {}
 

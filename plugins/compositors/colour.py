@@ -95,6 +95,15 @@ class _PerChannel(Compositor):
         """(B, H, W) uint16 raw counts: sensor geometry fixed, filtered pixels kept."""
         return self._corrector.geometry(source.raw_sums(edges))
 
+    def expect_flicker(self, period_frames: float) -> None:
+        """Tell every channel's compositor (see :meth:`Compositor.expect_flicker`)."""
+        for part in self._compositors():
+            part.expect_flicker(period_frames)
+
+    def _compositors(self) -> list[Compositor]:
+        """Every compositor this one feeds."""
+        return list(self._parts)
+
     def frame_breaks(self, n_frames: int, frame_step: int = 1) -> NDArray[np.int64] | None:
         """The channel compositors' (see :meth:`Compositor.frame_breaks`): the same sub-batches as the panorama's."""
         return self._parts[0].frame_breaks(n_frames, frame_step)
@@ -252,15 +261,19 @@ class LumaGuided(_PerChannel):
         self._sharp.prepare(canvas, source)
         self._unfiltered = ((self._corrector.cfa < 0) & ~self._corrector.hot).astype(np.float32)
 
+    def _compositors(self) -> list[Compositor]:
+        """The planes' and the two luminance compositors."""
+        return [*self._parts, self._luma, self._sharp]
+
     def feed(self, counts: NDArray, n_frames: NDArray[np.int64], homographies: NDArray[np.float64],
              weights: NDArray[np.float32] | None = None) -> None:
         """Feed each plane the pixels behind its filter and the luminance the unfiltered ones."""
-        for part, mask in zip([*self._parts, self._luma, self._sharp], [*self._masks, *[self._unfiltered] * 2]):
+        for part, mask in zip(self._compositors(), [*self._masks, *[self._unfiltered] * 2]):
             part.feed(counts, n_frames, homographies, mask if weights is None else mask * weights)
 
     def feed_ranges(self, edges: NDArray[np.int64], counts: NDArray, homographies: NDArray[np.float64]) -> None:
         """Feed each plane and the luminance their pixels' counts, into their virtual exposures (``exposures``)."""
-        for part, mask in zip([*self._parts, self._luma, self._sharp], [*self._masks, *[self._unfiltered] * 2]):
+        for part, mask in zip(self._compositors(), [*self._masks, *[self._unfiltered] * 2]):
             part.feed_ranges(edges, counts, homographies, mask)  # type: ignore[call-arg]  # drizzles take weights
 
     def fork(self) -> LumaGuided | None:
@@ -346,6 +359,11 @@ class ColourPanorama(Compositor):
         """Feed the corrected counts to the panorama and the raw ones to the colour planes."""
         self._flux.feed(counts[0], n_frames, homographies, weights)
         self._colour.feed(counts[1], n_frames, homographies, weights)
+
+    def expect_flicker(self, period_frames: float) -> None:
+        """Tell the panorama's and the colour planes' compositors (see :meth:`Compositor.expect_flicker`)."""
+        self._flux.expect_flicker(period_frames)
+        self._colour.expect_flicker(period_frames)
 
     def frame_breaks(self, n_frames: int, frame_step: int = 1) -> NDArray[np.int64] | None:
         """The panorama compositor's (see :meth:`Compositor.frame_breaks`)."""

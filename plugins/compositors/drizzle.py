@@ -40,7 +40,7 @@ from photonpano import hookimpl
 from photonpano.compose import Canvas, Panorama
 from photonpano.robust_merge import (
     DEFAULT_EXPOSURES,
-    exposure_breaks,
+    exposure_bounds,
     feed_exposures,
     join_exposures,
     keep_exposures,
@@ -140,16 +140,23 @@ class Drizzle(Compositor):
         self.scale, self.kernel, self.pixfrac, self.wide_px = scale, kernel, pixfrac, wide_px
         self.detail_gain = detail_gain
         self.exposures = max(1, int(exposures or 1))
+        self.period_frames: float | None = None  # exposures of whole flicker periods (expect_flicker)
         self._splat = {"point": _splat.splat_point, "square": _splat.splat_square,
                        "gaussian": _splat.splat_gaussian}[kernel]
+
+    def expect_flicker(self, period_frames: float) -> None:
+        """Cut the virtual exposures at whole flicker periods (see :meth:`Compositor.expect_flicker`)."""
+        self.period_frames = float(period_frames)
 
     def prepare(self, canvas: Canvas, source: PhotonSource) -> None:
         """Start empty sums on ``canvas`` (see :meth:`Compositor.prepare`)."""
         self._canvas, self._source = canvas, source
+        self._bounds = exposure_bounds(len(canvas.homographies), self.exposures, source.frame_step,
+                                       self.period_frames)
         self._acc = np.zeros((*canvas.shape, 2), np.float32)  # sums and frames, interleaved
         # the robust merge's virtual exposures (the first is ``_acc``), made when first fed:
         # a fork holds the few its run of frames spans
-        self._accs: list[NDArray[np.float32] | None] = [self._acc] + [None] * (self.exposures - 1)
+        self._accs: list[NDArray[np.float32] | None] = [self._acc] + [None] * (len(self._bounds) - 2)
 
     def feed(self, counts: NDArray, n_frames: NDArray[np.int64], homographies: NDArray[np.float64],
              weights: NDArray[np.float32] | None = None) -> None:
@@ -174,7 +181,7 @@ class Drizzle(Compositor):
 
     def frame_breaks(self, n_frames: int, frame_step: int = 1) -> NDArray[np.int64] | None:
         """The virtual exposures' boundaries (see :meth:`Compositor.frame_breaks`); None without the robust merge."""
-        return exposure_breaks(n_frames, self.exposures, frame_step) if self.exposures > 1 else None
+        return self._bounds[1:-1] if self.exposures > 1 else None
 
     def feed_ranges(self, edges: NDArray[np.int64], counts: NDArray, homographies: NDArray[np.float64],
                     weights: NDArray[np.float32] | None = None) -> None:
@@ -190,12 +197,13 @@ class Drizzle(Compositor):
             return self.feed(counts, np.diff(np.asarray(edges, np.int64)).astype(np.int64), homographies, weights)
         feed_exposures(self._accs, lambda: np.zeros_like(self._acc),
                        lambda acc, c, n, h: self._splat_into(acc, c, n, h, weights), edges, counts, homographies,
-                       len(self._canvas.homographies))
+                       self._bounds)
 
     def fork(self) -> Drizzle:
         """An empty copy on the same canvas (see :meth:`Compositor.fork`)."""
         other = Drizzle(self.scale, self.kernel, self.pixfrac, self.wide_px, self.detail_gain, self.exposures,
                         self.restoration, self.deblur)
+        other.period_frames = self.period_frames
         other.prepare(self._canvas, self._source)
         return other
 
@@ -208,6 +216,12 @@ class Drizzle(Compositor):
     def _exposures(self) -> NDArray[np.float32]:
         """(K', Hc, Wc, 2) float32 sums and frames of the virtual exposures fed so far."""
         return np.stack([a for a in self._accs if a is not None])
+
+    def _exposure_frames(self) -> NDArray[np.int64] | None:
+        """(K',) binary frames of the exposures fed so far where they span whole flicker periods, else None."""
+        if self.period_frames is None:
+            return None
+        return np.diff(self._bounds)[[k for k, a in enumerate(self._accs) if a is not None]]
 
     def rejection(self) -> NDArray[np.bool_] | None:
         """(K', Hc, Wc) bool: where each virtual exposure fed so far disagrees with the static scene.
@@ -222,7 +236,8 @@ class Drizzle(Compositor):
     def _reject(self, stacked: NDArray[np.float32]) -> NDArray[np.bool_]:
         """:meth:`rejection` of the stacked exposures."""
         return robust_rejection(stacked[..., 0], stacked[..., 1], scale=self.scale,
-                                binary=getattr(self._source, "kind", "binary") == "binary")
+                                binary=getattr(self._source, "kind", "binary") == "binary",
+                                exposure_frames=self._exposure_frames())
 
     def finish(self, rejected: NDArray[np.bool_] | None = None) -> Panorama:
         """The flux MLE per canvas pixel (see :meth:`Compositor.finish`); robust: the exposures that agree.

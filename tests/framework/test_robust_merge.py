@@ -2,7 +2,7 @@
 
 import numpy as np
 import pytest
-from photonpano.robust_merge import exposure_breaks, exposure_index, robust_combine
+from photonpano.robust_merge import exposure_bounds, exposure_index, robust_combine
 
 
 def _exposures(rng, k=16, shape=(80, 120), frames=600, disc_in=(3, 4)):
@@ -47,10 +47,25 @@ def test_shapes_and_exposure_indices():
     s, n, moving = robust_combine(np.ones((2, 5, 6), np.float32), np.ones((2, 5, 6), np.float32))
     assert s.shape == (5, 6) and not moving.any() and float(n.sum()) == 60
     edges = np.array([0, 10, 990, 1000, 2500, 4000])
-    np.testing.assert_array_equal(exposure_index(edges, 4000, 4), [0, 0, 0, 1, 3])
-    np.testing.assert_array_equal(exposure_breaks(4000, 4), [1000, 2000, 3000])
-    np.testing.assert_array_equal(exposure_breaks(15, 16), np.arange(1, 15))  # a frame each, at most
-    np.testing.assert_array_equal(exposure_breaks(4000, 3, frame_step=64), [1344, 2688])  # ceil to blocks
+    np.testing.assert_array_equal(exposure_index(edges, exposure_bounds(4000, 4)), [0, 0, 0, 1, 3])
+    np.testing.assert_array_equal(exposure_bounds(4000, 4), [0, 1000, 2000, 3000, 4000])
+    np.testing.assert_array_equal(exposure_bounds(15, 16), np.arange(16))  # a frame each, at most
+    np.testing.assert_array_equal(exposure_bounds(4000, 3, frame_step=64), [0, 1344, 2688, 4000])  # ceil to blocks
+
+
+@pytest.mark.parametrize(("frames", "exposures", "period", "length", "count"), [
+    (20_000, 16, 1000.0, 1000, 20),  # 100 Hz at 100 kHz: one period each (1 250 frames would be 1.25)
+    (20_000, 16, 100_000 / 120, 100_000 / 120, 24),  # 120 Hz: a fractional period
+    (100_000, 16, 1000.0, 6000, 16),  # six periods each, the 4 000 frames left over in the last
+    (20_000, 16, 837.6, 837.6, 23),  # the 119.4 Hz lamp of the outdoor camera
+    (2_000, 16, 1000.0, 1000, 2),  # shorter than three periods: too few to compare (robust_rejection)
+])
+def test_exposures_span_whole_flicker_periods(frames, exposures, period, length, count):
+    """With a lamp's period, every exposure but the last spans the same whole number of periods, to a frame."""
+    bounds = exposure_bounds(frames, exposures, period_frames=period)
+    assert bounds[0] == 0 and bounds[-1] == frames and len(bounds) == count + 1
+    np.testing.assert_allclose(bounds[1:-1], np.arange(1, count) * length, atol=0.5)
+    assert length - 0.5 <= np.diff(bounds)[-1] < 2 * length
 
 
 def test_compose_breaks_sub_batches_only_at_the_exposures():
@@ -111,3 +126,28 @@ def test_the_compositors_merge_a_mover_out_and_leave_a_static_capture_alone():
         # canvas pixels where a run of frames was left out by chance: 0.026 dB below, at 33.6 dB)
         assert abs(db["static", True] - db["static", False]) < 0.035, (config, db)
         assert panos["mover", True].moving.mean() > 5 * max(panos["static", True].moving.mean(), 1e-4)
+
+
+def test_exposures_of_whole_flicker_periods_see_no_mover_in_a_half_lit_static_scene():
+    """A 100 Hz lamp over the right half: runs of 0.8 periods read its beat as movers; whole periods do not."""
+    import cv2
+    from photonpano.compose import canvas_homographies, compose
+    from photonpano.metrics import psnr, scene_on_canvas
+    from photonpano.plugins.compositors.drizzle import DrizzleConfig
+    from photonpano.plugins.sources.simulate import SimulateConfig
+
+    capture = SimulateConfig(frames=8000, height=96, width=160, scene_width=480, flux=0.5, speed_px_per_frame=0.02,
+                             flicker_hz=100.0, flicker_depth=0.9, flicker_region="right").build()
+    to_canvas, shape = canvas_homographies(capture.ground_truth, capture.width, capture.height, 1.0)
+    scene = scene_on_canvas(capture, to_canvas[0] @ np.linalg.inv(capture.ground_truth[0]), shape)
+    panos = {}
+    for name in ("plain", "robust", "whole periods"):
+        compositor = DrizzleConfig(robust=name != "plain", robust_exposures=10).build()  # 800 frames each
+        if name == "whole periods":
+            compositor.expect_flicker(capture.frame_rate_hz / 100.0)  # 8 exposures of 1 000 frames
+        panos[name] = compose(capture, to_canvas, compositor, canvas_shape=shape)
+    mask = cv2.erode(np.isfinite(scene + panos["plain"].flux).astype(np.uint8), np.ones((7, 7), np.uint8)) > 0
+    db = {name: psnr(pano.flux, scene, mask) for name, pano in panos.items()}
+    moving = {name: float(pano.moving.mean()) for name, pano in panos.items() if pano.moving is not None}
+    assert moving["robust"] > 0.05, moving  # the lamp's beat between runs left out as movers (0.16)
+    assert moving["whole periods"] < 0.002 and db["whole periods"] > db["plain"] - 0.02, (moving, db)  # 0, 0.00
