@@ -6,6 +6,9 @@ a pan with a 5 px 30 Hz vibration; ``--photo`` a photograph, default the bundled
 - ``merge``: the capture with and without a bright disc (radius 30 px, 0.08 px/frame)
   composited with the *true* motion on one canvas by ``drizzle`` and ``flux-canvas``, plain
   and robust; PSNR against the scene over the pixels all panoramas cover (eroded by 3 px).
+  With a flickering lamp (``--simulate '{"flicker_hz": 100, ...}'``) the compositors are
+  told its period, as the pipeline tells them the detected one; ``--tolerance`` sets the
+  robust test's (``photonpano.robust_merge.TOLERANCE``).
 - ``colour``: as ``merge``, for the colour panorama (``cfa: colorspad``, the panorama stage's
   ``ColourPanorama`` around ``drizzle``, plain and robust): mean PSNR over R, G, B against
   the true colour scene.
@@ -17,6 +20,7 @@ a pan with a 5 px 30 Hz vibration; ``--photo`` a photograph, default the bundled
 Usage::
 
     python benchmarks/movers.py merge --photo benchmarks/photos/foliage_dandelions.jpg
+    python benchmarks/movers.py merge --tolerance 0.25 --simulate '{"flicker_hz": 120, "flicker_region": "right"}'
     python benchmarks/movers.py colour --photo benchmarks/photos/city_madison.jpg
     python benchmarks/movers.py run --disc --set mosaic.reject_movers=5
     python benchmarks/movers.py run --photo benchmarks/photos/highcontrast_hubble.jpg --set compositor.robust=false
@@ -62,14 +66,23 @@ def merge(settings: dict) -> dict:
     to_canvas, shape = canvas_homographies(static.ground_truth, static.width, static.height, 1.0)
     scene = scene_on_canvas(static, to_canvas[0] @ np.linalg.inv(static.ground_truth[0]), shape)
     out: dict = {}
+    period = static.frame_rate_hz / static.config.flicker_hz if static.config.flicker_hz > 0 else None
+
+    def build(config: type, robust: bool):
+        compositor = config(robust=robust).build()
+        if period is not None:
+            compositor.expect_flicker(period)
+        return compositor
+
     for config in (DrizzleConfig, FluxCanvasConfig):
-        panos = {(name, kind): compose(capture, to_canvas, config(robust=kind == "robust").build(),
-                                       canvas_shape=shape)
+        panos = {(name, kind): compose(capture, to_canvas, build(config, kind == "robust"), canvas_shape=shape)
                  for name, capture in captures.items() for kind in ("plain", "robust")}
         mask = _mask(scene, *(p.flux for p in panos.values()))
         result: dict = {}
         for (name, kind), pano in panos.items():
             result.setdefault(name, {})[kind] = round(psnr(pano.flux, scene, mask), 3)
+            if pano.moving is not None:
+                result[name]["moving_fraction"] = round(float(pano.moving.mean()), 4)
         out[config().plugin] = result
     return out
 
@@ -138,7 +151,8 @@ def run(settings: dict, overrides: list[str], disc: bool) -> dict:
     capture = spec.source.build()
     report: dict = {}
     homographies, _, pano, _ = reconstruct(spec, capture, report=report)
-    gt = ground_truth_report(capture, homographies, pano, spec.panorama_subbatch_px, compositor=spec.compositor)
+    gt = ground_truth_report(capture, homographies, pano, spec.panorama_subbatch_px, compositor=spec.compositor,
+                             flicker_period_frames=(report.get("flicker") or {}).get("period_frames"))
     row = {"rmse_px": round(gt["trajectory_rmse_px"], 4), "max_px": round(gt["trajectory_max_px"], 3),
            "status": report["status"], "psnr_db": round(gt["psnr_db"], 3)}
     if disc:
@@ -164,7 +178,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--disc", action="store_true", help="run: add the crossing disc")
     parser.add_argument("--set", dest="overrides", action="append", default=[], help="run: a spec override")
     parser.add_argument("--simulate", default="{}", help="more simulate settings, as JSON")
+    parser.add_argument("--tolerance", type=float, help="the robust test's tolerance (default: TOLERANCE)")
     args = parser.parse_args(argv)
+    if args.tolerance is not None:
+        import photonpano.robust_merge
+
+        photonpano.robust_merge.TOLERANCE = args.tolerance
     settings = {**({"photo": args.photo} if args.photo else {}), **json.loads(args.simulate)}
     if args.what == "run":
         result = run(settings, args.overrides, args.disc)

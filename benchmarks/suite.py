@@ -149,7 +149,8 @@ def run_capture(capture: Capture, dump: Path | None = None, overrides: Sequence[
         return {**row, "failed": str(exc).splitlines()[0], "seconds": time.perf_counter() - t0}
     seconds = time.perf_counter() - t0
     gt = ground_truth_report(source, homographies, pano, spec.panorama_subbatch_px, compositor=spec.compositor,
-                             references=(FluxCanvasConfig(scale=spec.compositor.scale),), references_estimated=True)
+                             references=(FluxCanvasConfig(scale=spec.compositor.scale),), references_estimated=True,
+                             flicker_period_frames=(report.get("flicker") or {}).get("period_frames"))
     error = source_trajectory_error(homographies, source).per_frame_px
     unc = report.get("frame_uncertainty")
     sigma = unc.sigma_px if unc is not None else np.full(len(error), np.nan)

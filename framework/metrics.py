@@ -211,7 +211,8 @@ def source_trajectory_error(homographies: NDArray[np.float64], source: Any) -> T
 
 def ground_truth_report(source, homographies: np.ndarray, pano, subbatch_px: float, *,
                         compositor: Any = None, references: tuple[Any, ...] = (),
-                        references_estimated: bool = False, progress: Any = None) -> dict[str, Any]:
+                        references_estimated: bool = False, progress: Any = None,
+                        flicker_period_frames: float | None = None) -> dict[str, Any]:
     """Measure a reconstruction against a capture's ground truth.
 
     The trajectory error is taken after the best global alignment G (the panorama's
@@ -237,6 +238,9 @@ def ground_truth_report(source, homographies: np.ndarray, pano, subbatch_px: flo
             the same run).
         progress: called with the number of binary frames composited into the true-motion
             reference.
+        flicker_period_frames: the flicker period (binary frames) the run's compositor was
+            told of (``run.json``'s ``flicker.period_frames``), told to every compositor built
+            here alike (:meth:`~photonpano.stages.Compositor.expect_flicker`); None: none.
 
     Returns:
         ``{"trajectory_rmse_px", "trajectory_max_px"}`` and, with a scene, ``"psnr_db",
@@ -256,11 +260,17 @@ def ground_truth_report(source, homographies: np.ndarray, pano, subbatch_px: flo
         return report
     canvas_from_scene = canvas_from_scene_homography(homographies, pano.homographies, err)
     shape = pano.flux.shape
-    truths = [compose(source, canvas_from_scene @ source.ground_truth,
-                      config.build() if config is not None else BilinearCompositor(),
-                      subbatch_px=subbatch_px, canvas_shape=shape, progress=progress if config is compositor else None)
+
+    def build(config: Any) -> Any:
+        built = config.build() if config is not None else BilinearCompositor()
+        if flicker_period_frames is not None:
+            built.expect_flicker(flicker_period_frames)
+        return built
+
+    truths = [compose(source, canvas_from_scene @ source.ground_truth, build(config), subbatch_px=subbatch_px,
+                      canvas_shape=shape, progress=progress if config is compositor else None)
               for config in (compositor, *references)]
-    others = [compose(source, pano.homographies, config.build(), subbatch_px=subbatch_px, canvas_shape=shape)
+    others = [compose(source, pano.homographies, build(config), subbatch_px=subbatch_px, canvas_shape=shape)
               for config in references] if references_estimated else []
     scene = scene_on_canvas(source, canvas_from_scene, shape)
     both = np.isfinite(pano.flux) & np.isfinite(scene)

@@ -223,8 +223,9 @@ def _run_into(spec: PipelineSpec, folder: RunFolder | None, host: PluginHost) ->
     if source.ground_truth is not None:
         t0 = time.perf_counter()
         advance = progress("ground truth report", source.n_frames) if source.scene_flux is not None else None
-        summary["ground_truth"] = ground_truth_report(source, homographies, pano, spec.panorama_subbatch_px,
-                                                      compositor=spec.compositor, progress=advance)
+        summary["ground_truth"] = ground_truth_report(
+            source, homographies, pano, spec.panorama_subbatch_px, compositor=spec.compositor, progress=advance,
+            flicker_period_frames=(summary.get("flicker") or {}).get("period_frames"))
         timings["ground_truth_report"] = time.perf_counter() - t0
         error = source_trajectory_error(homographies, source)
     plot = None

@@ -240,7 +240,7 @@ def partly_seen(frames: NDArray[np.float32], exposure_frames: NDArray[np.int64],
 
 
 def robust_rejection(sums: NDArray[np.float32], frames: NDArray[np.float32], *, binary: bool = True,
-                     scale: float = 1.0, sigmas: float = 5.0, tolerance: float = TOLERANCE, smooth_px: float = 2.0,
+                     scale: float = 1.0, sigmas: float = 5.0, tolerance: float | None = None, smooth_px: float = 2.0,
                      min_width_px: float = 9.0, margin_px: float = 3.0,
                      exposure_frames: NDArray[np.int64] | None = None) -> NDArray[np.bool_]:
     """Which virtual exposures disagree with the static scene at each canvas pixel (see the module's test).
@@ -251,7 +251,8 @@ def robust_rejection(sums: NDArray[np.float32], frames: NDArray[np.float32], *, 
         binary: photon counts (binomial noise, flux ``-ln(1 - p)``); False: intensity sums.
         scale: canvas pixels per frame pixel (the lengths below are in frame pixels).
         sigmas: noise threshold in standard deviations.
-        tolerance: smallest relative flux difference that counts as disagreement.
+        tolerance: smallest relative flux difference that counts as disagreement; None:
+            :data:`TOLERANCE` (read at each call).
         smooth_px: Gaussian sigma of the smoothing, in frame pixels.
         min_width_px: narrowest disagreeing region left out, in frame pixels.
         margin_px: dilation of the left-out regions, in frame pixels.
@@ -303,7 +304,8 @@ def robust_rejection(sums: NDArray[np.float32], frames: NDArray[np.float32], *, 
         else:
             noise = np.zeros_like(phi)
         noise = np.maximum(noise, spread[None])
-        out = seen & (deviation > sigmas * noise) & (deviation > tolerance * static[None])
+        least = TOLERANCE if tolerance is None else tolerance
+        out = seen & (deviation > sigmas * noise) & (deviation > least * static[None])
         if exposure_frames is not None:
             out &= ~partly_seen(frames, exposure_frames, scale=scale, smooth_px=smooth_px)
     out = out.astype(np.uint8)

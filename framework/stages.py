@@ -27,28 +27,10 @@ from .records import Groups, MergedFrames, PairRegistrations
 if TYPE_CHECKING:
     from .records import Canvas, Panorama
 
-__all__ = [
-    "StageConfig",
-    "SourceConfig",
-    "ResamplerConfig",
-    "MergerConfig",
-    "LocatorConfig",
-    "InterpolatorConfig",
-    "PhotonSource",
-    "Groups",
-    "Resampler",
-    "MergedFrames",
-    "Merger",
-    "PairRegistrations",
-    "Locator",
-    "LocatorContext",
-    "Interpolator",
-    "CompositorConfig",
-    "Compositor",
-    "PoseEstimatorConfig",
-    "PoseEstimator",
-    "STAGES",
-]
+__all__ = ["StageConfig", "SourceConfig", "ResamplerConfig", "MergerConfig", "LocatorConfig", "InterpolatorConfig",
+           "PhotonSource", "Groups", "Resampler", "MergedFrames", "Merger", "PairRegistrations", "Locator",
+           "LocatorContext", "Interpolator", "CompositorConfig", "Compositor", "PoseEstimatorConfig", "PoseEstimator",
+           "STAGES"]
 
 
 # --- source: where binary frames come from -----------------------------------------
@@ -252,11 +234,10 @@ class CompositorConfig(StageConfig):
 class Compositor(abc.ABC):
     """Turns binary frames and their homographies into a panorama, a sub-batch at a time.
 
-    The framework (:func:`photonpano.compose.compose`) calls :meth:`prepare` once, then
-    :meth:`feed` with sub-batches of frames in any order (each frame exactly once), then
-    :meth:`finish`; memory is bounded by the canvas, not by the capture (as OpenCV's
-    ``detail::Blender``: prepare / feed / blend). To use several threads, the framework
-    feeds :meth:`fork` copies from other threads and :meth:`join` s them before
+    The framework (:func:`photonpano.compose.compose`) calls :meth:`prepare` once, then :meth:`feed` with
+    sub-batches of frames in any order (each frame exactly once), then :meth:`finish`; memory is bounded by
+    the canvas, not by the capture (as OpenCV's ``detail::Blender``: prepare / feed / blend). To use several
+    threads, the framework feeds :meth:`fork` copies from other threads and :meth:`join` s them before
     :meth:`finish`.
 
     Attributes:
@@ -289,22 +270,22 @@ class Compositor(abc.ABC):
         """Add a sub-batch of summed frames.
 
         Args:
-            counts: (B, H, W) detections (uint16, or float32 linear intensity sums for
-                intensity sources), each the sum of ``n_frames[b]`` binary frames.
+            counts: (B, H, W) detections (uint16, or float32 linear intensity sums for intensity sources),
+                each the sum of ``n_frames[b]`` binary frames.
             n_frames: (B,) int64 binary frames behind each count image.
-            homographies: (B, 3, 3) float64 frame-to-canvas homographies (canvas
-                pixels, pixel centres at integers), one per count image.
-            weights: (H, W) float32 weight of each frame pixel in [0, 1] (0 leaves the
-                pixel out, e.g. pixels behind another colour filter); None: all 1.
+            homographies: (B, 3, 3) float64 frame-to-canvas homographies (canvas pixels, pixel centres at
+                integers), one per count image.
+            weights: (H, W) float32 weight of each frame pixel in [0, 1] (0 leaves the pixel out, e.g.
+                pixels behind another colour filter); None: all 1.
         """
 
     def expect_flicker(self, period_frames: float) -> None:
         """Be told, before :meth:`prepare`, that a lamp flickers with this period while the capture runs.
 
-        :func:`~photonpano.flicker.detect_flicker` found it (part of the scene or all of
-        it). A compositor that merges by time (the robust merge of
-        :mod:`photonpano.robust_merge`) then cuts the capture at whole periods, so that
-        each run of frames averages the lamp alike; the default ignores it.
+        :func:`~photonpano.flicker.detect_flicker` found it (over part of the scene or all
+        of it). A compositor that merges by time (the robust merge of
+        :mod:`photonpano.robust_merge`) then cuts the capture at whole periods, so that each
+        run of frames sees the lamp's mean level; the default ignores it.
 
         Args:
             period_frames: the flicker period in binary frames (> 0, not necessarily whole).
@@ -326,13 +307,12 @@ class Compositor(abc.ABC):
                     homographies: NDArray[np.float64]) -> None:
         """Add a sub-batch of summed frames, knowing which frames they are.
 
-        What :func:`~photonpano.compose.compose` calls; the default forgets the frame
-        indices and calls :meth:`feed`. A compositor that merges by time (the robust merge
-        of :mod:`photonpano.robust_merge` keeps virtual exposures apart) overrides it.
+        What :func:`~photonpano.compose.compose` calls; the default forgets the frame indices and calls
+        :meth:`feed`. A compositor that merges by time (the robust merge of :mod:`photonpano.robust_merge`
+        keeps virtual exposures apart) overrides it.
 
         Args:
-            edges: (B + 1,) int64 frame-range edges: count image b is the sum of frames
-                ``edges[b]:edges[b + 1]``.
+            edges: (B + 1,) int64 frame-range edges: count image b is the sum of frames ``edges[b]:edges[b + 1]``.
             counts: (B, H, W) summed frames, as :meth:`feed`'s.
             homographies: (B, 3, 3) float64 frame-to-canvas homographies, as :meth:`feed`'s.
         """

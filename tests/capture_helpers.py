@@ -124,12 +124,13 @@ def simulate_highspeed_video(frames: int = 1200, fps: float = 1000.0, height: in
     return codes, truth
 
 
-def reconstruct_simulated(source: dict, overrides=()):
+def reconstruct_simulated(source: dict, overrides=(), keep: list | None = None):
     """Simulate a capture and reconstruct it as ``photonpano run`` would.
 
     Args:
         source: ``simulate`` settings (``plugin`` is added).
         overrides: ``--set``-style ``key=value`` strings for the spec.
+        keep: a list the run's :class:`~photonpano.records.Panorama` is appended to.
 
     Returns:
         ``(error, report)``: the :class:`~photonpano.metrics.TrajectoryError` against the
@@ -145,7 +146,9 @@ def reconstruct_simulated(source: dict, overrides=()):
                          PluginHost(), origin="test")
     capture = spec.source.build()
     report: dict = {}
-    homographies, _, _, _ = reconstruct(spec, capture, report=report)
+    homographies, _, pano, _ = reconstruct(spec, capture, report=report)
+    if keep is not None:
+        keep.append(pano)
     return source_trajectory_error(homographies, capture), report
 
 

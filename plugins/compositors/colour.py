@@ -39,10 +39,9 @@ from typing import Any, Callable
 
 import numpy as np
 from numpy.typing import NDArray
-from photonpano.stages import Compositor, SourceConfig
-from pydantic import model_validator
+from photonpano.stages import Compositor
 
-__all__ = ["CfaChannels", "LumaGuided", "FrameDemosaic", "ColourPanorama", "ColourSourceConfig", "cfa_corrector"]
+__all__ = ["CfaChannels", "LumaGuided", "FrameDemosaic", "ColourPanorama", "cfa_corrector"]
 
 CHANNELS = ("R", "G", "B")
 
@@ -391,28 +390,3 @@ class ColourPanorama(Compositor):
     def finish(self) -> Any:
         """The panorama (see :meth:`Compositor.finish`) with ``colour``: (Hc, Wc, 3) float32 R, G, B."""
         return dataclasses.replace(self._flux.finish(), colour=self._colour.finish().flux)
-
-
-class ColourSourceConfig(SourceConfig):
-    """A source config whose sensor may carry colour filters: the colour panorama option's rules in one place.
-
-    Subclasses define ``cfa`` (the colour-filter-array layout, None without filters) and
-    ``colour_panorama`` (bool: also composite the colour planes).
-
-    Raises:
-        ValueError: (pydantic validation) ``colour_panorama`` without ``cfa``.
-    """
-
-    @model_validator(mode="after")
-    def _colour_needs_cfa(self):
-        if self.colour_panorama and self.cfa is None:
-            raise ValueError("colour_panorama needs cfa (the colour filter array layout)")
-        return self
-
-    def panorama_compositor(self, build: Callable[[], Compositor]) -> Compositor:
-        """The panorama stage's compositor (see :meth:`SourceConfig.panorama_compositor`).
-
-        With ``colour_panorama`` the panorama and its colour planes in one pass
-        (:class:`ColourPanorama` of ``build``); else ``build()``.
-        """
-        return ColourPanorama(build) if self.colour_panorama else build()

@@ -90,7 +90,8 @@ class DrizzleConfig(CompositorConfig):
     captures it changes the panorama by less than 0.01 dB (docs/real_scenes.md). The
     colour panorama (``colour_panorama``) leaves out the same exposures in every plane."""
     robust_exposures: Annotated[int, Field(ge=3, le=64)] = DEFAULT_EXPOSURES
-    """Virtual exposures the robust merge compares (memory: that many canvases)."""
+    """Virtual exposures the robust merge compares (memory: that many canvases; under a
+    flickering lamp, runs of whole periods: up to twice as many)."""
     detail_gain: Annotated[float, Field(gt=0, le=100)] = DETAIL_GAIN
     """Factor on the local detail variance in the weight of ``noise_adaptive`` (1: Lee's
     local Wiener weight; larger keeps more of the fine drops at edges)."""

@@ -31,7 +31,8 @@ class FluxCanvasConfig(CompositorConfig):
     (``flux-canvas`` is also the mosaic levels' template: ``mosaic.reject_movers`` composites it
     robustly at the first mosaic level to find movers, and while their rejection is engaged)."""
     robust_exposures: Annotated[int, Field(ge=3, le=64)] = DEFAULT_EXPOSURES
-    """Virtual exposures the robust merge compares (memory: that many canvases)."""
+    """Virtual exposures the robust merge compares (memory: that many canvases; under a
+    flickering lamp, runs of whole periods: up to twice as many)."""
 
     def build(self) -> BilinearCompositor:
         """Return the compositor at this config's ``scale``."""

@@ -4,7 +4,9 @@
 - :class:`BinaryCaptureConfig`: the timing and read buffer of binary frames (``npy-cube``,
   ``swissspad-bin``);
 - :class:`IntensityCaptureConfig`: the frame rate and camera response of intensity frames
-  (``video``, ``photron-mraw``).
+  (``video``, ``photron-mraw``);
+- :class:`ColourSourceConfig`: the colour panorama option's rules (``simulate`` and the
+  SwissSPAD sources, whose sensors may carry colour filters).
 
 A source redeclares a field (type, default, docstring) where it means more than here; the
 field keeps its place in the spec reference, so every source lists ``path`` and the frame
@@ -14,13 +16,13 @@ range first.
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated, ClassVar, Literal
+from typing import Annotated, Callable, ClassVar, Literal
 
 from photonpano.errors import SourceError
-from photonpano.stages import SourceConfig
-from pydantic import Field
+from photonpano.stages import Compositor, SourceConfig
+from pydantic import Field, model_validator
 
-__all__ = ["CaptureConfig", "BinaryCaptureConfig", "IntensityCaptureConfig"]
+__all__ = ["CaptureConfig", "BinaryCaptureConfig", "IntensityCaptureConfig", "ColourSourceConfig"]
 
 
 class CaptureConfig(SourceConfig):
@@ -78,3 +80,30 @@ class IntensityCaptureConfig(CaptureConfig):
     """Code value of zero light."""
     white_level: Annotated[float, Field(gt=0)] | None = None
     """Code value of full scale (default: the largest code of the frames' bit depth)."""
+
+
+class ColourSourceConfig(SourceConfig):
+    """A source config whose sensor may carry colour filters: the colour panorama option's rules in one place.
+
+    Subclasses define ``cfa`` (the colour-filter-array layout, None without filters) and
+    ``colour_panorama`` (bool: also composite the colour planes).
+
+    Raises:
+        ValueError: (pydantic validation) ``colour_panorama`` without ``cfa``.
+    """
+
+    @model_validator(mode="after")
+    def _colour_needs_cfa(self):
+        if self.colour_panorama and self.cfa is None:
+            raise ValueError("colour_panorama needs cfa (the colour filter array layout)")
+        return self
+
+    def panorama_compositor(self, build: Callable[[], Compositor]) -> Compositor:
+        """The panorama stage's compositor (see :meth:`~photonpano.stages.SourceConfig.panorama_compositor`).
+
+        With ``colour_panorama`` the panorama and its colour planes in one pass
+        (:class:`~photonpano.plugins.compositors.colour.ColourPanorama` of ``build``); else ``build()``.
+        """
+        from photonpano.plugins.compositors.colour import ColourPanorama
+
+        return ColourPanorama(build) if self.colour_panorama else build()

@@ -31,7 +31,7 @@ from numpy.typing import NDArray
 from photonpano import hookimpl
 from photonpano.errors import SourceError
 from photonpano.outputs import atomic_path
-from photonpano.plugins.compositors.colour import ColourSourceConfig
+from photonpano.plugins.sources._capture_config import ColourSourceConfig
 from photonpano.stages import PhotonSource, SourceConfig
 from pydantic import Field
 
