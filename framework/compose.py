@@ -182,7 +182,7 @@ class BilinearCompositor(Compositor):
         from .warping import WarpAccumulator
 
         self._canvas, self._source = canvas, source
-        self.bounds = exposure_bounds(len(canvas.homographies), self.exposures, source.frame_step,
+        self.bounds = exposure_bounds(len(canvas.homographies), self.exposures, getattr(source, "frame_step", 1),
                                        self.period_frames)
         self._acc = WarpAccumulator(canvas.height, canvas.width)  # plain feeds; the first exposure
         # the robust merge's other exposures, made when first fed (a fork holds the few its run spans)

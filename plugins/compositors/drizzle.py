@@ -152,7 +152,7 @@ class Drizzle(Compositor):
     def prepare(self, canvas: Canvas, source: PhotonSource) -> None:
         """Start empty sums on ``canvas`` (see :meth:`Compositor.prepare`)."""
         self._canvas, self._source = canvas, source
-        self._bounds = exposure_bounds(len(canvas.homographies), self.exposures, source.frame_step,
+        self._bounds = exposure_bounds(len(canvas.homographies), self.exposures, getattr(source, "frame_step", 1),
                                        self.period_frames)
         self._acc = np.zeros((*canvas.shape, 2), np.float32)  # sums and frames, interleaved
         # the robust merge's virtual exposures (the first is ``_acc``), made when first fed:
