@@ -9,6 +9,7 @@ Writing the output folder is :mod:`photonpano.pipeline`'s.
 from __future__ import annotations
 
 import time
+from functools import partial
 from typing import TYPE_CHECKING, Any, Callable
 
 import numpy as np
@@ -203,10 +204,9 @@ class Stages:
         """The panorama of every binary frame by the spec's compositor (:func:`photonpano.compose.compose`)."""
         from .compose import compose
 
-        compositor = self.spec.source.panorama_compositor(self.spec.compositor.build)
-        if self.budget.plan.flicker is not None:
-            compositor.expect_flicker(self.budget.plan.flicker.period_frames)
-        return compose(self.source, homographies, compositor, subbatch_px=self.spec.panorama_subbatch_px,
+        build = _told_of_flicker(partial(self.spec.source.panorama_compositor, self.spec.compositor.build),
+                                 self.budget.plan.flicker)
+        return compose(self.source, homographies, build(), subbatch_px=self.spec.panorama_subbatch_px,
                        progress=progress, executor=executor)
 
     def level_statistics(self, result: LevelResult) -> dict[str, Any]:

@@ -6,8 +6,8 @@ pixel it crossed). A robust compositor keeps one pair of sums (detections S, fra
 per *virtual exposure*: the capture cut into ``exposures`` equal runs of consecutive
 frames, or, where a lamp flickers (:meth:`~photonpano.stages.Compositor.expect_flicker`),
 into runs of the same whole number of flicker periods (:func:`exposure_bounds`), so that
-each run sees the lamp's mean level. At :meth:`~photonpano.stages.Compositor.finish`, :func:`robust_combine` compares
-each exposure's estimate of each canvas pixel with the static scene, the
+each run sees the lamp's mean level. At :meth:`~photonpano.stages.Compositor.finish`,
+:func:`robust_combine` compares each exposure's estimate of each canvas pixel with the static scene, the
 frame-weighted median over the exposures, and leaves out the exposures that disagree:
 the median-of-exposures test with the robustness term of burst merging (Hasinoff et al.,
 "Burst photography for high dynamic range and low-light imaging on mobile cameras",
@@ -209,8 +209,8 @@ def keep_exposures(sums: NDArray[np.float32], frames: NDArray[np.float32], rejec
     return kept_s, kept_n, rejected.any(axis=0) & ~empty
 
 
-def partly_seen(frames: NDArray[np.float32], exposure_frames: NDArray[np.int64], *, scale: float = 1.0,
-                smooth_px: float = 2.0, whole: float = 0.98) -> NDArray[np.bool_]:
+def partly_seen(frames: NDArray[np.float32], exposure_frames: NDArray[np.int64], whole: float = 0.98
+                ) -> NDArray[np.bool_]:
     """Which exposures of whole flicker periods saw each canvas pixel for only part of their frames.
 
     Such an exposure (the pixel came into or left the view during it) averaged the lamp
@@ -220,23 +220,18 @@ def partly_seen(frames: NDArray[np.float32], exposure_frames: NDArray[np.int64],
 
     Args:
         frames: (K, Hc, Wc) float32 binary frames per exposure and canvas pixel
-            (kernel-weighted).
+            (kernel-weighted; smoothed, as :func:`robust_rejection` does, where point drops
+            leave canvas pixels without a frame's drop).
         exposure_frames: (K,) binary frames in each exposure (:func:`exposure_bounds`
             with a flicker period).
-        scale: canvas pixels per frame pixel.
-        smooth_px: Gaussian sigma in frame pixels the frames are smoothed by first (point
-            drops leave some canvas pixels without a frame's drop).
-        whole: share of the frames (of the pixel's best-seen exposure, per frame) below
-            which an exposure is partly seen.
+        whole: share of the frames (per frame of the exposure, against the pixel's
+            best-seen exposure) below which an exposure is partly seen.
 
     Returns:
         (K, Hc, Wc) bool.
     """
-    import cv2
-
-    smooth_n = np.stack([cv2.GaussianBlur(np.asarray(n, np.float32), (0, 0), smooth_px * scale) for n in frames])
-    per_frame = smooth_n / np.asarray(exposure_frames, np.float32)[:, None, None]
-    return (smooth_n > 0) & (per_frame < whole * per_frame.max(axis=0)[None])
+    per_frame = frames / np.asarray(exposure_frames, np.float32)[:, None, None]
+    return (frames > 0) & (per_frame < whole * per_frame.max(axis=0)[None])
 
 
 def robust_rejection(sums: NDArray[np.float32], frames: NDArray[np.float32], *, binary: bool = True,
@@ -307,7 +302,7 @@ def robust_rejection(sums: NDArray[np.float32], frames: NDArray[np.float32], *, 
         least = TOLERANCE if tolerance is None else tolerance
         out = seen & (deviation > sigmas * noise) & (deviation > least * static[None])
         if exposure_frames is not None:
-            out &= ~partly_seen(frames, exposure_frames, scale=scale, smooth_px=smooth_px)
+            out &= ~partly_seen(smooth_n, exposure_frames)
     out = out.astype(np.uint8)
     width = max(3, int(round(min_width_px * scale)) | 1)
     opening = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (width, width))
