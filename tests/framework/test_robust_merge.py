@@ -151,3 +151,25 @@ def test_exposures_of_whole_flicker_periods_see_no_mover_in_a_half_lit_static_sc
     moving = {name: float(pano.moving.mean()) for name, pano in panos.items() if pano.moving is not None}
     assert moving["robust"] > 0.05, moving  # the lamp's beat between runs left out as movers (0.16)
     assert moving["whole periods"] < 0.002 and db["whole periods"] > db["plain"] - 0.02, (moving, db)  # 0, 0.00
+
+
+def test_the_compiled_weighted_median_is_the_sorted_cumulative_weight_one():
+    """Against the numpy form (argsort, cumulative weight, first value reaching half): NaNs, ties, zero weights."""
+    from photonpano.robust_merge import _weighted_median
+
+    rng = np.random.default_rng(5)
+    values = rng.integers(0, 6, (16, 40, 50)).astype(np.float32)  # ties
+    weights = (rng.random((16, 40, 50)) * 50).astype(np.float32)
+    values[rng.random(values.shape) < 0.1] = np.nan
+    weights[rng.random(weights.shape) < 0.1] = 0
+    values[:, 0, 0] = np.nan  # nothing with weight: NaN
+    weights[:, 0, 1] = 0
+
+    w = np.where(np.isfinite(values), weights, 0).astype(np.float32)
+    order = np.argsort(np.where(w > 0, values, np.inf), axis=0, kind="stable")
+    cumulative = np.cumsum(np.take_along_axis(w, order, axis=0), axis=0)
+    half = 0.5 * cumulative[-1]
+    pick = np.minimum(np.sum(cumulative < half[None], axis=0), len(values) - 1)
+    expected = np.where(half > 0, np.take_along_axis(np.take_along_axis(values, order, axis=0), pick[None], 0)[0],
+                        np.nan)
+    np.testing.assert_array_equal(_weighted_median(values, weights), expected.astype(np.float32))
