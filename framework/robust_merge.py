@@ -44,8 +44,6 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from .jit import cached_njit
-
 __all__ = ["DEFAULT_EXPOSURES", "TOLERANCE", "exposure_bounds", "exposure_index",
            "feed_exposures", "join_exposures", "partly_seen", "robust_combine", "robust_rejection", "keep_exposures"]
 
@@ -153,45 +151,11 @@ def _weighted_median(values: NDArray[np.float32], weights: NDArray[np.float32]) 
     The first value, in ascending order, at which the cumulative weight reaches half the
     total; NaN where no value has weight.
     """
+    from ._robust_merge_compiled import weighted_median_kernel  # numba: not at registration
+
     out = np.empty(values.shape[1:], np.float32)
-    _weighted_median_kernel(np.ascontiguousarray(values, np.float32), np.ascontiguousarray(weights, np.float32), out)
+    weighted_median_kernel(np.ascontiguousarray(values, np.float32), np.ascontiguousarray(weights, np.float32), out)
     return out
-
-
-@cached_njit(nogil=True)
-def _weighted_median_kernel(values: NDArray[np.float32], weights: NDArray[np.float32],
-                            out: NDArray[np.float32]) -> None:  # pragma: no cover - compiled
-    """:func:`_weighted_median` into ``out`` (H, W): an insertion sort of each pixel's K values."""
-    k_count, height, width = values.shape
-    sorted_values = np.empty(k_count, np.float32)
-    sorted_weights = np.empty(k_count, np.float32)
-    for y in range(height):
-        for x in range(width):
-            n = 0
-            for k in range(k_count):
-                value, weight = values[k, y, x], weights[k, y, x]
-                if not (np.isfinite(value) and weight > 0):
-                    continue
-                i = n
-                while i > 0 and sorted_values[i - 1] > value:
-                    sorted_values[i], sorted_weights[i] = sorted_values[i - 1], sorted_weights[i - 1]
-                    i -= 1
-                sorted_values[i], sorted_weights[i] = value, weight
-                n += 1
-            total = np.float32(0)
-            for i in range(n):
-                total += sorted_weights[i]
-            if n == 0 or not total > 0:
-                out[y, x] = np.nan
-                continue
-            half, cumulative = np.float32(0.5) * total, np.float32(0)
-            pick = n - 1
-            for i in range(n):
-                cumulative += sorted_weights[i]
-                if cumulative >= half:
-                    pick = i
-                    break
-            out[y, x] = sorted_values[pick]
 
 
 def robust_combine(sums: NDArray[np.float32], frames: NDArray[np.float32], *, binary: bool = True, scale: float = 1.0,
