@@ -247,14 +247,13 @@ class BilinearCompositor(Compositor):
 
         moving = None
         if self.exposures > 1:
-            from .robust_merge import robust_combine
+            from .robust_merge import robust_combine, whole_period_frames
 
-            fed = [k for k, a in enumerate(self._accs) if a is not None]
-            accs = [a for a in self._accs if a is not None]
+            fed = [a for a in self._accs if a is not None]
             sums, frames, moving = robust_combine(
-                np.stack([a.counts for a in accs]), np.stack([a.frames for a in accs]),
+                np.stack([a.counts for a in fed]), np.stack([a.frames for a in fed]),
                 binary=getattr(self._source, "kind", "binary") == "binary", scale=self.scale,
-                exposure_frames=np.diff(self.bounds)[fed] if self.period_frames is not None else None)
+                exposure_frames=whole_period_frames(self.bounds, self._accs, self.period_frames))
         else:
             sums, frames = self._acc.counts, self._acc.frames
         flux = estimate_radiance(self._source, sums, frames)

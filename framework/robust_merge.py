@@ -44,8 +44,9 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-__all__ = ["DEFAULT_EXPOSURES", "TOLERANCE", "exposure_bounds", "exposure_index",
-           "feed_exposures", "join_exposures", "partly_seen", "robust_combine", "robust_rejection", "keep_exposures"]
+__all__ = ["DEFAULT_EXPOSURES", "TOLERANCE", "exposure_bounds", "exposure_index", "feed_exposures",
+           "join_exposures", "partly_seen", "whole_period_frames", "robust_combine", "robust_rejection",
+           "keep_exposures"]
 
 TOLERANCE = 0.1
 """Smallest relative flux difference from the static scene that leaves an exposure out.
@@ -128,6 +129,23 @@ def feed_exposures(accs: list[Any], new: Callable[[], Any], add: Callable[..., N
             accs[k] = new()
         pick = which == k
         add(accs[k], counts[pick], np.diff(edges)[pick], homographies[pick])
+
+
+def whole_period_frames(bounds: NDArray[np.int64], accs: list[Any],
+                        period_frames: float | None) -> NDArray[np.int64] | None:
+    """The ``exposure_frames`` of :func:`robust_rejection` for a compositor's exposures fed so far.
+
+    Args:
+        bounds: (E + 1,) int64 :func:`exposure_bounds` of the capture.
+        accs: the E accumulators, None where an exposure got no frames.
+        period_frames: the flicker period the bounds span whole periods of, or None.
+
+    Returns:
+        (K',) int64 binary frames of each exposure fed (K' of E, in order); None without a period.
+    """
+    if period_frames is None:
+        return None
+    return np.diff(bounds)[[k for k, acc in enumerate(accs) if acc is not None]]
 
 
 def join_exposures(mine: list[Any], theirs: list[Any], add: Callable[[Any, Any], None]) -> None:

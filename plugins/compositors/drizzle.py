@@ -45,6 +45,7 @@ from photonpano.robust_merge import (
     join_exposures,
     keep_exposures,
     robust_rejection,
+    whole_period_frames,
 )
 from photonpano.stages import Compositor, CompositorConfig, PhotonSource
 from pydantic import Field
@@ -218,12 +219,6 @@ class Drizzle(Compositor):
         """(K', Hc, Wc, 2) float32 sums and frames of the virtual exposures fed so far."""
         return np.stack([a for a in self._accs if a is not None])
 
-    def _exposure_frames(self) -> NDArray[np.int64] | None:
-        """(K',) binary frames of the exposures fed so far where they span whole flicker periods, else None."""
-        if self.period_frames is None:
-            return None
-        return np.diff(self._bounds)[[k for k, a in enumerate(self._accs) if a is not None]]
-
     def rejection(self) -> NDArray[np.bool_] | None:
         """(K', Hc, Wc) bool: where each virtual exposure fed so far disagrees with the static scene.
 
@@ -238,7 +233,7 @@ class Drizzle(Compositor):
         """:meth:`rejection` of the stacked exposures."""
         return robust_rejection(stacked[..., 0], stacked[..., 1], scale=self.scale,
                                 binary=getattr(self._source, "kind", "binary") == "binary",
-                                exposure_frames=self._exposure_frames())
+                                exposure_frames=whole_period_frames(self._bounds, self._accs, self.period_frames))
 
     def finish(self, rejected: NDArray[np.bool_] | None = None) -> Panorama:
         """The flux MLE per canvas pixel (see :meth:`Compositor.finish`); robust: the exposures that agree.
