@@ -251,8 +251,8 @@ def _mosaic_model(host: PluginHost) -> type[BaseModel]:
             "and composite `template` robustly (a mover never enters it). auto (the default): 5, engaged only "
             "where the first mosaic level's robust template leaves out one region of at least 5 % of the "
             "canvas (a mover was found; run.json `movers`), else every pixel is used as with null. A number: always "
-            "on (it untrusts bright regions of static high-contrast scenes too: Hubble field 0.100 -> 0.116 "
-            "px; docs/real_scenes.md). null: every pixel is used.")], "auto"),
+            "on (it also untrusts what the current estimate misregisters; Hubble field 0.0273 -> 0.0272 px; "
+            "docs/real_scenes.md). null: every pixel is used.")], "auto"),
         "holdout": (Annotated[int, Field(ge=1, le=64, description="Runs of consecutive frames the template is "
             "cut into: each merged frame is registered against the panorama of the runs its frames do not fall in "
             "(a leave-one-out template: its own photons, and those of the neighbours that share its pose error, "
