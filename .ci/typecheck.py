@@ -35,7 +35,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 STRICT = ("photonpano", "photonpano.api", "photonpano.records", "photonpano.stages")
 """Modules that must pass ``mypy --strict``: the public surface."""
-CEILING = 86
+CEILING = 84
 """The most mypy errors the whole package may have; lower it when you fix some (never raise it)."""
 CONFIG = ROOT / ".ci" / "mypy.ini"
 ERROR = re.compile(r"^(photonpano/[^:]+):\d+: error:", re.M)
