@@ -33,13 +33,14 @@ al., "Burst photography for high dynamic range and low-light imaging on mobile c
 SIGGRAPH Asia 2016, Sec. 5, and Wronski et al., "Handheld multi-frame super-resolution",
 SIGGRAPH 2019, Sec. 5). The disagreement test also untrusts the regions of a static
 scene that the current estimate misregisters, so by default (``detect_movers``) it
-engages only where a mover is found: the first mosaic level composites its template robustly and, if the robust
-merge left out exposures over one connected region of at least :data:`MOVERS_MIN_FRACTION`
-of the covered canvas (:func:`moving_fraction`: a mover's path is one region, a slightly
-misregistered estimate leaves many small ones), rejection engages for that level and the
-next; otherwise the template is composited plainly, as without ``reject_movers``, and so
-are the next levels' (a static scene's run is bit-identical to one with rejection off).
-The decision and the fractions go to :attr:`~photonpano.records.LocateResult.movers` (``run.json``'s ``movers``).
+engages only where a mover is found: the first mosaic level composites its template
+robustly and, if the robust merge left out exposures over one connected region of at
+least :data:`MOVERS_MIN_FRACTION` of the covered canvas (:func:`moving_fraction`: a
+mover's path is one region, a slightly misregistered estimate leaves many small ones),
+rejection engages for that level and the next; otherwise the template is composited
+plainly, as without ``reject_movers``, and so are the next levels' (a static scene's run
+is bit-identical to one with rejection off). The decision and the fractions go to
+:attr:`~photonpano.records.LocateResult.movers` (``run.json``'s ``movers``).
 """
 
 from __future__ import annotations
@@ -352,7 +353,6 @@ def mask_disagreement(merged: MergedFrames, views: MergedFrames, sigmas: float =
     masks = merged.masks.copy()
     kernel = np.ones((2 * margin_px + 1, 2 * margin_px + 1), np.uint8)
     opening = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (min_width_px, min_width_px))
-
     for i in range(len(masks)):
         a, b = merged.flux[i], views.flux[i]
         both = merged.masks[i] & views.masks[i] & np.isfinite(a) & np.isfinite(b)
