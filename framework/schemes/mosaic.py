@@ -217,7 +217,7 @@ class MosaicScheme(LevelScheme):
                 merged = mask_disagreement(merged, views, reject)
             n = len(index)
             found = locator.register_to_template(views, merged, np.repeat(np.eye(3)[None], n, axis=0), once)
-            information = homography_information(_noise_even(views), views.masks & merged.masks)
+            information = homography_information(_noise_even(views.flux, views.exposure_s), views.masks & merged.masks)
             cross = None
             if task.crosscheck and n > 1:  # held out: consecutive merged frames against each other
                 names = merged.frame_ids()
@@ -266,15 +266,13 @@ class MosaicScheme(LevelScheme):
                             template_bias=bias)
 
 
-def _noise_even(views: MergedFrames) -> NDArray[np.float32]:
-    """The views on a scale where their noise is about the same everywhere (what the locators register).
+def _noise_even(flux: NDArray[np.float32], exposure_s: float | None) -> NDArray[np.float32]:
+    """Merged-frame flux on a scale where its noise is about the same everywhere (what the locators register).
 
-    Stabilised detections for binary frames (:func:`~photonpano.binomial.stabilised_detections`),
-    the flux for intensity frames.
+    Stabilised detections for binary frames (:func:`~photonpano.binomial.stabilised_detections`,
+    ``exposure_s`` their exposure in seconds), the flux as is for intensity frames (None).
     """
-    if views.exposure_s is None:
-        return views.flux
-    return stabilised_detections(views.flux, views.exposure_s)
+    return flux if exposure_s is None else stabilised_detections(flux, exposure_s)
 
 
 def _fractions(pano: Panorama | None) -> dict[str, float | None]:
@@ -359,8 +357,7 @@ def mask_disagreement(merged: MergedFrames, views: MergedFrames, sigmas: float =
         if np.count_nonzero(both) < 100:
             continue
         b = b * (float(np.median(a[both])) / max(float(np.median(b[both])), 1e-30))
-        if merged.exposure_s is not None:
-            a, b = stabilised_detections(a, merged.exposure_s), stabilised_detections(b, merged.exposure_s)
+        a, b = _noise_even(a, merged.exposure_s), _noise_even(b, merged.exposure_s)
         difference = np.abs(cv2.GaussianBlur(np.where(both, a - b, 0).astype(np.float32), (0, 0), smooth_px))
         spread = 1.4826 * float(np.median(difference[both])) + 1e-30
         found = cv2.morphologyEx((difference > sigmas * spread).astype(np.uint8), cv2.MORPH_OPEN, opening)
