@@ -203,7 +203,11 @@ class MosaicScheme(LevelScheme):
         def run(index: NDArray[np.int64]) -> _WindowResult:
             start = time.perf_counter()
             locator = self.make_locator()
-            once = LocatorContext(reuses_frames=False)  # each frame is registered once, by this locator
+            n = len(index)
+            cross_checked = task.crosscheck and n > 1
+            # the held-out pairs register the merged frames again: named by ids, each is
+            # prepared once (the locator's content cache); without them no frame returns
+            context = LocatorContext(reuses_frames=cross_checked)
             with watched("merger", task.merger, "merge"):
                 merged = task.merger.merge(source, task.homographies, groups.select(index))
             merge_s = time.perf_counter() - start
@@ -215,14 +219,16 @@ class MosaicScheme(LevelScheme):
                                        binary_exposure(source))
             if reject is not None:
                 merged = mask_disagreement(merged, views, reject)
-            n = len(index)
-            found = locator.register_to_template(views, merged, np.repeat(np.eye(3)[None], n, axis=0), once)
+            if cross_checked:
+                merged = dataclasses.replace(merged, ids=MergedFrames.new_ids(n))
+                views = dataclasses.replace(views, ids=MergedFrames.new_ids(n))
+            found = locator.register_to_template(views, merged, np.repeat(np.eye(3)[None], n, axis=0), context)
             information = homography_information(_noise_even(views.flux, views.exposure_s), views.masks & merged.masks)
             cross = None
-            if task.crosscheck and n > 1:  # held out: consecutive merged frames against each other
+            if cross_checked:  # held out: consecutive merged frames against each other
                 names = merged.frame_ids()
                 cross = locator.register_pairs(merged, np.stack([names[:-1], names[1:]], axis=1), geometry.normalize(
-                    np.linalg.inv(current[index[:-1]]) @ current[index[1:]]), once)
+                    np.linalg.inv(current[index[:-1]]) @ current[index[1:]]), context)
             return _WindowResult(found, locator.cache_stats(), merge_s, time.perf_counter() - start,
                                  merged if task.keep_merged else None, cross, information)
 
