@@ -7,7 +7,8 @@
 - :func:`write_video`: frames to a video file with PyAV.
 - :func:`reconstruct_simulated`: a ``simulate`` capture reconstructed by the pipeline,
   with its trajectory error and confidence report.
-- :func:`load_suite`: the evaluation suite, ``benchmarks/suite.py``, as a module.
+- :func:`load_suite`: the evaluation suite, ``benchmarks/suite.py``, as a module;
+  :func:`load_benchmark` any other script of ``benchmarks/``.
 """
 
 from __future__ import annotations
@@ -152,14 +153,23 @@ def reconstruct_simulated(source: dict, overrides=(), keep: list | None = None):
     return source_trajectory_error(homographies, capture), report
 
 
-def load_suite():
-    """Import ``benchmarks/suite.py`` (the evaluation suite) as the module ``suite``."""
+def load_benchmark(name: str, module_name: str | None = None):
+    """Import ``benchmarks/<name>.py`` as a module (``<name>_benchmark`` unless ``module_name`` is given).
+
+    The module is registered in ``sys.modules`` first: dataclasses look their module up.
+    """
     import importlib.util
     import sys
 
-    spec = importlib.util.spec_from_file_location("suite", Path(__file__).resolve().parents[1] / "benchmarks"
-                                                  / "suite.py")
+    module_name = module_name or f"{name}_benchmark"
+    spec = importlib.util.spec_from_file_location(module_name, Path(__file__).resolve().parents[1] / "benchmarks"
+                                                  / f"{name}.py")
     module = importlib.util.module_from_spec(spec)
-    sys.modules["suite"] = module  # dataclasses look their module up
+    sys.modules[module_name] = module
     spec.loader.exec_module(module)
     return module
+
+
+def load_suite():
+    """Import ``benchmarks/suite.py`` (the evaluation suite) as the module ``suite``."""
+    return load_benchmark("suite", "suite")

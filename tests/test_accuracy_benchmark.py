@@ -1,18 +1,13 @@
 """benchmarks/accuracy.py writes its table into the docs between markers (issue 10)."""
 
-import importlib.util
 from pathlib import Path
 
 import pytest
-
-BENCHMARK = Path(__file__).parents[1] / "benchmarks" / "accuracy.py"
+from capture_helpers import load_benchmark
 
 
 def _module():
-    spec = importlib.util.spec_from_file_location("accuracy_benchmark", BENCHMARK)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_benchmark("accuracy")
 
 
 def test_the_table_replaces_only_the_text_between_the_markers(tmp_path):
@@ -38,7 +33,7 @@ def test_the_table_replaces_only_the_text_between_the_markers(tmp_path):
 def test_the_stamp_names_no_path_of_the_machine(tmp_path):
     """Absolute paths in the stamped command become file names (outside the repository) or repo-relative."""
     bench = _module()
-    root = BENCHMARK.parents[1]
+    root = Path(__file__).parents[1]
     assert bench.portable_command(f"python benchmarks/accuracy.py --photo /data/shared/madison1.png --write "
                                   f"{root / 'docs' / 'accuracy.md'} --frames=6000 --out=/tmp/x/run") == (
         "python benchmarks/accuracy.py --photo madison1.png --write docs/accuracy.md --frames=6000 --out=run")

@@ -1,20 +1,11 @@
 """benchmarks/bound.py: the Cramer-Rao bound of a frame's homography from its photons."""
 
-import importlib.util
-import sys
-from pathlib import Path
-
 import numpy as np
-
-BENCHMARK = Path(__file__).parents[1] / "benchmarks" / "bound.py"
+from capture_helpers import load_benchmark
 
 
 def _module():
-    spec = importlib.util.spec_from_file_location("bound_benchmark", BENCHMARK)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules["bound_benchmark"] = module
-    spec.loader.exec_module(module)
-    return module
+    return load_benchmark("bound")
 
 
 def _scene(blur: float) -> np.ndarray:

@@ -1,21 +1,12 @@
 """benchmarks/convergence.py: smooth trajectory errors injected into the truth, and measured back."""
 
-import importlib.util
-import sys
-from pathlib import Path
-
 import numpy as np
 import pytest
-
-BENCHMARK = Path(__file__).parents[1] / "benchmarks" / "convergence.py"
+from capture_helpers import load_benchmark
 
 
 def _module():
-    spec = importlib.util.spec_from_file_location("convergence_benchmark", BENCHMARK)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules["convergence_benchmark"] = module
-    spec.loader.exec_module(module)
-    return module
+    return load_benchmark("convergence")
 
 
 @pytest.mark.parametrize("mode, end_px", [("shift", 0.4), ("xscale", 0.4), ("rotation", 0.4), ("rotation-bump", 0.0)])
