@@ -45,6 +45,9 @@ def camera_path(config: SimulateConfig, scene_shape: tuple[int, int]) -> NDArray
     then a pitch of ``atan(a cos(w t) / f)`` (a = ``vibration_px``), which moves the frame
     centre by about ``a`` as the translation would (Hartley and Zisserman, *Multiple View
     Geometry*, 2nd ed., Sec. 8.4.2: a camera rotating about its centre, ``H = K R K^-1``).
+    With ``pan_model: rotation`` the whole path turns the camera so: the yaw is
+    ``atan((x(t) + a sin(w t)) / f)`` and the pitch ``atan((y(t) + a cos(w t)) / f)``, the
+    offset is zero (a camera on a tripod in front of the scene's centre).
 
     Args:
         config: the simulation settings.
@@ -73,10 +76,16 @@ def camera_path(config: SimulateConfig, scene_shape: tuple[int, int]) -> NDArray
         shake *= config.shake_px / max(float(np.sqrt(np.mean(shake ** 2))), 1e-12) / np.sqrt(2)
         x, y = x + shake[0], y + shake[1]
     w = 2 * np.pi * config.vibration_hz * s
-    rotating = config.vibration_model == "rotation" and config.vibration_px > 0
+    turning_path = config.pan_model == "rotation"
+    rotating = (config.vibration_model == "rotation" and config.vibration_px > 0) or turning_path
     if not rotating:
         x = x + config.vibration_px * np.sin(w)
         y = y + config.vibration_px * np.cos(w)
+    # what the turning camera's yaw and pitch move the frame centre by; the rest slides
+    turn_x = (x if turning_path else 0.0) + (config.vibration_px * np.sin(w) if rotating else 0.0)
+    turn_y = (y if turning_path else 0.0) + (config.vibration_px * np.cos(w) if rotating else 0.0)
+    if turning_path:
+        x, y = np.zeros(n), np.zeros(n)
     theta = np.deg2rad(config.rotation_deg) * np.sin(2 * np.pi * config.rotation_hz * s)
     zoom = 1.0 + config.zoom * np.sin(2 * np.pi * config.zoom_hz * s)
 
@@ -91,7 +100,7 @@ def camera_path(config: SimulateConfig, scene_shape: tuple[int, int]) -> NDArray
     h[:, 1, 2] = (hs - 1) / 2 + y - (si * cx + c * cy)
     h[:, 2, 2] = 1
     if rotating:
-        h = h @ _turning_camera(config.vibration_px * np.sin(w), config.vibration_px * np.cos(w),
+        h = h @ _turning_camera(np.broadcast_to(turn_x, (n,)), np.broadcast_to(turn_y, (n,)),
                                 config.focal_px * config.pixel_pitch, cx, cy)
 
     from photonpano.geometry import footprint_bounds

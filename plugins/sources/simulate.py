@@ -87,8 +87,17 @@ class SimulateConfig(ColourSourceConfig):
     the frame centre by ``vibration_px`` on the same circle, as a hand-held camera shakes),
     which vibrates the frame's perspective too: at 5 px and 420 px a corner of a 496x254
     frame moves up to 2.2 px more or less than the centre."""
+    pan_model: Literal["translation", "rotation"] = "translation"
+    """How the camera follows its path (the pan, the zigzag sweep, the shake): it slides over
+    the scene (``translation``), or a pinhole camera of focal length ``focal_px`` turns about
+    its centre, as on a tripod (``rotation``: a yaw moving the frame centre by the path's x, a
+    pitch by its y; the vibration then turns the camera too). Turned away from the middle of
+    the capture, the frames see the flat scene in perspective: a pan of 400 px at 420 px
+    turns the camera by 50 degrees, and a frame at either end spans 660 px of the scene,
+    against 496 in the middle."""
     focal_px: Annotated[float, Field(gt=0)] = 420.0
-    """``vibration_model: rotation``: focal length of the pinhole camera in frame pixels."""
+    """``vibration_model`` or ``pan_model`` ``rotation``: focal length of the pinhole camera
+    in frame pixels."""
     rotation_deg: Annotated[float, Field(ge=0)] = 0.0
     """Amplitude of an in-plane rotation oscillation in degrees."""
     rotation_hz: Annotated[float, Field(ge=0)] = 2.0

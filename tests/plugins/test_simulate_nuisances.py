@@ -180,3 +180,25 @@ def test_a_rotating_camera_moves_the_centre_like_the_translation_and_the_corners
     still = dict(settings, vibration_px=0.0)
     np.testing.assert_array_equal(camera_path(SimulateConfig(**still, vibration_model="rotation"), shape),
                                   camera_path(SimulateConfig(**still), shape))
+
+
+def test_a_camera_panning_on_a_tripod_turns_and_sees_the_ends_of_the_scene_in_perspective():
+    """pan_model rotation: the centre follows the pan's path; a 400 px pan at f = 420 px spans 660 px at its ends."""
+    from photonpano import geometry
+    from photonpano.plugins.sources._simulated_scene import camera_path
+
+    settings = dict(frames=20_000, width=496, height=254, scene_width=1440, vibration_px=0.0)
+    sliding, turning = SimulateConfig(**settings), SimulateConfig(**settings, pan_model="rotation")
+    shape = (960, 1440)
+    a, b = camera_path(sliding, shape), camera_path(turning, shape)
+    centre = np.array([[(496 - 1) / 2, (254 - 1) / 2]])
+    shift = geometry.apply(b, centre)[:, 0] - geometry.apply(b[10_000], centre)[0]
+    slide = geometry.apply(a, centre)[:, 0] - geometry.apply(a[10_000], centre)[0]
+    # the yaw is atan(x / f): the centre moves by f tan(atan(x / f)) = x, as the slide does
+    np.testing.assert_allclose(shift, slide, atol=1e-6)
+    width_at_end = np.ptp(geometry.apply(b[-1], geometry.corners(496, 254))[:, 0])
+    assert 650 < width_at_end < 670 and np.ptp(geometry.apply(a[-1], geometry.corners(496, 254))[:, 0]) == 495
+    corners = geometry.corners(496, 254)  # the middle frame, hardly turned, is where the slide puts it
+    np.testing.assert_allclose(geometry.apply(b[10_000], corners), geometry.apply(a[10_000], corners), atol=0.01)
+    with pytest.raises(ValidationError, match="pan_model"):
+        SimulateConfig(**settings, pan_model="dolly")
