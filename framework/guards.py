@@ -13,7 +13,7 @@ from numpy.typing import NDArray
 from . import geometry
 from .errors import StageError
 
-__all__ = ["plausible", "bridge", "guard_keyframes"]
+__all__ = ["plausible", "bridge", "guard_keyframes", "agrees_with_neighbours"]
 
 
 def plausible(homographies: NDArray[np.float64], width: int, height: int,
@@ -76,12 +76,17 @@ def bridge(current: NDArray[np.float64], measured: NDArray[np.float64], ok: NDAr
 
 
 def guard_keyframes(current: NDArray[np.float64], solved: NDArray[np.float64], width: int,
-                     height: int) -> tuple[NDArray[np.float64], int]:
+                    height: int) -> tuple[NDArray[np.float64], int]:
     """Replace implausible keyframe updates by interpolation from their neighbours.
 
     The update of keyframe g is ``inv(current[g]) @ solved[g]`` (frame to frame); one
     that folds or rescales the frame (see :func:`plausible`) can only come from a
-    degenerate solve, so its parameters are interpolated from the plausible ones.
+    degenerate solve, so its parameters are interpolated from the plausible ones, unless
+    it agrees with its neighbours' updates (:func:`agrees_with_neighbours`). At level 1
+    the update is the whole pose, and a camera that turns to pan legitimately sees the
+    frames far from the gauge frame in perspective, at more than the area bound of
+    :func:`plausible` (a 50-degree tripod pan: 13x between its ends); a degenerate
+    keyframe disagrees with its neighbours as well.
 
     Returns:
         ``(keyframes, rejected)``: (G, 3, 3) float64 and the number replaced.
@@ -89,7 +94,33 @@ def guard_keyframes(current: NDArray[np.float64], solved: NDArray[np.float64], w
     Raises:
         StageError: if no keyframe update is plausible.
     """
-    good = plausible(np.linalg.inv(current) @ solved, width, height)
+    updates = np.linalg.inv(current) @ solved
+    good = plausible(updates, width, height)
+    if not good.all():
+        good |= agrees_with_neighbours(updates, width, height)
     if not good.any():
         raise StageError("locator", "pose graph", "every keyframe update is implausible")
     return bridge(current, solved, good), int((~good).sum())
+
+
+def agrees_with_neighbours(homographies: NDArray[np.float64], width: int, height: int) -> NDArray[np.bool_]:
+    """Flag homographies that :func:`plausible` accepts relative to a neighbour in the sequence.
+
+    Element g passes when ``inv(H[g - 1]) @ H[g]`` or ``inv(H[g]) @ H[g + 1]`` is
+    plausible (a sequence of one passes nothing): it folds or rescales nothing relative to
+    a neighbour, wherever the sequence as a whole has turned. An isolated wild element
+    fails both of its links; its neighbours keep their other one.
+
+    Args:
+        homographies: (G, 3, 3) float64, in sequence (consecutive keyframes or frames).
+        width: frame width in pixels.
+        height: frame height in pixels.
+
+    Returns:
+        (G,) bool.
+    """
+    h = np.asarray(homographies, np.float64)
+    if len(h) < 2:
+        return np.zeros(len(h), bool)
+    links = plausible(np.linalg.inv(h[:-1]) @ h[1:], width, height)  # link g: between g and g + 1
+    return np.concatenate([[False], links]) | np.concatenate([links, [False]])

@@ -165,10 +165,26 @@ def _interpolate(interpolator: Interpolator, groups: Groups, keyframes: NDArray[
         fitted = interpolator.interpolate(groups.reference, geometry.homographies_from_params(poses),
                                           len(homographies), groups)
     updated = geometry.normalize(geometry.from_centre(fitted, w, h))
-    if not plausible(geometry.invert(homographies) @ updated, w, h).all():
+    update = geometry.invert(homographies) @ updated
+    ok = plausible(update, w, h)
+    if not ok.all():
+        # a turning pan's frames far from the gauge frame are in perspective beyond the area
+        # bound (level 1's update is the whole pose): what must hold is that each frame's
+        # update agrees with that of the nearest reference frame, and that it folds nothing
+        frames, ref = np.flatnonzero(~ok), groups.reference
+        after = np.clip(np.searchsorted(ref, frames), 0, len(ref) - 1)
+        before = np.maximum(after - 1, 0)
+        nearest = np.where(np.abs(ref[before] - frames) <= np.abs(ref[after] - frames), ref[before], ref[after])
+        ok[~ok] = plausible(geometry.invert(update[nearest]) @ update[~ok], w, h) & _unfolded(updated[~ok], w, h)
+    if not ok.all():
         raise StageError("interpolator", type(interpolator).__name__,
                          f"level {level}: the interpolated update folds or rescales some frames")
     return updated
+
+
+def _unfolded(homographies: NDArray[np.float64], width: int, height: int) -> NDArray[np.bool_]:
+    """Whether each homography keeps the frame a convex quadrilateral of the same orientation (any area)."""
+    return plausible(homographies, width, height, max_area_change=np.inf)
 
 
 def _condition_shifts(keyframes: NDArray[np.float64], fitted: NDArray[np.float64], information: NDArray[np.float64],

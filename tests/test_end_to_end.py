@@ -92,3 +92,26 @@ def test_observers_get_the_panorama_with_the_capture_open(host, tmp_path):
         host.unregister("recorder")
     assert seen["frames"] == 2400 and seen["panorama"].homographies.shape == (2400, 3, 3)
     np.testing.assert_array_equal(np.load(tmp_path / "out" / "panorama.npy"), seen["panorama"].flux)
+
+
+def test_a_camera_turning_through_fifty_degrees_is_tracked_at_level_one(host):
+    """A 400 px tripod pan (pan_model rotation, f = 420 px): the ends are 13x the area of the first frame.
+
+    Level 1's keyframes and its interpolated trajectory were judged against the identity
+    (the area bound of photonpano.guards.plausible), so the turned ones were replaced by
+    the middle ones' poses: 68 px after level 1, now 0.44 px.
+    """
+    from pathlib import Path
+
+    from photonpano.executor import SerialExecutor
+    from photonpano.metrics import source_trajectory_error
+    from photonpano.reconstruction import Stages
+
+    city = Path(__file__).resolve().parents[1] / "benchmarks" / "photos" / "city_madison.jpg"
+    spec = validate_spec({"source": {"plugin": "simulate", "photo": str(city), "frames": 4000,
+                                     "speed_px_per_frame": 0.1, "pan_model": "rotation"}, "levels": 1}, host)
+    source = spec.source.build()
+    seen = []
+    Stages(spec, source).estimate_motion(SerialExecutor(), on_level=seen.append)
+    assert seen[0].rejected_keyframes == 0
+    assert source_trajectory_error(seen[0].homographies, source).rmse_px < 1.0

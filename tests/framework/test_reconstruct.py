@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 from photonpano import geometry
 from photonpano.errors import StageError
-from photonpano.guards import plausible
+from photonpano.guards import agrees_with_neighbours, guard_keyframes, plausible
 from photonpano.posegraph import chain_keyframes, pairs_at_offsets
 from photonpano.schemes import locate_keyframes
 from photonpano.stages import Locator, MergedFrames, PairRegistrations
@@ -87,6 +87,42 @@ def test_plausible_flags_folds_and_rescaling():
     tilt = np.array([[1, 0, 0], [0, 1, 0], [0.02, 0, 1.0]])  # the horizon crosses the frame
     ok = plausible(np.stack([np.eye(3), geometry.translation(50, 5), fold, shrink, tilt]), W, H)
     np.testing.assert_array_equal(ok, [True, True, False, False, False])
+
+
+def _turning(yaw_deg):
+    """(G, 3, 3) homographies of a pinhole camera (f = W) turned by each yaw, about the frame centre."""
+    f, c = float(W), geometry.translation((W - 1) / 2, (H - 1) / 2)
+    k = np.diag([f, f, 1.0])
+    out = []
+    for a in np.deg2rad(yaw_deg):
+        turn = np.array([[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]])
+        out.append(c @ k @ turn @ np.linalg.inv(k) @ np.linalg.inv(c))
+    return geometry.normalize(np.stack(out))
+
+
+def test_a_turning_pan_keeps_its_keyframes_and_an_outlier_among_them_is_replaced():
+    """Level 1's update is the whole pose: a 50-degree pan rescales its ends 2x and more, each step very little.
+
+    The area bound of plausible() alone rejected the turned keyframes and bridged them from
+    the middle ones (a 400 px tripod pan of the city: 68 px after level 1, 0.44 px since).
+    """
+    keyframes = _turning(np.linspace(-25, 25, 21))
+    keyframes = geometry.normalize(np.linalg.inv(keyframes[0]) @ keyframes)  # the pose graph's gauge: the first
+    identity = np.repeat(np.eye(3)[None], len(keyframes), axis=0)
+    assert not plausible(keyframes, W, H).all()  # the ends, against the identity
+    assert agrees_with_neighbours(keyframes, W, H).all()
+    kept, rejected = guard_keyframes(identity, keyframes, W, H)
+    assert rejected == 0 and np.array_equal(kept, keyframes)
+    wild = keyframes.copy()
+    wild[7] = wild[7] @ np.diag([0.3, 0.3, 1.0])  # a degenerate solve
+    fixed, rejected = guard_keyframes(identity, wild, W, H)
+    assert rejected == 1
+    corners = geometry.corners(W, H)
+    off = np.abs(geometry.apply(fixed[7], corners) - geometry.apply(keyframes[7], corners)).max()
+    assert off < 2.0  # bridged from its neighbours, close to the truth (the keyframes are 2.5 degrees apart)
+    np.testing.assert_array_equal(agrees_with_neighbours(wild, W, H)[5:10], [True, True, False, True, True])
+    assert agrees_with_neighbours(keyframes[:2], W, H).all()
+    assert not agrees_with_neighbours(keyframes[:1], W, H).any()
 
 
 def test_pairs_at_offsets():
