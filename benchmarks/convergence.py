@@ -11,7 +11,11 @@ leaves, and prints what is left of it after each level:
 - ``rotation``: the frames turned about their centres by a ramp, ``A`` px at the frame
   corners at the ends of the capture (a panorama bent like a banana along the pan);
 - ``rotation-bump``: the same turn rising and falling once, ``A sin(pi s)``, ``s`` from -1
-  to 1 over the capture.
+  to 1 over the capture;
+- ``step``: the frame centre off by ``-A`` px over the first half of the capture and ``+A``
+  over the second (a wrong link in level 1's chain);
+- ``perspective``: the frames' horizontal keystone (``p7``) by a ramp, ``A`` px at the
+  frame's left and right edges at the ends of the capture.
 
 Frame-to-mosaic registration measures each frame against a panorama made with the same
 erroneous estimate; an error the frames that see the same canvas share is partly in the
@@ -49,7 +53,7 @@ from pathlib import Path
 
 import numpy as np
 
-MODES = ("shift", "xscale", "rotation", "rotation-bump")
+MODES = ("shift", "xscale", "rotation", "rotation-bump", "step", "perspective")
 
 
 def mode_params(mode: str, steps: np.ndarray, amplitude: float, width: int, height: int) -> np.ndarray:
@@ -62,6 +66,10 @@ def mode_params(mode: str, steps: np.ndarray, amplitude: float, width: int, heig
     corner = np.hypot(width - 1, height - 1) / 2
     if mode == "shift":
         params[:, 4] = amplitude * steps
+    elif mode == "step":
+        params[:, 4] = amplitude * np.sign(steps)
+    elif mode == "perspective":
+        params[:, 6] = amplitude / ((width - 1) / 2) ** 2 * steps  # x' = x - p7 x^2 about the centre
     elif mode == "xscale":
         params[:, 0] = amplitude / ((width - 1) / 2) * steps
     elif mode in ("rotation", "rotation-bump"):
