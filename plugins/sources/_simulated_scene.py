@@ -18,8 +18,8 @@ from photonpano.errors import SourceError
 if TYPE_CHECKING:
     from .simulate import SimulateConfig
 
-__all__ = ["BUNDLED_PHOTO", "LAMP_RAMP_PX", "bundled_photo", "camera_path", "load_scene", "lamp_mask", "lamp_edge",
-           "lamp_factors", "paint_disc"]
+__all__ = ["BUNDLED_PHOTO", "LAMP_RAMP_PX", "bundled_photo", "camera_path", "capture_name", "load_scene", "lamp_mask",
+           "lamp_edge", "lamp_factors", "paint_disc"]
 
 
 BUNDLED_PHOTO = "office_equirect.jpg"
@@ -145,6 +145,25 @@ def _turning_camera(shift_x: NDArray[np.float64], shift_y: NDArray[np.float64], 
     k = np.diag([focal, focal, 1.0])
     out = translation(cx, cy) @ k @ rotation @ np.linalg.inv(k) @ translation(-cx, -cy)
     return out / out[:, 2:3, 2:3]
+
+
+def capture_name(config: SimulateConfig, photo: Path) -> str:
+    """The capture's name in logs and run.json: the photo, the path, the flux and every nuisance simulated.
+
+    Example: ``simulate(city.jpg, pan, flux 0.5, flicker 120 Hz left)``.
+    """
+    extras = []
+    if config.flicker_hz > 0:
+        extras.append(f"flicker {config.flicker_hz:g} Hz {config.flicker_region}")
+    if config.mover_radius_px > 0:
+        extras.append(f"mover r{config.mover_radius_px:g}")
+    if round(config.hot_pixel_fraction * config.height * config.width) > 0:
+        extras.append(f"hot pixels {config.hot_pixel_fraction:.3g}")
+    if config.dark_count_rate > 0:
+        extras.append(f"dark counts {config.dark_count_rate:g}")
+    if config.cfa is not None:
+        extras.append(f"cfa {Path(config.cfa).name}")
+    return f"simulate({', '.join([photo.name, config.path, f'flux {config.flux}', *extras])})"
 
 
 def load_scene(photo: Path, scene_width: int, colour: bool = False) -> NDArray[np.float32]:

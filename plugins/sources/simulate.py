@@ -39,6 +39,7 @@ from ._simulated_scene import (
     LAMP_RAMP_PX,
     bundled_photo,
     camera_path,
+    capture_name,
     lamp_edge,
     lamp_factors,
     lamp_mask,
@@ -262,18 +263,7 @@ class SimulatedCapture(PhotonSource):
             rng = np.random.default_rng([config.seed, 0x40770])
             self.hot_pixel_mask = np.zeros((config.height, config.width), bool)
             self.hot_pixel_mask.flat[rng.choice(config.height * config.width, n_hot, replace=False)] = True
-        extras = []
-        if config.flicker_hz > 0:
-            extras.append(f"flicker {config.flicker_hz:g} Hz {config.flicker_region}")
-        if config.mover_radius_px > 0:
-            extras.append(f"mover r{config.mover_radius_px:g}")
-        if n_hot > 0:
-            extras.append(f"hot pixels {config.hot_pixel_fraction:.3g}")
-        if config.dark_count_rate > 0:
-            extras.append(f"dark counts {config.dark_count_rate:g}")
-        if config.cfa is not None:
-            extras.append(f"cfa {Path(config.cfa).name}")
-        self.name = f"simulate({', '.join([photo.name, config.path, f'flux {config.flux}', *extras])})"
+        self.name = capture_name(config, photo)
 
         shape = (config.frames, config.height, config.width // 8)
         if config.cube_path is not None and config.cube_path.exists():
