@@ -272,7 +272,7 @@ class LocateResult:
             where the scheme does not say (pairwise levels).
         template_bias: the mosaic scheme's correction of its registrations for the
             template's own error (``run.json``'s ``levels[k].template_bias``: ``knots``,
-            ``prior_px``, ``correction_px``; :mod:`photonpano.schemes.template_bias`), or
+            ``prior_px`` (p1..p8), ``correction_px``; :mod:`photonpano.schemes.template_bias`), or
             None where none was made.
     """
 
