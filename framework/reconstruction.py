@@ -121,7 +121,8 @@ class Stages:
                                         make_robust=_told_of_flicker(_robust_template(spec.mosaic).build, flicker),
                                         detect_movers=spec.mosaic.reject_movers == "auto",
                                         holdout=spec.mosaic.holdout,
-                                        correct_bias=spec.mosaic.correct_template_bias)}
+                                        correct_bias=spec.mosaic.correct_template_bias,
+                                        per_parameter_priors=spec.mosaic.template_bias_priors == "per-parameter")}
         self.schemes = [built[name] for name in level_schemes(spec)]
         self.notes: list[str] = []
         plan = budget.plan

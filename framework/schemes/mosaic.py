@@ -112,6 +112,8 @@ class MosaicScheme(LevelScheme):
             template finds a mover (see the module); False: always.
         correct_bias: correct each registration for the template's own error
             (:mod:`photonpano.schemes.template_bias`; not with a ``holdout`` template).
+        per_parameter_priors: that correction's error model has a prior per homography
+            parameter (False: one for all 8).
         holdout: runs of consecutive frames the plain template is cut into; each group is
             registered against the runs its frames do not fall in (:class:`~photonpano.schemes.holdout.HoldoutTemplate`;
             templates from ``flux-canvas``, i.e. :class:`~photonpano.compose.BilinearCompositor`,
@@ -125,10 +127,11 @@ class MosaicScheme(LevelScheme):
     def __init__(self, make_locator: Callable[[], Locator], make_compositor: Callable[[], Compositor], *,
                  subbatch_px: float = 0.5, window: int = 16, reject_movers: float | None = None,
                  make_robust: Callable[[], Compositor] | None = None, detect_movers: bool = False,
-                 holdout: int = 1, correct_bias: bool = False) -> None:
+                 holdout: int = 1, correct_bias: bool = False, per_parameter_priors: bool = False) -> None:
         """Create the scheme from factories of its locator and template compositor."""
         self.holdout = holdout
         self.correct_bias = correct_bias
+        self.per_parameter_priors = per_parameter_priors
         self.reject_movers = reject_movers
         self.make_locator = make_locator
         self.make_compositor = make_compositor
@@ -249,7 +252,7 @@ class MosaicScheme(LevelScheme):
             image = template.flux if exposure is None else stabilised_detections(template.flux, exposure)
             corrected, found = correct_template_bias(template.homographies, image, groups.start, groups.stop,
                                                      groups.reference, regs.homographies, ok, source.width,
-                                                     source.height)
+                                                     source.height, per_parameter_priors=self.per_parameter_priors)
             regs, bias = dataclasses.replace(regs, homographies=corrected), found.record()
         keyframes = bridge(current, geometry.normalize(current @ regs.homographies), ok)
         cache: dict[str, int] = {}

@@ -31,11 +31,11 @@ The bias is linear in the error for sub-pixel errors, so it is modelled and remo
    Matthews, IJCV 56, 2004). Group ``g`` sees its mean error ``e_g`` against the
    template's, so its registration measures ``m_g = -e_g + P_g[L a] + noise``.
 4. ``a`` is the maximum a-posteriori fit of the registrations (weighted by each one's
-   information; a Gaussian prior in pixels at the frame corner, one standard deviation
-   per homography parameter shared by its knots, chosen by maximising the marginal
-   likelihood: MacKay, "Bayesian interpolation", Neural Computation 4, 1992, and his
-   automatic relevance determination, :func:`_relevance`), and each registration is
-   corrected by its bias: ``m_g - P_g[L a]``.
+   information; a Gaussian prior of one standard deviation per knot parameter, in pixels
+   at the frame corner, chosen by maximising the marginal likelihood: MacKay, "Bayesian
+   interpolation", Neural Computation 4, 1992; with ``mosaic.template_bias_priors:
+   per-parameter`` one per homography parameter, his automatic relevance determination,
+   :func:`_relevance`), and each registration is corrected by its bias: ``m_g - P_g[L a]``.
 
 Measured on the evaluation suite (48 captures, 2026-11-25, default settings): trajectory
 RMSE geometric mean -10 %, 14 captures better by more than 15 % (the bundled office 0.124
@@ -212,7 +212,7 @@ def template_displacement(homographies: NDArray[np.float64], x_canvas: NDArray[n
 def correct_template_bias(homographies: NDArray[np.float64], image: NDArray[np.floating], starts: NDArray[np.int64],
                           stops: NDArray[np.int64], references: NDArray[np.int64],
                           registrations: NDArray[np.float64], ok: NDArray[np.bool_], width: int,
-                          height: int) -> tuple[NDArray[np.float64], TemplateBias]:
+                          height: int, per_parameter_priors: bool = False) -> tuple[NDArray[np.float64], TemplateBias]:
     """Registrations against a template of the current estimate, corrected for the template's own error.
 
     See the module for the model. Args are in the pixels the registrations were made in
@@ -231,6 +231,8 @@ def correct_template_bias(homographies: NDArray[np.float64], image: NDArray[np.f
         ok: (G,) bool registrations that succeeded.
         width: frame width in pixels.
         height: frame height in pixels.
+        per_parameter_priors: the error model's prior has one standard deviation per
+            homography parameter (:func:`_relevance`); False: one for all 8.
 
     Returns:
         ``(corrected, record)``: (G, 3, 3) float64 registrations (unchanged where ``ok`` is
@@ -242,12 +244,14 @@ def correct_template_bias(homographies: NDArray[np.float64], image: NDArray[np.f
 
     # one BLAS thread: the products' rounding must not depend on the executor (a Dask worker runs with one)
     with threadpool_limits(limits=1, user_api="blas"):
-        return _correct(homographies, image, starts, stops, references, registrations, ok, width, height)
+        return _correct(homographies, image, starts, stops, references, registrations, ok, width, height,
+                        per_parameter_priors)
 
 
 def _correct(homographies: NDArray[np.float64], image: NDArray[np.floating], starts: NDArray[np.int64],
              stops: NDArray[np.int64], references: NDArray[np.int64], registrations: NDArray[np.float64],
-             ok: NDArray[np.bool_], width: int, height: int) -> tuple[NDArray[np.float64], TemplateBias]:
+             ok: NDArray[np.bool_], width: int, height: int,
+             per_parameter_priors: bool) -> tuple[NDArray[np.float64], TemplateBias]:
     """:func:`correct_template_bias`'s work."""
     g = len(references)
     measured = geometry.params_from_homographies(geometry.about_centre(registrations, width, height))  # (G, 8)
@@ -281,7 +285,7 @@ def _correct(homographies: NDArray[np.float64], image: NDArray[np.floating], sta
     middle = (starts[fit] + stops[fit] - 1) / 2
     model = np.linalg.solve(information, response) - np.einsum(
         "gk,ij->gikj", knot_weights(middle.astype(np.float64), knots), np.eye(8)).reshape(len(fit), 8, n_knots * 8)
-    errors, prior = _fit_error(model, measured[fit], information, n_knots, width, height)
+    errors, prior = _fit_error(model, measured[fit], information, n_knots, width, height, per_parameter_priors)
     # every registration's bias: its response to the template's fitted displacement field
     information, response = _projections(references_h, *cells, field=(displacement @ errors).reshape(-1, 2))
     usable = ok & conditioned(information)
@@ -351,15 +355,16 @@ def _corner_scale(width: int, height: int) -> NDArray[np.float64]:
 
 
 def _fit_error(model: NDArray[np.float64], measured: NDArray[np.float64], information: NDArray[np.float64],
-               n_knots: int, width: int, height: int) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+               n_knots: int, width: int, height: int,
+               per_parameter: bool = False) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """The MAP knot parameters ``a`` of ``measured ~ model @ a`` (see the module, step 4).
 
     Parameters are scaled to pixels at the frame corner; each registration is weighted by
     its information, whose scale (the noise of the registrations) is the median chi-square
-    per parameter of a lightly regularised first fit. The prior is Gaussian, with one
-    standard deviation per homography parameter shared by its knots: one for all 8 that
-    maximises the marginal likelihood over :data:`PRIOR_GRID_PX`, then each parameter's
-    own by :func:`_relevance`.
+    per parameter of a lightly regularised first fit. The prior is Gaussian: one standard
+    deviation for all 8 parameters of every knot, the one that maximises the marginal
+    likelihood over :data:`PRIOR_GRID_PX`, or, with ``per_parameter``, then each homography
+    parameter's own, shared by its knots (:func:`_relevance`).
 
     Args:
         model: (G, 8, K * 8) float64 registrations per unit knot parameter.
@@ -368,6 +373,7 @@ def _fit_error(model: NDArray[np.float64], measured: NDArray[np.float64], inform
         n_knots: K.
         width: frame width in pixels.
         height: frame height in pixels.
+        per_parameter: a prior per homography parameter.
 
     Returns:
         ``(a, prior_px)``: (K * 8,) float64 knot parameters and (8,) float64 the prior
@@ -392,6 +398,8 @@ def _fit_error(model: NDArray[np.float64], measured: NDArray[np.float64], inform
     evidence = [0.5 * np.sum(projected ** 2 / (eigenvalues + 1 / s ** 2)) - 0.5 * np.sum(np.log1p(s ** 2 * eigenvalues))
                 for s in PRIOR_GRID_PX]
     shared = float(PRIOR_GRID_PX[int(np.argmax(evidence))])
+    if not per_parameter:
+        return vectors @ (projected / (eigenvalues + 1 / shared ** 2)) / per_knot, np.full(8, shared)
     priors = _relevance(precision, projected_right, n_knots, shared)
     fitted = np.linalg.solve(precision + np.diag(np.tile(priors ** -2.0, n_knots)), projected_right)
     return fitted / per_knot, priors
