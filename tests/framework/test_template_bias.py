@@ -133,21 +133,21 @@ def test_an_error_in_one_parameter_gets_its_own_prior_and_is_not_shrunk_by_the_o
     fit the noise (in a mosaic level, a keystone ramp injected into the truth was
     corrected by 0.42 of it with one prior, 0.82 with one per parameter).
     """
-    from photonpano.schemes.template_bias import _corner_scale, _fit_error
+    from photonpano.schemes._template_bias_fit import corner_scale, fit_error
 
     rng = np.random.default_rng(3)
     width, height, n_knots, groups = 496, 254, 12, 48
     knots = np.linspace(0, 9999, n_knots)
     middles = np.linspace(100, 9899, groups)
     weights = knot_weights(middles, knots)  # (G, K)
-    corner = _corner_scale(width, height)
+    corner = corner_scale(width, height)
     truth = np.zeros((n_knots, 8))
     truth[:, 6] = np.linspace(-0.6, 0.6, n_knots) / corner[6]  # 0.6 px at the corners at the ends
     # registrations see their group's error (no template share), with 0.1 px of noise per parameter
     model = -np.einsum("gk,ij->gikj", weights, np.eye(8)).reshape(groups, 8, n_knots * 8)
     measured = model @ truth.ravel() + rng.normal(0.0, 0.1, (groups, 8)) / corner
     information = np.repeat(np.diag(1 / (0.1 / corner) ** 2)[None], groups, axis=0)
-    fitted, priors = _fit_error(model, measured, information, n_knots, width, height, per_parameter=True)
+    fitted, priors = fit_error(model, measured, information, n_knots, width, height, per_parameter=True)
     fitted = fitted.reshape(n_knots, 8)
     slope = np.polyfit(knots, fitted[:, 6], 1)[0] / np.polyfit(knots, truth[:, 6], 1)[0]
     assert 0.85 < slope < 1.15  # one prior for all: 0.80
