@@ -78,14 +78,14 @@ def camera_path(config: SimulateConfig, scene_shape: tuple[int, int]) -> NDArray
     w = 2 * np.pi * config.vibration_hz * s
     turning_path = config.pan_model == "rotation"
     rotating = (config.vibration_model == "rotation" and config.vibration_px > 0) or turning_path
-    if not rotating:
-        x = x + config.vibration_px * np.sin(w)
-        y = y + config.vibration_px * np.cos(w)
-    # what the turning camera's yaw and pitch move the frame centre by; the rest slides
-    turn_x = (x if turning_path else 0.0) + (config.vibration_px * np.sin(w) if rotating else 0.0)
-    turn_y = (y if turning_path else 0.0) + (config.vibration_px * np.cos(w) if rotating else 0.0)
+    # what the turning camera's yaw and pitch move the frame centre by (turn_x, turn_y); the rest slides (x, y)
+    turn_x, turn_y = (x, y) if turning_path else (np.zeros(n), np.zeros(n))
     if turning_path:
         x, y = np.zeros(n), np.zeros(n)
+    if rotating:
+        turn_x, turn_y = turn_x + config.vibration_px * np.sin(w), turn_y + config.vibration_px * np.cos(w)
+    else:
+        x, y = x + config.vibration_px * np.sin(w), y + config.vibration_px * np.cos(w)
     theta = np.deg2rad(config.rotation_deg) * np.sin(2 * np.pi * config.rotation_hz * s)
     zoom = 1.0 + config.zoom * np.sin(2 * np.pi * config.zoom_hz * s)
 
@@ -100,8 +100,7 @@ def camera_path(config: SimulateConfig, scene_shape: tuple[int, int]) -> NDArray
     h[:, 1, 2] = (hs - 1) / 2 + y - (si * cx + c * cy)
     h[:, 2, 2] = 1
     if rotating:
-        h = h @ _turning_camera(np.broadcast_to(turn_x, (n,)), np.broadcast_to(turn_y, (n,)),
-                                config.focal_px * config.pixel_pitch, cx, cy)
+        h = h @ _turning_camera(turn_x, turn_y, config.focal_px * config.pixel_pitch, cx, cy)
 
     from photonpano.geometry import footprint_bounds
 

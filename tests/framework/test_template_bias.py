@@ -109,8 +109,7 @@ def test_a_keystone_ramp_is_taken_out_by_a_level_with_a_prior_per_parameter(drif
     0.005-0.017 px). On 20 000 frames of the astronaut the difference is larger: 0.188 and
     0.059 px (``benchmarks/convergence.py --mode perspective``).
     """
-    spec, _, _ = drifting_estimate
-    source = spec.source.build()
+    spec, source, _ = drifting_estimate
     t = np.linspace(-1, 1, source.n_frames)
     error = np.zeros((source.n_frames, 8))
     error[:, 6] = 0.6 / ((source.width - 1) / 2) ** 2 * t  # 0.6 px at the frame's edges at the ends
