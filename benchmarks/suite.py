@@ -120,7 +120,8 @@ def run_capture(capture: Capture, dump: Path | None = None, overrides: Sequence[
     judging a candidate default on the whole suite against the current one.
 
     With ``dump``, the per-frame actual error and predicted sigma go to
-    ``dump/<photo>--<variant>.npz`` (``error``, ``sigma``, ``unverified`` per frame, the
+    ``dump/<photo>--<variant>.npz`` (``error``, ``sigma``, ``unverified``, ``shape`` (the
+    uncertainty's shape term, zero without it) per frame, the
     final ``homographies``, ``width`` and ``height``, the last level's evidence pairs
     ``middle``, ``residual``, ``ok``, and level 1's as ``first_middle``, ``first_residual``,
     ``first_ok``, and every level's ``level_homographies`` (L, T, 3, 3) and per-frame
@@ -162,8 +163,9 @@ def run_capture(capture: Capture, dump: Path | None = None, overrides: Sequence[
         if first is not None:
             pairs.update(zip(("first_middle", "first_residual", "first_ok"), first[1:4]))
         unverified = unc.unverified if unc is not None else np.zeros(len(error), bool)
+        shape = unc.shape_px if unc is not None and unc.shape_px is not None else np.zeros(len(error))
         np.savez(dump / f"{capture.name.replace('/', '--')}.npz", error=error, sigma=sigma, unverified=unverified,
-                 homographies=homographies, width=source.width, height=source.height,
+                 shape=shape, homographies=homographies, width=source.width, height=source.height,
                  level_homographies=np.stack([level.homographies for level in levels]),
                  level_errors=np.stack([source_trajectory_error(level.homographies, source).per_frame_px
                                         for level in levels]), **pairs)

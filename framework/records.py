@@ -257,6 +257,10 @@ class LocateResult:
             if the level was asked for them, else None.
         crosscheck_index: (C, 2) int64 merged-frame indices ``(a, b)`` of each
             held-out registration (``b = a + 1``), or None.
+        chain: held-out registrations of merged frames far apart, each link's later frame
+            against its earlier (:mod:`photonpano.long_pairs`), where the crosscheck was
+            asked for and the level has at least 8 groups, else None.
+        chain_index: (P, 3) int64 ``(chain, a, b)`` of each link (merged-frame indices), or None.
         check: the figures of the binned check of the scheme's registrations
             (:meth:`~photonpano.schemes.check.LevelCheck.figures`; ``run.json``'s
             ``registration_check``), or None where none ran.
@@ -284,6 +288,8 @@ class LocateResult:
     locator_cache: dict[str, int] | None = None
     crosscheck: PairRegistrations | None = None
     crosscheck_index: NDArray[np.int64] | None = None
+    chain: PairRegistrations | None = None
+    chain_index: NDArray[np.int64] | None = None
     check: dict[str, Any] | None = None
     movers: dict[str, Any] | None = None
     information: NDArray[np.float64] | None = None

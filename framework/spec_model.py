@@ -203,7 +203,8 @@ def spec_model(host: PluginHost) -> type[PipelineSpec]:
             "group).")], ["pairwise", "mosaic"]),
         "uncertainty": (bool, Field(True, description="Predict every frame's trajectory error (uncertainty.npy, "
                      "run.json `uncertainty`, and `status`) from registrations held out of the fit: the last level "
-                     "also registers consecutive merged frames against each other (photonpano.uncertainty).")),
+                     "also registers consecutive merged frames against each other, and chains of merged frames "
+                     "far apart (photonpano.uncertainty, photonpano.long_pairs).")),
         "executor": (Literal["serial", "threads", "dask"], Field("threads", description="Where independent work "
                   "(groups, chunks) runs: the calling thread, a pool of threads, or a Dask cluster (a local one "
                   "of `workers` processes, or the scheduler at `dask_address`; see docs/scaling.md).")),

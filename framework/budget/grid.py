@@ -318,11 +318,13 @@ class RegistrationGrid:
 
         regs = located.registrations
         regs = dataclasses.replace(regs, homographies=self.outward(regs.homographies))
-        cross = located.crosscheck
+        cross, chain = located.crosscheck, located.chain
         if cross is not None:
             cross = dataclasses.replace(cross, homographies=self.outward(cross.homographies))
+        if chain is not None:
+            chain = dataclasses.replace(chain, homographies=self.outward(chain.homographies))
         information = located.information
         if information is not None:
             information = information_in_sensor_pixels(information, self.factor)
         return dataclasses.replace(located, keyframes=self.outward(located.keyframes), registrations=regs,
-                                   crosscheck=cross, information=information)
+                                   crosscheck=cross, chain=chain, information=information)

@@ -42,7 +42,9 @@ class LevelTask:
         crosscheck: also register consecutive merged frames directly against each
             other, held out of the keyframes (:attr:`LocateResult.crosscheck`), where
             the scheme's own registrations do not already relate them (the level
-            loop asks for it at the last level; see :mod:`photonpano.uncertainty`).
+            loop asks for it at the last level; see :mod:`photonpano.uncertainty`), and
+            chains of merged frames far apart (:attr:`LocateResult.chain`,
+            :mod:`photonpano.long_pairs`) where the scheme supports them (mosaic).
     """
 
     level: int

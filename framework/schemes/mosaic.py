@@ -61,6 +61,7 @@ from ..executor import pure_task
 from ..guards import bridge, plausible
 from ..information import homography_information
 from ..locator import Locator, LocatorContext
+from ..long_pairs import long_baseline_chains
 from ..records import LocateResult, MergedFrames, PairRegistrations, Panorama
 from ..stages import Compositor
 from ..views import panorama_views
@@ -202,15 +203,9 @@ class MosaicScheme(LevelScheme):
         reject = self.reject_movers if movers is not None and movers["engaged"] else None
         to_canvas = template.homographies[groups.reference]
 
-        @pure_task
-        def run(index: NDArray[np.int64]) -> _WindowResult:
+        def prepare(index: NDArray[np.int64]) -> tuple[MergedFrames, MergedFrames, float]:
+            """The groups' merged frames (movers left out), their panorama views and the merge's seconds."""
             start = time.perf_counter()
-            locator = self.make_locator()
-            n = len(index)
-            cross_checked = task.crosscheck and n > 1
-            # the held-out pairs register the merged frames again: named by ids, each is
-            # prepared once (the locator's content cache); without them no frame returns
-            context = LocatorContext(reuses_frames=cross_checked)
             with watched("merger", task.merger, "merge"):
                 merged = task.merger.merge(source, task.homographies, groups.select(index))
             merge_s = time.perf_counter() - start
@@ -222,6 +217,18 @@ class MosaicScheme(LevelScheme):
                                        binary_exposure(source))
             if reject is not None:
                 merged = mask_disagreement(merged, views, reject)
+            return merged, views, merge_s
+
+        @pure_task
+        def run(index: NDArray[np.int64]) -> _WindowResult:
+            start = time.perf_counter()
+            locator = self.make_locator()
+            n = len(index)
+            cross_checked = task.crosscheck and n > 1
+            # the held-out pairs register the merged frames again: named by ids, each is
+            # prepared once (the locator's content cache); without them no frame returns
+            context = LocatorContext(reuses_frames=cross_checked)
+            merged, views, merge_s = prepare(index)
             if cross_checked:
                 merged = dataclasses.replace(merged, ids=MergedFrames.new_ids(n))
                 views = dataclasses.replace(views, ids=MergedFrames.new_ids(n))
@@ -235,10 +242,20 @@ class MosaicScheme(LevelScheme):
             return _WindowResult(found, locator.cache_stats(), merge_s, time.perf_counter() - start,
                                  merged if task.keep_merged else None, cross, information)
 
+        @pure_task
+        def link(links: NDArray[np.int64]) -> PairRegistrations:
+            """The held-out chains' registrations, each link's later merged frame to its earlier."""
+            joined, positions = np.unique(links[:, 1:], return_inverse=True)
+            return self.make_locator().register_pairs(prepare(joined)[0], positions.reshape(-1, 2), geometry.normalize(
+                np.linalg.inv(current[links[:, 1]]) @ current[links[:, 2]]), LocatorContext())
+
         windows = [np.arange(s, min(s + self.window, len(groups))) for s in range(0, len(groups), self.window)]
+        chains = (long_baseline_chains(current, groups.stop - groups.start, source.width, source.height)
+                  if task.crosscheck else np.zeros((0, 3), np.int64))
         started = time.perf_counter()
         done = None if task.progress is None else (lambda part: task.progress(len(part.registrations)))
         parts: list[_WindowResult] = task.executor.map(run, windows, done=done)
+        links = task.executor.map(link, [chains])[0] if len(chains) else None
         wall = time.perf_counter() - started
         regs = PairRegistrations.concat(*(part.registrations for part in parts))
         ok = regs.ok & plausible(regs.homographies, source.width, source.height)
@@ -271,7 +288,8 @@ class MosaicScheme(LevelScheme):
         information = np.concatenate([part.information for part in parts])
         information[~ok] = 0.0
         return LocateResult(keyframes, regs, None, merged=merged, merge_s=merge_s, locator_cache=cache or None,
-                            crosscheck=cross, crosscheck_index=cross_index, movers=movers, information=information,
+                            crosscheck=cross, crosscheck_index=cross_index, chain=links,
+                            chain_index=None if links is None else chains, movers=movers, information=information,
                             template_bias=bias)
 
 
