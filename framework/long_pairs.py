@@ -34,7 +34,7 @@ from . import geometry
 __all__ = ["SIGNIFICANCE", "CHAINS", "LINK_EXTENT", "MAX_LINK_FRACTION", "long_baseline_chains", "chain_shape_error"]
 
 LINK_EXTENT = 0.3
-"""Longest link of :func:`long_baseline_chain`, in frame extents travelled between its two
+"""Longest link of :func:`long_baseline_chains`, in frame extents travelled between its two
 reference frames (0.3: the two frames overlap by 70 %)."""
 
 MAX_LINK_FRACTION = 0.25
@@ -44,8 +44,8 @@ SIGNIFICANCE = 2.0
 """Standard errors of the chains' mean (their spread over the square root of their number) taken off its size."""
 
 CHAINS = 8
-"""Chains of links, each starting its second link a quarter of a link later than the last: their
-registrations are independent, so their spread measures the links' noise."""
+"""Chains of links; chain m's first link is m / CHAINS of a whole one, so the chains register
+different pairs of groups and their spread measures the links' noise."""
 
 
 def long_baseline_chains(references: NDArray[np.float64], lengths: NDArray[np.int64], width: int,
@@ -126,12 +126,13 @@ def chain_shape_error(registrations: NDArray[np.float64], ok: NDArray[np.bool_],
 
     Returns:
         (T,) float64 shape error per frame in pixels (mean corner distance; constant beyond
-        the chains' ends), or None where a link failed (a chain is broken) or fewer than
-        two chains were made.
+        the chains' ends), or None where fewer than two chains have every link registered
+        (a chain with a failed link is left out).
     """
-    chains = np.unique(links[:, 0])
-    if len(links) == 0 or not ok.all() or len(chains) < 2:
+    chains = [m for m in np.unique(links[:, 0]) if ok[links[:, 0] == m].all()]
+    if len(chains) < 2:
         return None
+    links, registrations = links[np.isin(links[:, 0], chains)], registrations[np.isin(links[:, 0], chains)]
     start, stop = references[links[:, 1]], references[links[:, 2]]
     expected = geometry.invert(homographies[start]) @ homographies[stop]
     change = geometry.params_from_homographies(geometry.about_centre(

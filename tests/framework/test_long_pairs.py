@@ -79,8 +79,11 @@ def test_a_shear_ramp_is_recovered_and_noise_alone_is_taken_off():
     left = [chain_shape_error(_chains_registered(truth, groups, noise_px=0.05, seed=seed)[1], ok, links,
                               groups.reference, truth, W, H) for seed in range(4)]
     assert np.mean([np.sqrt(np.mean(x ** 2)) for x in left]) < 0.025
-    assert chain_shape_error(registered, ok & (np.arange(len(ok)) != 3), links, groups.reference, estimate,
-                             W, H) is None  # a broken chain says nothing
+    broken = ok & (np.arange(len(ok)) != 3)  # a failed link (of chain 0) leaves its chain out
+    without_one = chain_shape_error(registered, broken, links, groups.reference, estimate, W, H)
+    assert without_one is not None and np.abs(without_one - shape).max() < 0.1
+    one_left = links[:, 0] == 5
+    assert chain_shape_error(registered, one_left, links, groups.reference, estimate, W, H) is None
 
 
 def test_the_shape_term_raises_the_predicted_sigma_where_the_consecutive_pairs_see_nothing():

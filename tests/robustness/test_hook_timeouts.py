@@ -87,19 +87,25 @@ def test_a_run_started_with_sigint_ignored_still_ends_a_hanging_locator(tmp_path
 
 @pytest.mark.slow
 def test_a_hang_on_a_dask_worker_ends_the_run_naming_it_and_keeps_the_checkpoint(tmp_path):
-    """The mosaic level's locator hangs in a task on a Dask worker: one line, level 1's checkpoint kept."""
+    """The mosaic level's locator hangs in a task on a Dask worker: one line, level 1's checkpoint kept.
+
+    The limit is 6 s, not 2: the worker's first merge imports numba and loads the compiled
+    kernels, which took over 2 s with the tests running in two processes (the merger was
+    named instead of the locator).
+    """
     pytest.importorskip("distributed")
     from photonpano import outputs
 
     start = time.perf_counter()
     result = run_subprocess("demo", "-o", tmp_path / "out", *TINY, "--set", "mosaic.locator=stuck-locator",
-                            "--set", "executor=dask", "--set", "workers=1", env=_env(tmp_path), timeout=180)
+                            "--set", "executor=dask", "--set", "workers=1", env=_env(tmp_path, limit_s=6.0),
+                            timeout=180)
     took = time.perf_counter() - start
     notes = "executor dask: FeatureLocator._matched"  # level 1's feature locator: its closures run here (logged)
     result.stderr = "\n".join(line for line in result.stderr.splitlines() if not line.startswith(notes))
     assert_one_line_error(result, "locator (stuck-locator) in register_to_template on a Dask worker",
-                          "did not return within 2 s", watchdog.ENV)
-    assert took < 90  # start-up, the cluster, level 1 and 2 s (+ the check's period)
+                          "did not return within 6 s", watchdog.ENV)
+    assert took < 90  # start-up, the cluster, level 1 and 6 s (+ the check's period)
     assert not (tmp_path / "out" / "run.json").exists()
     assert [p.name for p in (tmp_path / "out" / outputs.CHECKPOINTS).iterdir()] == ["level_1.npz"]
 
