@@ -22,6 +22,7 @@ __all__ = [
     "apply",
     "scale_matrix",
     "translation",
+    "extents_apart",
     "footprint_bounds",
 ]
 
@@ -222,6 +223,26 @@ def from_centre(homographies: NDArray[np.float64], width: int, height: int) -> N
     """
     cx, cy = (width - 1) / 2, (height - 1) / 2
     return translation(cx, cy) @ np.asarray(homographies, np.float64) @ translation(-cx, -cy)
+
+
+def extents_apart(offset: NDArray[np.float64], width: int, height: int) -> NDArray[np.float64]:
+    """How far apart two frames' centres are, in frame extents along the offset between them.
+
+    Args:
+        offset: (N, 2) float64 displacements ``(dx, dy)`` of frame centres, in pixels.
+        width: frame width in pixels.
+        height: frame height in pixels.
+
+    Returns:
+        (N,) float64 each displacement's length over the frame's extent along it
+        (``|ux| width + |uy| height`` for the unit direction u): 1 where two frames side by
+        side just stop overlapping, 0 for no displacement.
+    """
+    distance = np.linalg.norm(offset, axis=1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        direction = np.abs(offset) / distance[:, None]
+    extent = np.where(distance > 0, direction[:, 0] * width + direction[:, 1] * height, 1.0)
+    return np.where(distance > 0, distance / extent, 0.0)
 
 
 def footprint_bounds(

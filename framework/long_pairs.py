@@ -80,12 +80,8 @@ def long_baseline_chains(references: NDArray[np.float64], lengths: NDArray[np.in
     longest = max(2, int(MAX_LINK_FRACTION * len(references)))
 
     def farthest(a: int, limit: int) -> int:
-        offset = centres[a + 1:min(last, a + limit) + 1] - centres[a]
-        distance = np.linalg.norm(offset, axis=1)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            direction = np.abs(offset) / distance[:, None]
-        extent = np.where(distance > 0, direction[:, 0] * width + direction[:, 1] * height, 1.0)
-        near = np.flatnonzero(distance <= LINK_EXTENT * extent)
+        apart = geometry.extents_apart(centres[a + 1:min(last, a + limit) + 1] - centres[a], width, height)
+        near = np.flatnonzero(apart <= LINK_EXTENT)
         return a + 1 + (int(near[-1]) if len(near) else 0)
 
     links = []
@@ -132,7 +128,8 @@ def chain_shape_error(registrations: NDArray[np.float64], ok: NDArray[np.bool_],
     chains = [m for m in np.unique(links[:, 0]) if ok[links[:, 0] == m].all()]
     if len(chains) < 2:
         return None
-    links, registrations = links[np.isin(links[:, 0], chains)], registrations[np.isin(links[:, 0], chains)]
+    kept = np.isin(links[:, 0], chains)
+    links, registrations = links[kept], registrations[kept]
     start, stop = references[links[:, 1]], references[links[:, 2]]
     expected = geometry.invert(homographies[start]) @ homographies[stop]
     change = geometry.params_from_homographies(geometry.about_centre(

@@ -311,11 +311,7 @@ def frame_extents_travelled(homographies: NDArray[np.float64], width: int, heigh
     centre = np.array([width / 2.0, height / 2.0, 1.0])
     mapped = homographies @ centre
     offset = mapped[:, :2] / mapped[:, 2:] - (homographies[len(homographies) // 2] @ centre)[:2]
-    distance = np.linalg.norm(offset, axis=1)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        direction = np.abs(offset) / distance[:, None]
-    extent = np.where(distance > 0, direction[:, 0] * width + direction[:, 1] * height, 1.0)
-    return np.where(distance > 0, distance / extent, 0.0)
+    return geometry.extents_apart(offset, width, height)
 
 
 Evidence = tuple[NDArray[np.intp], NDArray[np.float64], NDArray[np.float64], NDArray[np.bool_], str]
