@@ -15,7 +15,7 @@ from typing import Callable, Sequence
 import numpy as np
 from numpy.typing import NDArray
 
-from . import geometry
+from . import geometry, long_pairs
 from .errors import StageError
 from .executor import Executor, SerialExecutor
 from .guards import guard_keyframes, plausible
@@ -32,7 +32,8 @@ def estimate_motion(source: PhotonSource, resampler: Resampler, merger: Merger, 
                     schemes: Sequence[LevelScheme], *, group_size: int, executor: Executor | None = None,
                     keep_merged: bool = False, on_level: Callable[[LevelResult], None] | None = None,
                     progress: Callable[[str, int], Callable[[int], None]] | None = None, start_level: int = 1,
-                    initial: NDArray[np.float64] | None = None, crosscheck: bool = True) -> NDArray[np.float64]:
+                    initial: NDArray[np.float64] | None = None, crosscheck: bool = True,
+                    correct_shape_drift: bool = False) -> NDArray[np.float64]:
     """Estimate a homography for every binary frame by stratified re-sampling.
 
     One level per scheme. Each level re-samples groups, has its scheme merge them with
@@ -62,7 +63,12 @@ def estimate_motion(source: PhotonSource, resampler: Resampler, merger: Merger, 
             :class:`~photonpano.records.LevelResult`'s); None: identities.
         crosscheck: have the last level's scheme also register its consecutive merged
             frames against each other, held out of the fit (the evidence of
-            :mod:`photonpano.uncertainty`).
+            :mod:`photonpano.uncertainty`), and chains of merged frames far apart
+            (:mod:`photonpano.long_pairs`).
+        correct_shape_drift: take the shape error those chains agree on out of the last
+            level's trajectory (:func:`~photonpano.long_pairs.correct_shape_drift`; the
+            level's ``timings_s`` then has ``shape_drift``, its result the trajectory before
+            it and the largest move, :class:`~photonpano.records.LevelResult`).
 
     Returns:
         (T, 3, 3) float64 frame-to-panorama homographies, where panorama coordinates are
@@ -110,8 +116,17 @@ def estimate_motion(source: PhotonSource, resampler: Resampler, merger: Merger, 
             first = prepare_s if level == start_level else 0.0
             timings = {"resample": resample_s, "merge": located.merge_s + first, "locate": t2 - t1 - located.merge_s,
                        "interpolate": t3 - t2}
+            uncorrected, drift = None, None
+            if correct_shape_drift and located.chain is not None and located.chain_index is not None:
+                uncorrected = homographies
+                corrected, drift = long_pairs.correct_shape_drift(
+                    located.chain.homographies, located.chain.ok, located.chain_index, groups.reference,
+                    homographies, source.width, source.height)
+                homographies = _gauge(corrected)
+                timings["shape_drift"] = time.perf_counter() - t3
             if on_level is not None:
-                on_level(LevelResult(level, scheme.name, groups, located, homographies, timings, rejected))
+                on_level(LevelResult(level, scheme.name, groups, located, homographies, timings, rejected,
+                                     uncorrected, drift))
         return homographies
     finally:
         for scheme in distinct:

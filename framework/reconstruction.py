@@ -198,7 +198,8 @@ class Stages:
         return estimate_motion(self.source, self.resampler, self.merger, self.interpolator, schemes,
                                group_size=self.budget.group_size, executor=executor,
                                keep_merged=self.spec.outputs.merged_frames, on_level=on_level, progress=progress,
-                               crosscheck=self.spec.uncertainty, **start)
+                               crosscheck=self.spec.uncertainty or self.spec.mosaic.correct_shape_drift,
+                               correct_shape_drift=self.spec.mosaic.correct_shape_drift, **start)
 
     def compose(self, homographies: NDArray[np.float64], executor: Executor,
                 progress: Callable[[int], None] | None = None) -> Panorama:

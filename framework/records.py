@@ -333,6 +333,11 @@ class LevelResult:
         timings_s: wall time of each step in seconds (resample, merge, locate, interpolate).
         rejected_keyframes: keyframes whose update was implausible and was bridged from
             their neighbours instead.
+        uncorrected: (T, 3, 3) float64 the homographies before the correction of the shape
+            drift (:func:`~photonpano.long_pairs.correct_shape_drift`; same coordinates),
+            None where it did not run.
+        shape_drift_px: the largest move of a frame by that correction (mean corner
+            distance, pixels), None where it did not run.
     """
 
     level: int
@@ -342,6 +347,8 @@ class LevelResult:
     homographies: NDArray[np.float64]
     timings_s: dict[str, float] = field(default_factory=dict)
     rejected_keyframes: int = 0
+    uncorrected: NDArray[np.float64] | None = None
+    shape_drift_px: float | None = None
 
     @property
     def merged(self) -> MergedFrames | None:
@@ -369,5 +376,6 @@ class LevelResult:
             "median_inliers": float(np.median(p.inliers[primary])) if primary.any() else 0.0,
             "min_inliers": int(p.inliers[primary].min()) if primary.any() else 0,
             "rejected_keyframes": self.rejected_keyframes,
+            "shape_drift_px": self.shape_drift_px,
             "timings_s": self.timings_s,
         }

@@ -231,7 +231,10 @@ def frame_uncertainty(result: LevelResult, width: int, height: int, chain_residu
         local = np.interp(np.arange(n, dtype=np.float64), middle[known], sigma_pairs[known])
         drift = (CHAIN_DRIFT_PER_FRAME_EXTENT * (chain_residual_px or 0.0)
                  * frame_extents_travelled(result.homographies, width, height))
-        change = (LEVEL_CHANGE_TO_SIGMA * level_change(result.homographies, previous, width, height)
+        # how far the levels moved the frames; the shape drift's correction is not a level's step
+        # (its evidence, the chains, gives the shape term)
+        moved = result.homographies if result.uncorrected is None else result.uncorrected
+        change = (LEVEL_CHANGE_TO_SIGMA * level_change(moved, previous, width, height)
                   if previous is not None else 0.0)
         shape = _shape_term(result, width, height)
         sigma = np.sqrt(local ** 2 + drift ** 2 + change ** 2 + (0.0 if shape is None else shape) ** 2)
