@@ -318,13 +318,14 @@ def test_holdout_template_frees_the_end_of_a_pan_from_its_own_photons():
     end, while level 1 left the capture's last 200 frames out of its groups); against the
     leave-one-out template of 4 runs they correct it (0.028 px). (The default, a template
     of every photon with its own error modelled and taken out of the registrations:
-    photonpano.schemes.template_bias.)
+    photonpano.schemes.template_bias; the correction of the shape drift by the chains of
+    photonpano.long_pairs also takes it out, 0.033 px: off here, to see the template alone.)
     """
     from photonpano.pipeline import reconstruct
 
     source = validate_spec(SOURCE, HOST).source.build()
     rmse = {}
     for holdout in (1, 4):
-        spec = _spec(mosaic={"holdout": holdout, "correct_template_bias": False})
+        spec = _spec(mosaic={"holdout": holdout, "correct_template_bias": False, "correct_shape_drift": False})
         rmse[holdout] = reconstruct(spec, source)[1][-1]["trajectory_rmse_px"]
     assert rmse[4] < 0.06 and rmse[1] > 1.5 * rmse[4], rmse
