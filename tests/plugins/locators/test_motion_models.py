@@ -1,5 +1,7 @@
 """Robust motion fitting with GRIC model selection (plugins/locators/matching.robust_motion)."""
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 from photonpano import geometry
@@ -53,3 +55,29 @@ def test_gric_charges_parameters_and_caps_outliers():
     assert gric(np.eye(3), src, src, 0.5, 8) - exact == pytest.approx(np.log(4 * 50) * 4)
     far = src + np.float32(1000)
     assert gric(np.eye(3), src, far, 0.5, 4) - exact == pytest.approx(4.0 * 50)  # each outlier costs 2 (r - d)
+
+
+def test_auto_needs_inliers_for_each_extra_parameter(monkeypatch):
+    """A real pair of level-1 merged frames at flux 0.05 (tests/data/SOURCES.md): 38 matches, mostly wrong.
+
+    The camera slid (a translation), but a homography gathers 17 inliers to the
+    similarity's 12 and wins GRIC by 0.9; its perspective bends the frame corners by
+    almost 4 px, and a chain of pairs carries that into every later frame. With too few
+    inliers per degree of freedom (``INLIERS_PER_PARAMETER``) it is no candidate.
+    """
+    import photonpano.plugins.locators.matching as matching
+
+    data = np.load(Path(__file__).parents[2] / "data" / "sparse_matches_room.npz")
+    src, dst = data["src"], data["dst"]
+    c = geometry.corners(248, 127)
+
+    def apart(a, b):
+        return float(np.abs(geometry.apply(a.homography, c) - geometry.apply(b.homography, c)).max())
+
+    similarity = robust_motion(src, dst, motion="similarity", threshold_px=0.75)
+    bent = robust_motion(src, dst, motion="homography", threshold_px=0.75)
+    assert bent.inliers == 17 and similarity.inliers == 12 and apart(bent, similarity) > 3.0
+    auto = robust_motion(src, dst, motion="auto", threshold_px=0.75)
+    assert auto.ok and apart(auto, similarity) < 0.05
+    monkeypatch.setattr(matching, "INLIERS_PER_PARAMETER", 0)  # GRIC alone: the bent homography
+    assert apart(robust_motion(src, dst, motion="auto", threshold_px=0.75), bent) < 0.05
