@@ -76,7 +76,7 @@ def test_auto_needs_inliers_for_each_extra_parameter(monkeypatch):
 
     similarity = robust_motion(src, dst, motion="similarity", threshold_px=0.75)
     bent = robust_motion(src, dst, motion="homography", threshold_px=0.75)
-    assert bent.inliers == 17 and similarity.inliers == 12 and apart(bent, similarity) > 3.0
+    assert bent.inliers > similarity.inliers and bent.inliers < 24 and apart(bent, similarity) > 3.0
     auto = robust_motion(src, dst, motion="auto", threshold_px=0.75)
     assert auto.ok and apart(auto, similarity) < 0.05
     monkeypatch.setattr(matching, "INLIERS_PER_PARAMETER", 0)  # GRIC alone: the bent homography
