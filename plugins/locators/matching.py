@@ -86,8 +86,9 @@ def robust_motion(src: NDArray[np.float32], dst: NDArray[np.float32], *, motion:
     squares with ``refine``), affine and similarity models by ``cv2.estimateAffine2D`` and
     ``cv2.estimateAffinePartial2D`` (Levenberg-Marquardt on the inliers with ``refine``).
     With ``motion="auto"`` all three are fitted and, of those with at least
-    :data:`INLIERS_PER_PARAMETER` inliers per degree of freedom (the similarity always),
-    the one of lowest :func:`gric` (keypoint noise ``threshold_px / 2``) is returned. This guards against degenerate
+    :data:`INLIERS_PER_PARAMETER` inliers per degree of freedom (the similarity always; all
+    of them where none qualifies), the one of lowest :func:`gric` (keypoint noise
+    ``threshold_px / 2``) is returned. This guards against degenerate
     configurations: when the static scene's keypoints lie on a thin band (a floor, a
     horizon), a homography can fit them *and* a few keypoints of an independently moving
     object, a lower-order model fitted to the band alone scores better.
