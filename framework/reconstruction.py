@@ -282,10 +282,13 @@ def reconstruct(spec: PipelineSpec, source: PhotonSource, *, on_level: Callable[
     first_of_scheme: dict[str, NDArray[np.float64]] = {}
     if resume is not None and len(stats) >= 2 and stats[-1].get("scheme"):
         first_of_scheme[stats[-1]["scheme"]] = resume.homographies
+    level_one_span: tuple[int, int] | None = None  # level 1's first and last reference frame (not known on resume)
 
     def level_done(result: LevelResult) -> None:
-        nonlocal last
+        nonlocal last, level_one_span
         last = result
+        if result.level == 1 and len(result.groups):
+            level_one_span = (int(result.groups.reference[0]), int(result.groups.reference[-1]))
         if result.level >= 2:
             first_of_scheme.setdefault(result.scheme, result.homographies)
         if on_level is not None:
@@ -317,7 +320,8 @@ def reconstruct(spec: PipelineSpec, source: PhotonSource, *, on_level: Callable[
         if last is not None:
             first = first_of_scheme.get(last.scheme)
             uncertainty = frame_uncertainty(last, source.width, source.height, chain,
-                                            previous=None if first is last.homographies else first)
+                                            previous=None if first is last.homographies else first,
+                                            level_one_span=level_one_span)
         summary = uncertainty.summary(source.frame_rate_hz) if uncertainty is not None else None
         status, warnings = assess(plan, stats, agreement, summary)
         movers = _movers_record(stats)

@@ -53,7 +53,10 @@ predicts a 1-sigma error for every binary frame from these terms, added in quadr
   is taken (the suite's dark outdoor scene with ``levels: 4``: 0.86 px, the last step
   predicted 0.23 px and said ``ok``). The first mosaic level itself is not compared with
   the pairwise level 1: it moves the frames by level 1's error, which it has just
-  removed (with ``levels: 2`` this term is left out). Neither the held-out pairs
+  removed (with ``levels: 2`` this term is left out); nor, for the same reason, are the frames
+  level 1 extrapolated, before its first reference frame and after its last: they get the
+  move at those frames (the suite's dark outdoor scene, 0.309 px, moved its first 64 frames
+  by over 0.83 px, 0.54-0.58 px off, and said ``degraded``). Neither the held-out pairs
   (smooth, shared errors) nor the chain residual (level 1's own consistency) see this
   error: a dark scene at 0.9 px predicted 0.41 px from them, a low-texture interior at
   0.59 px 0.28 px.
@@ -194,7 +197,8 @@ class FrameUncertainty:
 
 
 def frame_uncertainty(result: LevelResult, width: int, height: int, chain_residual_px: float | None = None,
-                      previous: NDArray[np.float64] | None = None) -> FrameUncertainty | None:
+                      previous: NDArray[np.float64] | None = None,
+                      level_one_span: tuple[int, int] | None = None) -> FrameUncertainty | None:
     """Predict every frame's trajectory error from the last level's held-out evidence.
 
     Args:
@@ -209,6 +213,8 @@ def frame_uncertainty(result: LevelResult, width: int, height: int, chain_residu
             the first level after level 1 of the last level's scheme (the pipeline passes
             the first mosaic level's, level 2 by default), or None (no level-change term:
             no such level before the last).
+        level_one_span: level 1's first and last reference frame, or None: the frames
+            outside get the level-change term at those frames (see the module).
 
     Returns:
         The :class:`FrameUncertainty`, or None if the level holds no evidence (a mosaic
@@ -235,7 +241,10 @@ def frame_uncertainty(result: LevelResult, width: int, height: int, chain_residu
         # (its evidence, the chains, gives the shape term)
         moved = result.homographies if result.uncorrected is None else result.uncorrected
         change = (LEVEL_CHANGE_TO_SIGMA * level_change(moved, previous, width, height)
-                  if previous is not None else 0.0)
+                  if previous is not None else np.zeros(n))
+        if level_one_span is not None:  # level 1 extrapolated beyond it; its error is what moved there
+            first, last = (int(np.clip(f, 0, n - 1)) for f in level_one_span)
+            change[:first], change[last + 1:] = change[first], change[last]
         shape = _shape_term(result, width, height)
         sigma = np.sqrt(local ** 2 + drift ** 2 + change ** 2 + (0.0 if shape is None else shape) ** 2)
     else:

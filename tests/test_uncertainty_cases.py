@@ -59,7 +59,9 @@ def test_the_level_change_term_is_the_move_since_the_first_level_after_level_1(o
     assert len({r.scheme for r in results[1:]}) == 1
     chain = stats[0]["quality"]["pose_graph_residual_px"]
     previous = results[since - 1].homographies if since is not None else None
-    expected = frame_uncertainty(results[-1], capture.width, capture.height, chain, previous=previous)
+    span = (int(results[0].groups.reference[0]), int(results[0].groups.reference[-1]))
+    expected = frame_uncertainty(results[-1], capture.width, capture.height, chain, previous=previous,
+                                 level_one_span=span)
     assert np.allclose(report["frame_uncertainty"].sigma_px, expected.sigma_px)
     if len(results) > 3:  # the last step alone predicts less
         last_step = frame_uncertainty(results[-1], capture.width, capture.height, chain,

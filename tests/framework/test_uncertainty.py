@@ -85,6 +85,22 @@ def test_the_last_level_moving_frames_adds_its_move_to_their_sigma():
         frame_uncertainty(level, W, H, previous=previous[:10])
 
 
+def test_the_move_beyond_level_one_s_span_is_taken_at_its_ends():
+    """Level 1 extrapolates beyond its first and last reference frame; the later levels' move there is its error."""
+    level = _level(shift=np.full(18, 0.05))
+    previous = level.homographies.copy()
+    previous[:100] = geometry.translation(0.0, 1.5) @ previous[:100]  # the first mosaic level's end group, off
+    local = RESIDUAL_TO_SIGMA * 0.05
+    plain = frame_uncertainty(level, W, H, previous=previous)
+    held = frame_uncertainty(level, W, H, previous=previous, level_one_span=(150, 900))
+    change = level_change(level.homographies, previous, W, H)
+    assert plain.sigma_px[0] == pytest.approx(np.hypot(local, LEVEL_CHANGE_TO_SIGMA * 1.5), rel=0.05)
+    assert np.allclose(held.sigma_px[:150], np.hypot(local, LEVEL_CHANGE_TO_SIGMA * change[150]))
+    assert np.allclose(held.sigma_px[901:], np.hypot(local, LEVEL_CHANGE_TO_SIGMA * change[900]))
+    assert np.allclose(held.sigma_px[150:901], plain.sigma_px[150:901])
+    assert held.sigma_px[0] < 0.3 < plain.sigma_px[0]
+
+
 def test_a_move_shared_by_every_frame_but_the_middle_one_is_seen_at_the_middle_too():
     """The middle frame defines the panorama, so a move of all others relative to it leaves it in place."""
     level = _level(shift=np.full(18, 0.05))
