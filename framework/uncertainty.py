@@ -213,8 +213,9 @@ def frame_uncertainty(result: LevelResult, width: int, height: int, chain_residu
             the first level after level 1 of the last level's scheme (the pipeline passes
             the first mosaic level's, level 2 by default), or None (no level-change term:
             no such level before the last).
-        level_one_span: level 1's first and last reference frame, or None: the frames
-            outside get the level-change term at those frames (see the module).
+        level_one_span: ``(first, last)`` 0-based frame indices of level 1's first and last
+            reference frame (clipped to the capture), or None: the frames outside get the
+            level-change term at those frames (see the module).
 
     Returns:
         The :class:`FrameUncertainty`, or None if the level holds no evidence (a mosaic
