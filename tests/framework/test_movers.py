@@ -278,3 +278,61 @@ def test_brightest_blob_finds_the_disc_not_a_brighter_star_and_not_a_bright_sky(
     sky = np.where(yy < 60, 5.0, 0.0).astype(np.float32)
     assert not brightest_blob(sky, valid).any()
     assert not brightest_blob(np.zeros_like(image), valid).any()
+
+
+def test_brightest_blob_cuts_a_disc_out_of_the_bright_texture_it_touches():
+    """A disc on a bright web of lines is found at a higher level; the web alone is no blob."""
+    from photonpano.imaging import brightest_blob
+
+    yy, xx = np.mgrid[:120, :240]
+    web = np.where((yy % 20 < 3) | (xx % 30 < 3), 0.5, 0.1).astype(np.float32)  # mortar lines
+    disc = (yy - 60) ** 2 + (xx - 100) ** 2 <= 15 ** 2
+    valid = np.ones(web.shape, bool)
+    blob = brightest_blob(np.where(disc, 1.0, web).astype(np.float32), valid)
+    assert blob[disc].all()
+    rows, cols = np.nonzero(blob)  # grown by 6 px and dilated by 3 (square kernels): no web beyond
+    assert np.abs(rows - 60).max() <= 15 + 9 and np.abs(cols - 100).max() <= 15 + 9
+    assert not brightest_blob(web, valid, levels=(0.25,)).any()  # the first level: one web, not compact
+    assert not brightest_blob(web, valid).any()  # no level: the brightest lines have rivals
+    assert not brightest_blob(np.where(disc, 1.0, web).astype(np.float32), valid, levels=(0.25,)).any()
+
+
+def _facade_pair_with_disc(radius, disc_shift, seed=0):
+    """Two merged frames of the brick facade (20 photons per pixel at white) with a disc as bright crossing it.
+
+    The facade is shifted by (6, -3) px, the disc (``radius`` px) by ``disc_shift``.
+    """
+    import cv2
+    from photonpano.plugins.sources.simulate import load_scene
+
+    photo = Path(__file__).resolve().parents[2] / "benchmarks" / "photos" / "facade_brick.jpg"
+    scene = load_scene(photo, 512).astype(np.float32)
+    rng = np.random.default_rng(seed)
+    yy, xx = np.mgrid[:150, :300]
+    flux = []
+    for shift, disc in (((0, 0), (0, 0)), ((6.0, -3.0), disc_shift)):
+        moved = cv2.warpAffine(scene, np.float32([[1, 0, -shift[0]], [0, 1, -shift[1]]]), scene.shape[::-1])
+        lit = (xx - 150 - disc[0]) ** 2 + (yy - 75 - disc[1]) ** 2 <= radius ** 2
+        flux.append(rng.poisson(np.where(lit, 20.0, 20.0 * moved[100:250, 100:400])).astype(np.float32))
+    flux = np.stack(flux)
+    return MergedFrames(flux, np.ones_like(flux), np.zeros(flux.shape, np.uint8), np.ones(flux.shape, bool))
+
+
+@pytest.mark.parametrize("radius, disc_shift", [(15, (-20.0, 0.0)), (20, (-16.0, 4.0))])
+def test_a_rescue_on_a_textured_scene_registers_without_the_disc_first(radius, disc_shift):
+    """A failed pair of a bright, textured scene with a disc crossing it is rescued at the scene's shift.
+
+    Registered whole first (before 2026-11-26), the disc pulled the rescue 11 px off at
+    a passing correlation, which the guard's margin let through, or lost the pair.
+    """
+    from photonpano.executor import SerialExecutor
+    from photonpano.records import PairRegistrations
+    from photonpano.schemes import PairCheck
+
+    merged = _facade_pair_with_disc(radius, disc_shift)
+    failed = PairRegistrations(np.eye(3)[None], np.zeros(1, np.int64), np.zeros(1, np.int64), np.zeros(1, bool))
+    predicted = np.array([[1, 0, 7.5], [0, 1, -4.0], [0, 0, 1]])  # the chain's prediction, 1.8 px off
+    level = PairCheck(1).start_level(SerialExecutor())
+    found = level(merged, np.array([[0, 1]]), predicted[None], failed)
+    assert found.ok[0] and level.figures()["rescued"] == 1
+    assert np.abs(found.homographies[0][:2, 2] - [6.0, -3.0]).max() < 0.3, found.homographies[0]
