@@ -24,13 +24,16 @@ binning is the photon budget's ``check_binning``, :class:`~photonpano.budget.Bud
    under it (the blobs move otherwise than the rest), and the pair takes theirs. A static
    scene's bright region leaves a rest that agrees, or registers further from the
    estimate: nothing is vetoed (docs/real_scenes.md, "Moving objects"). A pair that
-   needs rescuing (step 2) is registered without the blobs *first*, and that
-   registration is taken where it passes the check: the correlation of whole frames is
-   too flat around the truth to show a mover's pull (a disc crossing the brick facade
-   pulled the rescue of one pair 3.3 px off at a correlation of 0.727 against 0.724 at
-   the truth; the frames without their blobs correlated 0.987 under it against 0.993
-   under their own registration, within any margin), while a static blob's rest agrees
-   with the whole frames anyway.
+   needs rescuing (step 2) takes the registration without the blobs where that
+   correlates better than the whole frames under their own by ``rescue_margin``: a
+   mover lowers the whole frames' correlation, and their correlation is too flat around
+   the truth for the veto's margin (a disc crossing the brick facade pulled a rescue
+   3.3 px off at a correlation of 0.727, against 0.724 at the truth; without its blob the
+   frames correlated 0.993, and 0.987 under the pulled registration). A static blob
+   leaves the two within the margin: on the low-texture clock, whose smooth frames
+   correlate at 0.99 over registrations pixels apart, a choice by correlation alone
+   follows the noise (the clock under a 100 Hz lamp 0.210 -> 0.306 px with no margin,
+   0.252 at 0.05; the facade crossed by the disc 0.039 and 0.034 px).
 
 A level's figures (correlation per pair, pairs checked out and rescued) travel in its
 :attr:`~photonpano.records.LocateResult.check` to ``run.json``'s ``registration_check``.
@@ -63,13 +66,15 @@ class PairCheck:
             prefer that registration where the frames without their blobs correlate
             better under it by more than ``guard_margin`` (see the module).
         guard_margin: the correlation margin of ``mover_guard``.
+        rescue_margin: a rescue (step 2) takes the registration without the blobs where
+            it correlates better than the whole frames' own by this much (see the module).
     """
 
     def __init__(self, binning: int, *, min_correlation: float = 0.4, min_overlap: float = 0.3,
-                 mover_guard: bool = True, guard_margin: float = 0.2) -> None:
+                 mover_guard: bool = True, guard_margin: float = 0.2, rescue_margin: float = 0.05) -> None:
         """Set the check's binning and limits."""
         self.factor = max(1, int(binning))
-        self.mover_guard, self.guard_margin = mover_guard, guard_margin
+        self.mover_guard, self.guard_margin, self.rescue_margin = mover_guard, guard_margin, rescue_margin
         self.min_correlation = min_correlation
         self.min_overlap = min_overlap
 
@@ -177,11 +182,11 @@ class LevelCheck:
                 cc, overlap = warped_correlation(*whole, homography, factor)
                 if holds(homography, cc, overlap):
                     return homography, inliers, True, cc, False
-            if policy.mover_guard and (a_blob.any() or b_blob.any()):
-                h, cc, ok = registered_without()  # a rescue without the blobs first
-                if ok:
-                    return h, max(8, int(round(100 * cc ** 2))), True, cc, True
             h, cc, overlap = register_binned(*whole, initial[p], factor)
+            if policy.mover_guard and (a_blob.any() or b_blob.any()):
+                other, best, ok = registered_without()
+                if ok and best >= cc + policy.rescue_margin:  # the blobs lowered the correlation: they moved
+                    return other, max(8, int(round(100 * best ** 2))), True, best, True
             if holds(h, cc, overlap):
                 return h, max(8, int(round(100 * cc ** 2))), True, cc, True
             if any(vetoed):  # a registration the frames without their blobs disagree with: theirs
