@@ -183,8 +183,8 @@ class LevelCheck:
                 if holds(homography, cc, overlap):
                     return homography, inliers, True, cc, False
             h, cc, overlap = register_binned(*whole, initial[p], factor)
-            if policy.mover_guard and (a_blob.any() or b_blob.any()):
-                other, best, ok = registered_without()
+            if policy.mover_guard and (a_blob.any() or b_blob.any()) and cc + policy.rescue_margin <= 1:
+                other, best, ok = registered_without()  # (a correlation above 1 - margin cannot be beaten)
                 if ok and best >= cc + policy.rescue_margin:  # the blobs lowered the correlation: they moved
                     return other, max(8, int(round(100 * best ** 2))), True, best, True
             if holds(h, cc, overlap):
