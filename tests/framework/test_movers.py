@@ -319,11 +319,13 @@ def _facade_pair_with_disc(radius, disc_shift, seed=0):
 
 
 @pytest.mark.parametrize("radius, disc_shift", [(15, (-20.0, 0.0)), (20, (-16.0, 4.0))])
-def test_a_rescue_on_a_textured_scene_registers_without_the_disc_first(radius, disc_shift):
+def test_a_rescue_on_a_textured_scene_takes_the_registration_without_the_disc(radius, disc_shift):
     """A failed pair of a bright, textured scene with a disc crossing it is rescued at the scene's shift.
 
-    Registered whole first (before 2026-11-26), the disc pulled the rescue 11 px off at
-    a passing correlation, which the guard's margin let through, or lost the pair.
+    The frames without the disc's blob correlate better than the whole frames by more
+    than ``rescue_margin``. With the whole frames' registration (before 2026-11-26) the
+    disc pulled the rescue 11 px off at a passing correlation, which the guard's margin
+    let through, or lost the pair.
     """
     from photonpano.executor import SerialExecutor
     from photonpano.records import PairRegistrations

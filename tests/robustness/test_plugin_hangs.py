@@ -88,10 +88,15 @@ def test_a_spec_using_the_hung_plugin_fails_in_one_line(tmp_path):
 
 
 def test_a_registration_hook_that_hangs_is_left_out_in_time(tmp_path):
-    """Its first hook waits the limit; its other hooks are not called."""
+    """Its first hook waits the limit; its other hooks are not called.
+
+    The wait is timed beyond the same command without the plugin: its own start-up took
+    2.9 s under the parallel test run's load (5.9 s in all against 3 + 2.5 allowed).
+    """
+    _, start_up = _timed("plugins", env={})
     result, seconds = _timed("plugins", env=_env(tmp_path, HANGS_IN_A_HOOK, limit_s=3))
     assert result.returncode == 0, result.stderr[-2000:]
-    assert 3 <= seconds < 5.5  # one hook waits the limit, not both (6 s)
+    assert 2.5 <= seconds - start_up < 5  # one hook waits the limit (3 s), not both (6 s)
     line = _warning(result.stderr)
     assert "plugin 'hang-locator': photonpano_register_" in line and "did not finish within 3 s" in line
     assert "opencv-sift" in result.stdout
