@@ -142,6 +142,10 @@ class LevelCheck:
         self._binned = {keys[i]: binned[i] for i in frames}
         policy = self.policy
 
+        def as_rescue(h: NDArray[np.float64], cc: float) -> tuple[NDArray[np.float64], int, bool, float, bool]:
+            """A direct registration as a rescued pair (its inliers ``max(8, 100 cc^2)``, a pose-graph weight)."""
+            return h, max(8, int(round(100 * cc ** 2))), True, cc, True
+
         def check(p: int) -> tuple[NDArray[np.float64], int, bool, float, bool]:
             """Pair p's (homography, inliers, ok, correlation, rescued)."""
             (a, a_valid, a_blob), (b, b_valid, b_blob) = binned[int(pairs[p, 0])], binned[int(pairs[p, 1])]
@@ -186,12 +190,12 @@ class LevelCheck:
             if policy.mover_guard and (a_blob.any() or b_blob.any()) and cc + policy.rescue_margin <= 1:
                 other, best, ok = registered_without()  # (a correlation above 1 - margin cannot be beaten)
                 if ok and best >= cc + policy.rescue_margin:  # the blobs lowered the correlation: they moved
-                    return other, max(8, int(round(100 * best ** 2))), True, best, True
+                    return as_rescue(other, best)
             if holds(h, cc, overlap):
-                return h, max(8, int(round(100 * cc ** 2))), True, cc, True
+                return as_rescue(h, cc)
             if any(vetoed):  # a registration the frames without their blobs disagree with: theirs
                 h, cc, _ = registered_without()
-                return h, max(8, int(round(100 * cc ** 2))), True, cc, True
+                return as_rescue(h, cc)
             return homography, inliers, False, cc, False
 
         checked = self.executor.map(check, range(len(pairs)))
