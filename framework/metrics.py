@@ -220,7 +220,10 @@ def ground_truth_report(source, homographies: np.ndarray, pano, subbatch_px: flo
     into the estimated canvas through G and a second panorama is composited with them
     *on the same canvas* by the same compositor; both are compared with the true scene
     flux resampled onto that canvas, so the PSNR gap measures only what the estimated
-    motion costs.
+    motion costs. A capture whose hot pixels are known (the simulator's ``hot_pixel_mask``)
+    is composited here with them inpainted (:class:`~photonpano.hot_pixels.InpaintedSource`),
+    as a run with ``hot_pixels: auto`` inpaints those it finds: the reference is then the
+    best merge of those photons, not one streaked by the defects.
 
     Args:
         source: a capture with ``ground_truth`` (and ``scene_flux`` for the PSNR;
@@ -267,10 +270,15 @@ def ground_truth_report(source, homographies: np.ndarray, pano, subbatch_px: flo
             built.expect_flicker(flicker_period_frames)
         return built
 
-    truths = [compose(source, canvas_from_scene @ source.ground_truth, build(config), subbatch_px=subbatch_px,
+    photons = source
+    if getattr(source, "hot_pixel_mask", None) is not None:  # the sensor's known defects, as a run inpaints them
+        from .hot_pixels import InpaintedSource
+
+        photons = InpaintedSource(source, source.hot_pixel_mask)
+    truths = [compose(photons, canvas_from_scene @ source.ground_truth, build(config), subbatch_px=subbatch_px,
                       canvas_shape=shape, progress=progress if config is compositor else None)
               for config in (compositor, *references)]
-    others = [compose(source, pano.homographies, build(config), subbatch_px=subbatch_px, canvas_shape=shape)
+    others = [compose(photons, pano.homographies, build(config), subbatch_px=subbatch_px, canvas_shape=shape)
               for config in references] if references_estimated else []
     scene = scene_on_canvas(source, canvas_from_scene, shape)
     both = np.isfinite(pano.flux) & np.isfinite(scene)

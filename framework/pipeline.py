@@ -191,12 +191,15 @@ def _run_into(spec: PipelineSpec, folder: RunFolder | None, host: PluginHost) ->
         checkpoint=folder.save_checkpoint if folder is not None else None)
     timings.update(stage_timings)
     frame_sigma = confidence.pop("frame_uncertainty", None)
+    hot_pixel_mask = confidence.pop("hot_pixel_mask", None)
     sigma = frame_sigma.sigma_px if frame_sigma is not None else None
 
     if folder is not None:
         folder.save_npy("homographies.npy", pano.homographies)
         if sigma is not None:
             folder.save_npy("uncertainty.npy", sigma)
+        if hot_pixel_mask is not None:
+            folder.save_npy("hot_pixels.npy", hot_pixel_mask)
         folder.save_npy("panorama.npy", pano.flux)
         folder.write_with("panorama.tif", lambda path: write_flux_tiff(path, pano.flux))
         if spec.outputs.panorama_png:

@@ -79,7 +79,9 @@ def _movers_record(stats: list[dict[str, Any]]) -> dict[str, Any] | None:
 class Stages:
     """The stages of a spec, built once for one opened capture; used by run, compare and the API.
 
-    Holds the capture's photon budget (:attr:`budget`, :class:`~photonpano.budget.Budget`),
+    Holds the capture as every stage reads it (:attr:`source`: its hot and dead pixels
+    inpainted where the spec's ``hot_pixels`` found some, :attr:`hot_pixels`, see
+    :mod:`photonpano.hot_pixels`), the capture's photon budget (:attr:`budget`, :class:`~photonpano.budget.Budget`),
     the built resampler, merger, locator, interpolator and the scheme of each level (the
     pairwise scheme with the budget's binned check when ``group_size: auto``), and runs
     the levels (:meth:`estimate_motion`, on the capture binned by the budget's
@@ -102,10 +104,12 @@ class Stages:
         from .budget import Budget
         from .budget.grid import in_merged_pixels
         from .budget.probe import short_of_light
+        from .hot_pixels import with_hot_pixels_inpainted
         from .schemes import MosaicScheme, PairCheck, PairwiseScheme
         from .schemes.mosaic import MOVERS_SIGMAS
         from .spec import level_schemes
 
+        source, self.hot_pixels = with_hot_pixels_inpainted(source, spec.hot_pixels)
         self.spec, self.source = spec, source
         self.budget = budget = Budget.for_capture(spec, source)
         flicker = budget.plan.flicker
@@ -130,6 +134,10 @@ class Stages:
             self.schemes += [self.schemes[-1]] * plan.extra_levels
             self.notes.append(f"groups span whole flicker periods ({plan.group_size} frames): "
                               f"{plan.extra_levels} more level(s) keep the last level's keyframes as dense")
+        if self.hot_pixels is not None and self.hot_pixels.mask.any():
+            found = self.hot_pixels
+            self.notes.append(f"hot pixels: {found.hot} hot and {found.dead} dead pixels "
+                              f"({found.mask.mean():.2%} of the sensor) inpainted from their neighbours (hot_pixels)")
         if (note := short_of_light(plan, source.n_frames)) is not None:
             self.notes.append(note)
         self._fit_levels()
@@ -259,7 +267,10 @@ def reconstruct(spec: PipelineSpec, source: PhotonSource, *, on_level: Callable[
             itself, or None; not JSON: a caller writing ``run.json`` takes it out) and
             ``flicker`` (:meth:`~photonpano.flicker.Flicker.record` of the flickering
             light found in the photon counts, or None) and ``movers`` (the mosaic levels'
-            mover rejection, :func:`_movers_record`; None where it is off).
+            mover rejection, :func:`_movers_record`; None where it is off) and
+            ``hot_pixels`` (:meth:`~photonpano.hot_pixels.HotPixels.record`, None with
+            ``hot_pixels: off``) and ``hot_pixel_mask`` ((H, W) bool pixels inpainted, or
+            None where none was; not JSON: a caller writing ``run.json`` takes it out).
 
     Returns:
         ``(homographies, level_statistics, panorama, timings_s)``: (T, 3, 3) float64
@@ -309,7 +320,7 @@ def reconstruct(spec: PipelineSpec, source: PhotonSource, *, on_level: Callable[
         t0 = time.perf_counter()
         budget = stages.budget
         plan = budget.plan
-        agreement = panorama_agreement(source, stages.merger, homographies, pano, plan.group_size,
+        agreement = panorama_agreement(stages.source, stages.merger, homographies, pano, plan.group_size,
                                        budget.agreement_binning)
         chain = stats[0].get("quality", {}).get("pose_graph_residual_px") if stats else None
         # the level-change term compares iterations of one scheme after level 1: the level after
@@ -333,6 +344,9 @@ def reconstruct(spec: PipelineSpec, source: PhotonSource, *, on_level: Callable[
         report.update(status=status, warnings=warnings, notes=notes, group_size=plan.record(), movers=movers,
                       budget=budget.record(),
                       panorama_agreement=agreement, uncertainty=summary, frame_uncertainty=uncertainty,
-                      flicker=plan.flicker.record() if plan.flicker is not None else None)
+                      flicker=plan.flicker.record() if plan.flicker is not None else None,
+                      hot_pixels=stages.hot_pixels.record() if stages.hot_pixels is not None else None,
+                      hot_pixel_mask=stages.hot_pixels.mask if stages.hot_pixels is not None
+                      and stages.hot_pixels.mask.any() else None)
         timings["confidence"] = time.perf_counter() - t0
     return homographies, stats, pano, timings

@@ -98,6 +98,7 @@ class _SpecBase(BaseModel):
         group_size: Literal["auto"] | int
         pair_offsets: list[int]
         registration_binning: Literal["auto"] | int
+        hot_pixels: Literal["auto", "off"]
         panorama_subbatch_px: float
         level_schemes: list[Literal["pairwise", "mosaic"]]
         uncertainty: bool
@@ -143,6 +144,11 @@ def _group_size(value: Any) -> Any:
     if value == "auto" or (isinstance(value, int) and not isinstance(value, bool) and value >= 2):
         return value
     raise ValueError("expected an integer >= 2 (binary frames per group) or auto")
+
+
+def _on_off(value: Any) -> Any:
+    """Read YAML's ``off``/``false`` (a bool to a YAML 1.1 parser) as ``"off"``, ``on``/``true`` as ``"auto"``."""
+    return ("auto" if value else "off") if isinstance(value, bool) else value
 
 
 def _tagged(classes: list[type]) -> Any:
@@ -195,6 +201,15 @@ def spec_model(host: PluginHost) -> type[PipelineSpec]:
             "side, else 1 (photonpano.budget.binnings.auto_binning). The mosaic levels have their own, "
             "`mosaic.registration_binning`. The panorama is always composited from the full-resolution "
             "photons.")], "auto"),
+        "hot_pixels": (Annotated[Literal["auto", "off"], BeforeValidator(_on_off)], Field("auto", description=
+            "Hot and dead pixels (a detection probability fixed on the sensor, not on the scene): auto finds them "
+            "in the capture's own photon counts (8 000 frames read in 8 stretches: isolated pixels whose rate "
+            "stands more than 6 standard deviations off their 3x3 neighbourhood's median, on one side, while the "
+            "scene moves) and inpaints their counts from their 4-neighbours for every stage "
+            "(photonpano.hot_pixels; run.json `hot_pixels`, hot_pixels.npy: a SwissSPAD source's `inpaint_mask` "
+            "for the next captures of that sensor, where it has no `transforms`). In a capture whose scene did "
+            "not move none is flagged (a defect and a sharp detail look alike there). off (or false): every pixel "
+            "is used as read.")),
         "panorama_subbatch_px": (Annotated[float, Field(gt=0, le=2, description="Frames whose canvas "
                               "warps differ by less than this (canvas pixels) are warped together.")], 0.5),
         "level_schemes": (Annotated[list[Literal["pairwise", "mosaic"]], Field(

@@ -10,9 +10,8 @@
    inpainted).
 2. Missing pixels: colour-filtered pixels (``cfa``) and hot/dead pixels
    (``inpaint_mask``), both in the coordinates after the fix, are replaced by the mean
-   of their valid 4-neighbours (the nearest valid pixels if none is valid). On counts
-   the mean is rounded stochastically (seeded by the frame range), so its expectation
-   is exact and the result stays an integer count.
+   of their valid 4-neighbours (the nearest valid pixels if none is valid), rounded
+   stochastically (:class:`photonpano.hot_pixels.Inpainter`).
 3. ``transforms``: rotations and flips in order (``rot90`` turns the image 90 degrees
    clockwise as displayed, like ``photoncube``'s ``Rot90``).
 """
@@ -27,6 +26,7 @@ from typing import Literal
 import numpy as np
 from numpy.typing import NDArray
 from photonpano.errors import SourceError
+from photonpano.hot_pixels import Inpainter
 from photonpano.plugins.sources._capture_config import ColourSourceConfig
 
 from ._swissspad_readout import Transform
@@ -289,7 +289,7 @@ class SensorCorrector:
         self.hot = _apply_transforms(hot, self.transforms)
         self.cfa = _apply_transforms(cfa, self.transforms) if cfa is not None else None
         self.missing = _apply_transforms(missing, self.transforms)
-        self._index, self._sources, self._weights = _inpaint_operator(self.missing)
+        self._inpainter = Inpainter(self.missing)
         self.active = self.fix != "none" or bool(self.transforms) or bool(self.missing.any())
 
     def geometry(self, counts: NDArray) -> NDArray:
@@ -320,57 +320,4 @@ class SensorCorrector:
         """
         if not self.active:
             return counts
-        out = self.geometry(counts)
-        if len(self._index) and len(out):
-            flat = out.reshape(len(out), -1)
-            values = (self._weights @ flat[:, self._sources].T.astype(np.float32)).T  # (B, n_missing)
-            lengths = np.diff(np.asarray(edges, dtype=np.int64))
-            noise = np.stack([np.random.default_rng([int(a), int(n), 0x5EED]).random(len(self._index),
-                                                                                       dtype=np.float32)
-                              for a, n in zip(edges[:-1], lengths)])
-            rounded = np.floor(values + noise)
-            flat[:, self._index] = np.clip(rounded, 0, lengths[:, None]).astype(np.uint16)
-        return out
-
-
-def _inpaint_operator(missing: NDArray[np.bool_]):
-    """Return the inpainting operator of a mask of missing pixels.
-
-    Each missing pixel averages its valid 4-neighbours; one without any averages the
-    valid pixels of the smallest square ring around it that holds one.
-
-    Returns:
-        ``(index, sources, W)``: (n,) int64 flat indices of the missing pixels, (m,)
-        int64 flat indices of the valid pixels they read, and a sparse (n, m) float32
-        averaging matrix (None when no pixel is missing, the usual case: scipy.sparse,
-        0.1 s to import, is then not needed).
-    """
-    h, w = missing.shape
-    ys, xs = np.nonzero(missing)
-    if not len(ys):
-        return np.zeros(0, np.int64), np.zeros(0, np.int64), None
-    from scipy.sparse import csr_matrix
-
-    valid = ~missing
-    ny = ys[:, None] + np.array([-1, 1, 0, 0])
-    nx = xs[:, None] + np.array([0, 0, -1, 1])
-    inside = (ny >= 0) & (ny < h) & (nx >= 0) & (nx < w)
-    ok = inside & valid[np.clip(ny, 0, h - 1), np.clip(nx, 0, w - 1)]
-    rows = [np.nonzero(ok)[0]]
-    cols = [(ny * w + nx)[ok]]
-    for i in np.nonzero(~ok.any(axis=1))[0]:  # rare: no valid 4-neighbour
-        y, x, r = ys[i], xs[i], 1
-        while True:
-            y0, y1, x0, x1 = max(y - r, 0), min(y + r + 1, h), max(x - r, 0), min(x + r + 1, w)
-            found = np.argwhere(valid[y0:y1, x0:x1]) + (y0, x0)
-            if len(found):
-                break
-            r += 1
-        rows.append(np.full(len(found), i))
-        cols.append(found[:, 0] * w + found[:, 1])
-    rows_a = np.concatenate(rows).astype(np.int64)
-    cols_a = np.concatenate(cols).astype(np.int64)
-    sources, local = np.unique(cols_a, return_inverse=True)
-    n = np.bincount(rows_a, minlength=len(ys))
-    matrix = csr_matrix(((1.0 / n[rows_a]).astype(np.float32), (rows_a, local)), shape=(len(ys), len(sources)))
-    return (ys * w + xs).astype(np.int64), sources.astype(np.int64), matrix
+        return self._inpainter.apply(self.geometry(counts), np.asarray(edges, dtype=np.int64))

@@ -1,0 +1,300 @@
+"""Hot and dead pixels: found in the capture's own photon counts and inpainted.
+
+A SPAD array has pixels whose dark count rate is far above the rest (hot pixels, a few
+percent of a SwissSPAD2) and pixels that never fire (dead). Their detection probability
+is fixed on the sensor, not on the scene, so under camera motion they are a pattern that
+stays still while the scene moves: it pulls every registration toward no motion (one
+percent of hot pixels put a sunset's trajectory 1.3 px off) and prints a streak along the
+trajectory into the panorama.
+
+:func:`find_hot_pixels` finds them without a dark frame, from the capture itself. It
+reads ``segments`` short stretches spread over the capture, each as two halves, and takes
+every pixel's detection rate against the median of its 3x3 neighbourhood (the residual).
+A pixel is defective where
+
+1. its residual over all stretches is more than ``sigmas`` standard deviations from zero
+   (binomial noise of its rate plus the scene's own spread of residuals, robustly
+   estimated over the frame: a median absolute deviation), either sign;
+2. in no stretch does its residual stand :data:`OPPOSITE_SIGMAS` standard deviations on
+   the other side: a pixel of the scene changes as the camera carries other detail over
+   it, a defect stays (a stuck-low pixel's residual only falls to noise where the scene
+   is as dark as it); and it stands that far on its side in at least half the stretches
+   (a star crossing a pixel of a slow pan does in one or two);
+3. it is isolated: at most :data:`MAX_CLUSTER` such pixels touch (a bright line of the
+   scene is many);
+4. the scene moved between the first and the last stretch: the halves of one stretch show
+   the scene's detail alike (their residual maps correlate significantly) and the first
+   stretch's halves correlate with the last's less than half as well. In a still capture
+   a defect and a sharp detail of the scene look alike, and none is flagged.
+
+:class:`Inpainter` replaces each flagged pixel's counts by the mean of its valid
+4-neighbours, rounded stochastically so that its expectation is exact and the counts stay
+integers (the SwissSPAD sources use it for their ``inpaint_mask`` too), and
+:class:`InpaintedSource` applies it to every frame range a stage reads.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from .stages import PhotonSource
+
+__all__ = ["HotPixels", "find_hot_pixels", "Inpainter", "InpaintedSource", "with_hot_pixels_inpainted",
+           "MAX_CLUSTER", "OPPOSITE_SIGMAS", "STILL_SIGNIFICANCE"]
+
+MAX_CLUSTER = 4
+"""Most flagged pixels that may touch (8-connected) and still be taken for defects."""
+
+OPPOSITE_SIGMAS = 3.0
+"""A defect's residual stands this many of a stretch's standard deviations on its side in
+at least half the stretches, and in none on the other side."""
+
+STILL_SIGNIFICANCE = 5.0
+"""The halves of one stretch show the scene's detail when their residual maps correlate by
+more than this many standard errors (1 / sqrt(pixels)); a far stretch that then
+correlates half as well shows the same detail: the scene stood still."""
+
+
+@dataclass(frozen=True)
+class HotPixels:
+    """Defective pixels found in a capture (:func:`find_hot_pixels`).
+
+    Attributes:
+        mask: (H, W) bool, True at a hot or dead pixel, in the pixel grid the capture's
+            ``sum_ranges`` gives (a SwissSPAD source's ``inpaint_mask`` where it has no
+            ``transforms``).
+        hot: number of flagged pixels brighter than their neighbourhood.
+        dead: number of flagged pixels darker than their neighbourhood.
+        frames: binary frames read to find them.
+        moved: False when the scene did not move enough between the stretches read to
+            tell a defect from the scene's detail (then nothing is flagged).
+    """
+
+    mask: NDArray[np.bool_]
+    hot: int
+    dead: int
+    frames: int
+    moved: bool
+
+    def record(self) -> dict[str, Any]:
+        """The JSON-ready ``hot_pixels`` entry of ``run.json``."""
+        return {"found": int(self.mask.sum()), "hot": self.hot, "dead": self.dead,
+                "fraction": round(float(self.mask.mean()), 6), "frames_read": self.frames,
+                "scene_moved": self.moved}
+
+
+def find_hot_pixels(source: PhotonSource, *, segments: int = 8, frames: int = 8000,
+                    sigmas: float = 6.0) -> HotPixels | None:
+    """Find hot and dead pixels from a capture's photon counts (see the module doc).
+
+    Args:
+        source: a binary capture (its ``sum_ranges``).
+        segments: stretches read, spread evenly from the first frame to the last.
+        frames: binary frames read in all (at most the capture's).
+        sigmas: a pixel's residual must exceed this many standard deviations.
+
+    Returns:
+        The :class:`HotPixels` found, or None for a capture that cannot be judged: one of
+        linear intensities (``kind == "intensity"``), frames smaller than 3x3 pixels, or
+        fewer than 2 frames per half stretch.
+    """
+    import cv2
+    from scipy import ndimage
+
+    n, h, w = int(source.n_frames), int(source.height), int(source.width)
+    step = max(1, int(getattr(source, "frame_step", 1)))
+    half = (min(frames, n) // (2 * segments)) // step * step
+    if source.kind != "binary" or h < 3 or w < 3 or half < 2:
+        return None
+    starts = (np.linspace(0, n - 2 * half, segments) // step * step).astype(np.int64)
+    rates = np.stack([source.sum_ranges(np.array([s, s + half, s + 2 * half]))
+                      for s in starts]).astype(np.float32) / np.float32(half)  # (segments, 2, H, W)
+    residual = rates - np.stack([cv2.medianBlur(image, 3) for image in rates.reshape(-1, h, w)]).reshape(rates.shape)
+    stretch = residual.mean(axis=1)  # (segments, H, W)
+    total = stretch.mean(axis=0)
+    outlier = np.abs(total) > sigmas * _noise(rates.mean(axis=(0, 1)), total, 2 * half * segments)
+    # a defect never stands significantly on the other side of its neighbourhood: a pixel of
+    # the scene does as the camera carries other detail over it (a stuck-low pixel's
+    # residual only falls to noise where the scene there is as dark as it)
+    standing = np.stack([np.sign(total) * stretch[k] / _noise(rates[k].mean(axis=0), stretch[k], 2 * half)
+                         for k in range(segments)])  # (segments, H, W) standard deviations on the residual's side
+    persistent = (outlier & ~(standing < -OPPOSITE_SIGMAS).any(axis=0)
+                  & ((standing > OPPOSITE_SIGMAS).sum(axis=0) >= segments / 2))
+    labels, _ = ndimage.label(persistent, structure=np.ones((3, 3), bool))
+    isolated = np.bincount(labels.ravel())[labels] <= MAX_CLUSTER
+    mask = persistent & isolated
+    moved = _scene_moved(residual, ~outlier)
+    if not moved:
+        mask = np.zeros_like(mask)
+    return HotPixels(mask, int((mask & (total > 0)).sum()), int((mask & (total < 0)).sum()),
+                     int(2 * half * segments), moved)
+
+
+def _noise(rate: NDArray[np.float32], residual: NDArray[np.float32], frames: int) -> NDArray[np.float32]:
+    """(H, W) standard deviation of a pixel's residual over ``frames`` frames.
+
+    The binomial noise of its neighbourhood's ``rate``, and the scene's own spread of
+    ``residual`` (1.4826 x its median absolute deviation over the frame).
+    """
+    import cv2
+
+    level = np.clip(cv2.medianBlur(rate, 3), 1.0 / frames, 1.0)
+    spread = 1.4826 * float(np.median(np.abs(residual - np.median(residual))))
+    return np.sqrt(level * (1 - level) / frames + spread ** 2)
+
+
+def _scene_moved(residual: NDArray[np.float32], keep: NDArray[np.bool_]) -> bool:
+    """Whether the scene moved between the first and the last stretch (see the module doc, 4).
+
+    ``residual`` is (segments, 2, H, W): each stretch's halves. The scene stood still when
+    the halves of one stretch show its detail (their residual maps correlate significantly:
+    more than :data:`STILL_SIGNIFICANCE` standard errors of a correlation over the pixels
+    kept) and the first stretch's halves correlate with the last's at least half as well.
+    """
+    def correlation(a: NDArray[np.float32], b: NDArray[np.float32]) -> float:
+        a, b = a[keep] - a[keep].mean(), b[keep] - b[keep].mean()
+        denominator = float(np.sqrt((a * a).sum() * (b * b).sum()))
+        return float((a * b).sum()) / denominator if denominator > 0 else 0.0
+
+    near = float(np.mean([correlation(pair[0], pair[1]) for pair in residual]))
+    far = float(np.mean([correlation(residual[0, i], residual[-1, i]) for i in (0, 1)]))
+    detail = near > STILL_SIGNIFICANCE / np.sqrt(max(int(keep.sum()), 1))
+    return not (detail and far >= 0.5 * near)
+
+
+class Inpainter:
+    """Replaces the counts of missing pixels by the mean of their valid 4-neighbours.
+
+    A missing pixel without a valid 4-neighbour averages the valid pixels of the smallest
+    square ring around it that holds one. The mean is rounded stochastically (seeded by
+    the frame range), so its expectation is exact, the same range always gives the same
+    counts, and the result stays an integer count.
+
+    Args:
+        missing: (H, W) bool, True where a pixel's counts are to be replaced.
+
+    Raises:
+        ValueError: if every pixel is missing.
+    """
+
+    def __init__(self, missing: NDArray[np.bool_]) -> None:
+        missing = np.asarray(missing, bool)
+        if missing.all():
+            raise ValueError("every pixel is missing: nothing to inpaint from")
+        self.missing = missing
+        self._index, self._sources, self._weights = _inpaint_operator(missing)
+
+    def apply(self, counts: NDArray[np.uint16], edges: NDArray[np.int64]) -> NDArray[np.uint16]:
+        """Inpaint (B, H, W) uint16 ``counts`` of the frame ranges ``edges`` ((B + 1,) int64).
+
+        Writes into ``counts`` where it is a writeable contiguous array (a copy otherwise)
+        and returns the result.
+        """
+        if len(self._index) and len(counts):
+            if not (counts.flags.c_contiguous and counts.flags.writeable):
+                counts = np.array(counts)
+            flat = counts.reshape(len(counts), -1)
+            values = (self._weights @ flat[:, self._sources].T.astype(np.float32)).T  # (B, n_missing)
+            lengths = np.diff(np.asarray(edges, dtype=np.int64))
+            noise = np.stack([np.random.default_rng([int(a), int(n), 0x5EED]).random(len(self._index),
+                                                                                       dtype=np.float32)
+                              for a, n in zip(edges[:-1], lengths)])
+            flat[:, self._index] = np.clip(np.floor(values + noise), 0, lengths[:, None]).astype(np.uint16)
+        return counts
+
+
+def _inpaint_operator(missing: NDArray[np.bool_]):
+    """Return ``(index, sources, W)``, the inpainting operator of ``missing``.
+
+    (n,) int64 flat indices of the missing pixels, (m,) int64 flat indices of the valid
+    pixels they read, and a sparse (n, m) float32 averaging matrix (None when no pixel is
+    missing: scipy.sparse, 0.1 s to import, is then not needed).
+    """
+    h, w = missing.shape
+    ys, xs = np.nonzero(missing)
+    if not len(ys):
+        return np.zeros(0, np.int64), np.zeros(0, np.int64), None
+    from scipy.sparse import csr_matrix
+
+    valid = ~missing
+    ny = ys[:, None] + np.array([-1, 1, 0, 0])
+    nx = xs[:, None] + np.array([0, 0, -1, 1])
+    inside = (ny >= 0) & (ny < h) & (nx >= 0) & (nx < w)
+    ok = inside & valid[np.clip(ny, 0, h - 1), np.clip(nx, 0, w - 1)]
+    rows = [np.nonzero(ok)[0]]
+    cols = [(ny * w + nx)[ok]]
+    for i in np.nonzero(~ok.any(axis=1))[0]:  # rare: no valid 4-neighbour
+        y, x, r = ys[i], xs[i], 1
+        while True:
+            y0, y1, x0, x1 = max(y - r, 0), min(y + r + 1, h), max(x - r, 0), min(x + r + 1, w)
+            found = np.argwhere(valid[y0:y1, x0:x1]) + (y0, x0)
+            if len(found):
+                break
+            r += 1
+        rows.append(np.full(len(found), i))
+        cols.append(found[:, 0] * w + found[:, 1])
+    rows_a = np.concatenate(rows).astype(np.int64)
+    cols_a = np.concatenate(cols).astype(np.int64)
+    sources, local = np.unique(cols_a, return_inverse=True)
+    n = np.bincount(rows_a, minlength=len(ys))
+    matrix = csr_matrix(((1.0 / n[rows_a]).astype(np.float32), (rows_a, local)), shape=(len(ys), len(sources)))
+    return (ys * w + xs).astype(np.int64), sources.astype(np.int64), matrix
+
+
+class InpaintedSource(PhotonSource):
+    """A capture whose defective pixels are inpainted in every frame range read.
+
+    Every attribute but :meth:`sum_ranges` is the wrapped capture's (its size, rate,
+    ground truth, ``raw_sums``...).
+
+    Args:
+        source: the binary capture.
+        mask: (H, W) bool defective pixels (:attr:`HotPixels.mask`).
+    """
+
+    def __init__(self, source: PhotonSource, mask: NDArray[np.bool_]) -> None:
+        self.source = source
+        self.inpainter = Inpainter(mask)
+        # PhotonSource declares these with class defaults, which attribute lookup finds
+        # before __getattr__: the wrapped capture's own values are copied
+        for name in ("n_frames", "height", "width", "exposure_s", "frame_rate_hz", "ground_truth", "scene_flux",
+                     "scene_pitch", "name", "kind", "frame_step"):
+            setattr(self, name, getattr(source, name))
+
+    def __getattr__(self, name: str) -> Any:
+        if name in ("source", "inpainter"):  # not set yet (copy, pickle): no recursion
+            raise AttributeError(name)
+        return getattr(self.source, name)
+
+    def sum_ranges(self, edges: NDArray[np.int64]) -> NDArray[np.uint16] | NDArray[np.float32]:
+        """The wrapped capture's counts (see :meth:`PhotonSource.sum_ranges`), defective pixels inpainted."""
+        edges = np.asarray(edges, dtype=np.int64)
+        return self.inpainter.apply(np.asarray(self.source.sum_ranges(edges)), edges)
+
+    def describe(self) -> dict[str, Any]:
+        """The wrapped capture's summary (see :meth:`PhotonSource.describe`)."""
+        return self.source.describe()
+
+
+def with_hot_pixels_inpainted(source: PhotonSource, setting: str) -> tuple[PhotonSource, HotPixels | None]:
+    """``source`` with the hot and dead pixels it shows inpainted, as the spec's ``hot_pixels`` says.
+
+    Args:
+        source: the opened capture.
+        setting: ``"auto"`` (find them, :func:`find_hot_pixels`) or ``"off"``.
+
+    Returns:
+        ``(source, found)``: an :class:`InpaintedSource` where pixels were found (else
+        ``source`` itself), and what was found (None with ``"off"`` or a capture that
+        cannot be judged).
+    """
+    if setting == "off":
+        return source, None
+    found = find_hot_pixels(source)
+    if found is None or not found.mask.any():
+        return source, found
+    return InpaintedSource(source, found.mask), found
