@@ -46,7 +46,7 @@ from .stages import PhotonSource
 __all__ = ["HotPixels", "find_hot_pixels", "Inpainter", "InpaintedSource", "with_hot_pixels_inpainted",
            "MAX_CLUSTER", "OPPOSITE_SIGMAS", "STILL_SIGNIFICANCE"]
 
-MAX_CLUSTER = 4
+MAX_CLUSTER = 6
 """Most flagged pixels that may touch (8-connected) and still be taken for defects."""
 
 OPPOSITE_SIGMAS = 3.0
@@ -127,7 +127,8 @@ def find_hot_pixels(source: PhotonSource, *, segments: int = 8, frames: int = 80
     labels, _ = ndimage.label(persistent, structure=np.ones((3, 3), bool))
     isolated = np.bincount(labels.ravel())[labels] <= MAX_CLUSTER
     mask = persistent & isolated
-    moved = _scene_moved(residual, ~outlier)
+    # the outliers and their neighbours, whose medians they raise, are the sensor's pattern, not the scene's
+    moved = _scene_moved(residual, ~ndimage.binary_dilation(outlier, np.ones((3, 3), bool)))
     if not moved:
         mask = np.zeros_like(mask)
     return HotPixels(mask, int((mask & (total > 0)).sum()), int((mask & (total < 0)).sum()),
