@@ -50,13 +50,15 @@ def open_run(folder: Path, *, source: bool = True) -> tuple[Any, Any]:
     Returns:
         ``(result, capture)``: the :class:`~photonpano.pipeline.RunResult` (``homographies``
         (T, 3, 3) float64 frame-to-canvas, ``panorama`` (Hc, Wc) float32 flux) and the
-        opened :class:`~photonpano.stages.PhotonSource` (None without ``source``).
+        opened :class:`~photonpano.stages.PhotonSource` (None without ``source``), the
+        pixels in the run's ``hot_pixels.npy`` inpainted as the run did.
 
     Raises:
         PhotonpanoError: not a finished run (no ``run.json``), ``homographies.npy`` or
             ``panorama.npy`` missing or of the wrong shape, the source's plugin not
-            installed, or the capture unreadable or not the one the run read (frame
-            count, size); one line naming the path.
+            installed, the capture unreadable or not the one the run read (frame
+            count, size), or ``hot_pixels.npy`` not a bool mask of the frame size; one
+            line naming the path.
     """
     from .api import load
 
@@ -88,6 +90,15 @@ def open_run(folder: Path, *, source: bool = True) -> tuple[Any, Any]:
     if capture.n_frames != len(h):
         raise PhotonpanoError(f"{folder}: the capture now holds {capture.n_frames} frames, homographies.npy "
                               f"{len(h)}; the capture changed since the run")
+    hot = folder / "hot_pixels.npy"
+    if hot.is_file():  # the pixels the run inpainted, inpainted again
+        from .hot_pixels import InpaintedSource
+
+        mask = np.load(hot)
+        if mask.dtype != bool or mask.shape != (capture.height, capture.width):
+            raise PhotonpanoError(f"{hot}: expected a ({capture.height}, {capture.width}) bool mask of the "
+                                  f"capture's hot pixels, got {mask.dtype} {mask.shape}")
+        capture = InpaintedSource(capture, mask)
     return result, capture
 
 

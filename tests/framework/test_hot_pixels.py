@@ -157,3 +157,12 @@ def test_a_run_writes_the_pixels_it_inpainted_and_reports_them(tmp_path):
     assert mask.dtype == bool and mask.shape == (64, 128) and summary["hot_pixels"]["found"] == mask.sum() > 0
     assert not (mask & ~truth).any() and (mask & truth).sum() >= 0.9 * truth.sum()
     assert result.summary["hot_pixels"] == summary["hot_pixels"]
+    # `photonpano video` reopens the capture as the run read it
+    from photonpano.errors import PhotonpanoError
+    from photonpano.video import open_run
+
+    _, reopened = open_run(tmp_path / "out")
+    assert isinstance(reopened, InpaintedSource) and np.array_equal(reopened.inpainter.missing, mask)
+    np.save(tmp_path / "out" / "hot_pixels.npy", mask[:10])
+    with pytest.raises(PhotonpanoError, match="hot_pixels.npy"):
+        open_run(tmp_path / "out")
