@@ -7,6 +7,7 @@ The captures are simulated from the bundled photo (8 000 frames of 96x192, a pan
 
 import numpy as np
 import pytest
+from capture_helpers import reconstruct_simulated
 from photonpano.hot_pixels import HotPixels, InpaintedSource, Inpainter, find_hot_pixels, with_hot_pixels_inpainted
 from photonpano.plugins.sources.simulate import SimulateConfig
 
@@ -105,20 +106,6 @@ def test_an_inpainted_source_reads_as_the_capture_without_its_defects():
     assert raw[:, hot].mean() > 400 and abs(fixed[:, hot].mean() - raw[:, ~hot].mean()) < 60
 
 
-def _run(source: dict, overrides=()):
-    from photonpano.host import PluginHost
-    from photonpano.metrics import source_trajectory_error
-    from photonpano.pipeline import reconstruct
-    from photonpano.spec import apply_overrides, validate_spec
-
-    spec = validate_spec(apply_overrides({"source": {"plugin": "simulate", **source}}, list(overrides)),
-                         PluginHost(), origin="test")
-    capture = spec.source.build()
-    report: dict = {}
-    homographies, _, _, _ = reconstruct(spec, capture, report=report)
-    return source_trajectory_error(homographies, capture).rmse_px, report
-
-
 @pytest.mark.slow
 def test_a_default_run_inpaints_hot_pixels_and_keeps_its_trajectory():
     """1 % hot pixels pull a run toward no motion; the default run finds and inpaints them.
@@ -127,13 +114,13 @@ def test_a_default_run_inpaints_hot_pixels_and_keeps_its_trajectory():
     0.052 px, and 0.100 px with ``hot_pixels: off``.
     """
     hot = {**BASE, "frames": 10_000, "height": 128, "width": 256, "hot_pixel_fraction": 0.01}
-    rmse, report = _run(hot)
+    error, report = reconstruct_simulated(hot)
     assert report["hot_pixels"]["found"] >= 0.95 * round(0.01 * 128 * 256), report["hot_pixels"]
     assert isinstance(report["hot_pixel_mask"], np.ndarray) and report["hot_pixel_mask"].shape == (128, 256)
     assert any("hot pixels" in note for note in report["notes"])
-    off, off_report = _run(hot, ["hot_pixels=off"])
+    off, off_report = reconstruct_simulated(hot, ["hot_pixels=off"])
     assert off_report["hot_pixels"] is None and off_report["hot_pixel_mask"] is None
-    assert rmse < 0.07 and off > 1.5 * rmse, (rmse, off)
+    assert error.rmse_px < 0.07 and off.rmse_px > 1.5 * error.rmse_px, (error.rmse_px, off.rmse_px)
 
 
 def test_hot_pixels_record_counts_hot_and_dead():
