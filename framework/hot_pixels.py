@@ -13,7 +13,7 @@ every pixel's detection rate against the median of its 3x3 neighbourhood (the re
 A pixel is defective where
 
 1. its residual over all stretches is more than ``sigmas`` standard deviations from zero
-   (binomial noise of its rate plus the scene's own spread of residuals, robustly
+   (binomial noise of its neighbourhood's rate plus the scene's own spread of residuals, robustly
    estimated over the frame: a median absolute deviation), either sign;
 2. in no stretch does its residual stand :data:`OPPOSITE_SIGMAS` standard deviations on
    the other side: a pixel of the scene changes as the camera carries other detail over
