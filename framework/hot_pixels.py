@@ -255,6 +255,9 @@ class InpaintedSource(PhotonSource):
     Args:
         source: the binary capture.
         mask: (H, W) bool defective pixels (:attr:`HotPixels.mask`).
+
+    Raises:
+        ValueError: if ``mask`` holds every pixel (:class:`Inpainter`).
     """
 
     def __init__(self, source: PhotonSource, mask: NDArray[np.bool_]) -> None:

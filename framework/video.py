@@ -57,8 +57,8 @@ def open_run(folder: Path, *, source: bool = True) -> tuple[Any, Any]:
         PhotonpanoError: not a finished run (no ``run.json``), ``homographies.npy`` or
             ``panorama.npy`` missing or of the wrong shape, the source's plugin not
             installed, the capture unreadable or not the one the run read (frame
-            count, size), or ``hot_pixels.npy`` not a bool mask of the frame size; one
-            line naming the path.
+            count, size), or ``hot_pixels.npy`` unreadable or not a bool mask of the
+            frame size; one line naming the path.
     """
     from .api import load
 
@@ -93,8 +93,9 @@ def open_run(folder: Path, *, source: bool = True) -> tuple[Any, Any]:
     hot = folder / "hot_pixels.npy"
     if hot.is_file():  # the pixels the run inpainted, inpainted again
         from .hot_pixels import InpaintedSource
+        from .npy_header import load_npy
 
-        mask = np.load(hot)
+        mask = load_npy(hot, "the run's hot pixels")
         if mask.dtype != bool or mask.shape != (capture.height, capture.width):
             raise PhotonpanoError(f"{hot}: expected a ({capture.height}, {capture.width}) bool mask of the "
                                   f"capture's hot pixels, got {mask.dtype} {mask.shape}")

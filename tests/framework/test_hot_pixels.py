@@ -153,3 +153,6 @@ def test_a_run_writes_the_pixels_it_inpainted_and_reports_them(tmp_path):
     np.save(tmp_path / "out" / "hot_pixels.npy", mask[:10])
     with pytest.raises(PhotonpanoError, match="hot_pixels.npy"):
         open_run(tmp_path / "out")
+    (tmp_path / "out" / "hot_pixels.npy").write_bytes(b"not an array")
+    with pytest.raises(PhotonpanoError, match="hot_pixels.npy"):
+        open_run(tmp_path / "out")
