@@ -44,7 +44,7 @@ from numpy.typing import NDArray
 from .stages import PhotonSource
 
 __all__ = ["HotPixels", "find_hot_pixels", "Inpainter", "InpaintedSource", "with_hot_pixels_inpainted",
-           "MAX_CLUSTER", "OPPOSITE_SIGMAS", "STILL_SIGNIFICANCE"]
+           "COLOUR_NEIGHBOURS", "MAX_CLUSTER", "OPPOSITE_SIGMAS", "STILL_SIGNIFICANCE"]
 
 MAX_CLUSTER = 6
 """Most flagged pixels that may touch (8-connected) and still be taken for defects."""
@@ -52,6 +52,19 @@ MAX_CLUSTER = 6
 OPPOSITE_SIGMAS = 3.0
 """A defect's residual stands this many of a stretch's standard deviations on its side in
 at least half the stretches, and in none on the other side."""
+
+COLOUR_NEIGHBOURS = 8
+"""A pixel of a colour-filtered capture is compared with the median of this many nearest
+pixels behind the same filter, or none (on the SwissSPAD2 colour layout: unfiltered pixels
+within 2 px, filtered ones within 4-6 px)."""
+
+EDGE_PX = 3
+"""A colour-filtered capture's frame is extended by replicating its edge this many pixels
+(its filtered pixels' nearest same-filter pixels lie within 4-6 px)."""
+
+MAX_RATE, FLUX_FLOOR = 1 - 1e-4, 1e-3
+"""Detection rates are clipped below 1 before their flux is taken, and a colour's ratio
+to the luminance adds this flux (photons per frame) to both (a dark region's ratio is 1)."""
 
 STILL_SIGNIFICANCE = 5.0
 """The halves of one stretch show the scene's detail when their residual maps correlate by
@@ -91,8 +104,14 @@ def find_hot_pixels(source: PhotonSource, *, segments: int = 8, frames: int = 80
                     sigmas: float = 6.0) -> HotPixels | None:
     """Find hot and dead pixels from a capture's photon counts (see the module doc).
 
+    On a colour-filtered capture (a ``corrector`` with ``cfa`` codes, as the SwissSPAD
+    sources and ``simulate`` with ``cfa`` have) the raw counts are read and each pixel is
+    compared with the median of its :data:`COLOUR_NEIGHBOURS` nearest pixels behind the
+    same filter (or none); the sensor's own masked pixels (``corrector.hot``) are never
+    flagged.
+
     Args:
-        source: a binary capture (its ``sum_ranges``).
+        source: a binary capture (its ``sum_ranges``, or ``raw_sums`` and ``corrector``).
         segments: stretches read, spread evenly from the first frame to the last.
         frames: binary frames read in all (at most the capture's).
         sigmas: a pixel's residual must exceed this many standard deviations.
@@ -102,7 +121,6 @@ def find_hot_pixels(source: PhotonSource, *, segments: int = 8, frames: int = 80
         linear intensities (``kind == "intensity"``), frames smaller than 3x3 pixels, or
         fewer than 2 frames per half stretch.
     """
-    import cv2
     from scipy import ndimage
 
     n, h, w = int(source.n_frames), int(source.height), int(source.width)
@@ -110,17 +128,20 @@ def find_hot_pixels(source: PhotonSource, *, segments: int = 8, frames: int = 80
     half = (min(frames, n) // (2 * segments)) // step * step
     if source.kind != "binary" or h < 3 or w < 3 or half < 2:
         return None
+    layout = _Layout(source)
     starts = (np.linspace(0, n - 2 * half, segments) // step * step).astype(np.int64)
-    rates = np.stack([source.sum_ranges(np.array([s, s + half, s + 2 * half]))
-                      for s in starts]).astype(np.float32) / np.float32(half)  # (segments, 2, H, W)
-    residual = rates - np.stack([cv2.medianBlur(image, 3) for image in rates.reshape(-1, h, w)]).reshape(rates.shape)
+    rates = np.stack([layout.read(np.array([s, s + half, s + 2 * half]))
+                      for s in starts]) / np.float32(half)  # (segments, 2, H, W) float32
+    residual = rates - layout.reference(rates)
     stretch = residual.mean(axis=1)  # (segments, H, W)
     total = stretch.mean(axis=0)
-    outlier = np.abs(total) > sigmas * _noise(rates.mean(axis=(0, 1)), total, 2 * half * segments)
+    level = layout.reference(rates.mean(axis=(0, 1)))
+    outlier = (np.abs(total) > sigmas * layout.noise(level, total, 2 * half * segments)) & layout.candidates
     # a defect never stands significantly on the other side of its neighbourhood: a pixel of
     # the scene does as the camera carries other detail over it (a stuck-low pixel's
     # residual only falls to noise where the scene there is as dark as it)
-    standing = np.stack([np.sign(total) * stretch[k] / _noise(rates[k].mean(axis=0), stretch[k], 2 * half)
+    standing = np.stack([np.sign(total) * stretch[k]
+                         / layout.noise(layout.reference(rates[k].mean(axis=0)), stretch[k], 2 * half)
                          for k in range(segments)])  # (segments, H, W) standard deviations on the residual's side
     persistent = (outlier & ~(standing < -OPPOSITE_SIGMAS).any(axis=0)
                   & ((standing > OPPOSITE_SIGMAS).sum(axis=0) >= segments / 2))
@@ -128,24 +149,113 @@ def find_hot_pixels(source: PhotonSource, *, segments: int = 8, frames: int = 80
     isolated = np.bincount(labels.ravel())[labels] <= MAX_CLUSTER
     mask = persistent & isolated
     # the outliers and their neighbours, whose medians they raise, are the sensor's pattern, not the scene's
-    moved = _scene_moved(residual, ~ndimage.binary_dilation(outlier, np.ones((3, 3), bool)))
+    moved = _scene_moved(residual, layout.classes[0] & ~ndimage.binary_dilation(outlier, np.ones((3, 3), bool)))
     if not moved:
         mask = np.zeros_like(mask)
     return HotPixels(mask, int((mask & (total > 0)).sum()), int((mask & (total < 0)).sum()),
                      int(2 * half * segments), moved)
 
 
-def _noise(rate: NDArray[np.float32], residual: NDArray[np.float32], frames: int) -> NDArray[np.float32]:
-    """(H, W) standard deviation of a pixel's residual over ``frames`` frames.
+class _Layout:
+    """A capture's pixel classes, as :func:`find_hot_pixels` compares them.
 
-    The binomial noise of its neighbourhood's ``rate``, and the scene's own spread of
-    ``residual`` (1.4826 x its median absolute deviation over the frame).
+    A monochrome capture: one class, each pixel's reference the 3x3 median of
+    ``sum_ranges`` (the frame's edge replicated). A colour-filtered one
+    (``corrector.cfa``), in the raw counts: the unfiltered pixels, each referenced to the
+    median of its :data:`COLOUR_NEIGHBOURS` nearest unfiltered pixels (the luminance
+    there), and one class per filter, each pixel referenced to the luminance there times
+    the median ratio of its nearest same-filter pixels to the luminance at theirs (in
+    flux: a colour's ratio to the luminance varies more slowly than either). The frame's
+    edge is replicated :data:`EDGE_PX` pixels out, so that a pixel on it is compared with
+    its own row as much as with the next (as the 3x3 median does). The sensor's own
+    masked pixels (``corrector.hot``) are in no class.
+
+    Attributes:
+        classes: (H, W) bool masks, one per class (the unfiltered pixels first).
+        candidates: (H, W) bool pixels that may be flagged.
     """
-    import cv2
 
-    level = np.clip(cv2.medianBlur(rate, 3), 1.0 / frames, 1.0)
-    spread = 1.4826 * float(np.median(np.abs(residual - np.median(residual))))
-    return np.sqrt(level * (1 - level) / frames + spread ** 2)
+    def __init__(self, source: PhotonSource) -> None:
+        self.source = source
+        h, w = int(source.height), int(source.width)
+        corrector = getattr(source, "corrector", None)
+        cfa = getattr(corrector, "cfa", None)
+        self.corrector = corrector if cfa is not None and hasattr(source, "raw_sums") else None
+        self.classes = [np.ones((h, w), bool)]
+        self.candidates = self.classes[0]
+        if self.corrector is None:
+            return
+        from scipy.spatial import cKDTree
+
+        usable = ~np.asarray(getattr(self.corrector, "hot", np.zeros((h, w), bool)), bool)
+        codes = np.where(usable, np.asarray(cfa, np.int16), -2)  # -2: in no class
+        kept = [code for code in np.unique(codes[codes > -2]) if (codes == code).sum() > COLOUR_NEIGHBOURS]
+        if -1 not in kept:  # no unfiltered pixels to take the luminance from: judged as one class
+            self.corrector = None
+            return
+        self.classes = [codes == code for code in kept]  # -1, the unfiltered pixels, first
+        self.candidates = np.logical_or.reduce(self.classes)
+        padded = np.pad(codes, EDGE_PX, mode="edge")
+        self.grid = padded.shape
+        inner = np.zeros(self.grid, bool)
+        inner[EDGE_PX:-EDGE_PX, EDGE_PX:-EDGE_PX] = True
+
+        def nearest(members: NDArray[np.bool_], of: NDArray[np.bool_]) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+            """The flat indices of ``of`` and (n, K) of their nearest pixels of ``members`` (not themselves)."""
+            pool, points = np.flatnonzero(members), np.argwhere(of)
+            distance, index = cKDTree(np.column_stack(np.unravel_index(pool, self.grid))).query(
+                points, k=COLOUR_NEIGHBOURS + 1)
+            index = np.where((distance[:, :1] == 0), index[:, 1:], index[:, :-1])
+            return np.ravel_multi_index(points.T, self.grid), pool[index]
+
+        self.luminance = nearest(padded == -1, padded > -2)  # at every pixel, the edge's copies too
+        self.neighbours = [nearest(padded == code, (padded == code) & inner) for code in kept[1:]]
+
+    def read(self, edges: NDArray[np.int64]) -> NDArray[np.float32]:
+        """(B, H, W) float32 counts of the frame ranges ``edges``.
+
+        ``sum_ranges``, or the raw counts (geometry fixed) of a colour-filtered capture.
+        """
+        if self.corrector is None:
+            return np.asarray(self.source.sum_ranges(edges), np.float32)
+        return np.asarray(self.corrector.geometry(self.source.raw_sums(edges)), np.float32)
+
+    def reference(self, rates: NDArray[np.float32]) -> NDArray[np.float32]:
+        """Each pixel's reference rate, (..., H, W) float32 like ``rates``."""
+        import cv2
+
+        images = np.ascontiguousarray(rates, np.float32).reshape(-1, *rates.shape[-2:])
+        if self.corrector is None:
+            return np.stack([cv2.medianBlur(image, 3) for image in images]).reshape(rates.shape)
+        edge = EDGE_PX
+        rate = np.pad(images, ((0, 0), (edge, edge), (edge, edge)), mode="edge").reshape(len(images), -1)
+        pixels, unfiltered = self.luminance
+        luminance = np.zeros_like(rate)
+        luminance[:, pixels] = np.median(rate[:, unfiltered], axis=-1)
+        reference = luminance.copy()  # the unfiltered pixels'
+        # a filtered pixel: the luminance there times its colour's ratio to the luminance
+        # nearby, in flux (photons per frame), where the ratio is a constant
+        flux = -np.log1p(-np.clip(rate, 0, MAX_RATE))
+        luminance_flux = -np.log1p(-np.clip(luminance, 0, MAX_RATE))
+        for members, nearest in self.neighbours:
+            ratio = np.median((flux[:, nearest] + FLUX_FLOOR) / (luminance_flux[:, nearest] + FLUX_FLOOR), axis=-1)
+            reference[:, members] = -np.expm1(-luminance_flux[:, members] * ratio)
+        reference = reference.reshape(len(images), *self.grid)[:, edge:-edge, edge:-edge]
+        return np.ascontiguousarray(reference).reshape(rates.shape)
+
+    def noise(self, level: NDArray[np.float32], residual: NDArray[np.float32], frames: int) -> NDArray[np.float32]:
+        """(H, W) standard deviation of a pixel's residual over ``frames`` frames.
+
+        The binomial noise of its reference ``level`` (a rate), and its class's spread of
+        ``residual`` (1.4826 x the median absolute deviation over the class's pixels).
+        """
+        level = np.clip(level, 1.0 / frames, 1.0)
+        spread: Any = 0.0
+        for members in self.classes:
+            values = residual[members]
+            mad = 1.4826 * float(np.median(np.abs(values - np.median(values)))) if len(values) else 0.0
+            spread = mad if len(self.classes) == 1 else np.where(members, mad, spread)
+        return np.sqrt(level * (1 - level) / frames + spread ** 2)
 
 
 def _scene_moved(residual: NDArray[np.float32], keep: NDArray[np.bool_]) -> bool:
@@ -250,19 +360,34 @@ class InpaintedSource(PhotonSource):
     """A capture whose defective pixels are inpainted in every frame range read.
 
     Every attribute but :meth:`sum_ranges` is the wrapped capture's (its size, rate,
-    ground truth, ``raw_sums``...).
+    ground truth, ``raw_sums``...), and ``corrector`` for a capture that corrects its raw
+    counts (the SwissSPAD sources, ``simulate`` with ``cfa``): there the defects join the
+    sensor's own missing pixels (``SensorCorrector.with_missing``), so each pixel is
+    inpainted once, from valid neighbours only, and the colour compositors, which read
+    ``raw_sums`` through ``corrector``, leave the defects out too.
 
     Args:
         source: the binary capture.
         mask: (H, W) bool defective pixels (:attr:`HotPixels.mask`).
 
+    Attributes:
+        mask: ``mask``, as given.
+        inpainter: the :class:`Inpainter` of ``mask`` applied after the capture's own
+            counts, or None where ``corrector`` inpaints it.
+
     Raises:
-        ValueError: if ``mask`` holds every pixel (:class:`Inpainter`).
+        ValueError: if ``mask`` holds every pixel (:class:`Inpainter`), or is not the
+            corrector's frame size.
     """
 
     def __init__(self, source: PhotonSource, mask: NDArray[np.bool_]) -> None:
-        self.source = source
-        self.inpainter = Inpainter(mask)
+        self.source, self.mask = source, np.asarray(mask, bool)
+        corrector = getattr(source, "corrector", None)
+        self.inpainter: Inpainter | None = None
+        if hasattr(corrector, "with_missing") and hasattr(source, "raw_sums"):  # sum_ranges: apply(raw_sums)
+            self.corrector = corrector.with_missing(mask)
+        else:
+            self.inpainter = Inpainter(mask)
         # PhotonSource declares these with class defaults, which attribute lookup finds
         # before __getattr__: the wrapped capture's own values are copied
         for name in ("n_frames", "height", "width", "exposure_s", "frame_rate_hz", "ground_truth", "scene_flux",
@@ -270,13 +395,15 @@ class InpaintedSource(PhotonSource):
             setattr(self, name, getattr(source, name))
 
     def __getattr__(self, name: str) -> Any:
-        if name in ("source", "inpainter"):  # not set yet (copy, pickle): no recursion
+        if name in ("source", "mask", "inpainter", "corrector"):  # not set yet (copy, pickle): no recursion
             raise AttributeError(name)
         return getattr(self.source, name)
 
     def sum_ranges(self, edges: NDArray[np.int64]) -> NDArray[np.uint16] | NDArray[np.float32]:
         """The wrapped capture's counts (see :meth:`PhotonSource.sum_ranges`), defective pixels inpainted."""
         edges = np.asarray(edges, dtype=np.int64)
+        if self.inpainter is None:
+            return self.corrector.apply(self.source.raw_sums(edges), edges)
         return self.inpainter.apply(np.asarray(self.source.sum_ranges(edges)), edges)
 
     def describe(self) -> dict[str, Any]:

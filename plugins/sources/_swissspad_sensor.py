@@ -18,6 +18,7 @@
 
 from __future__ import annotations
 
+import copy
 from collections.abc import Sequence
 from importlib import resources
 from pathlib import Path
@@ -291,6 +292,31 @@ class SensorCorrector:
         self.missing = _apply_transforms(missing, self.transforms)
         self._inpainter = Inpainter(self.missing)
         self.active = self.fix != "none" or bool(self.transforms) or bool(self.missing.any())
+
+    def with_missing(self, mask: NDArray[np.bool_]) -> SensorCorrector:
+        """A copy that inpaints ``mask`` as well (hot or dead pixels found in the capture).
+
+        Args:
+            mask: (H, W) bool pixels to inpaint too, in output coordinates (``shape``): the
+                grid :meth:`apply` returns, as :func:`photonpano.hot_pixels.find_hot_pixels` gives.
+
+        Returns:
+            The copy; its ``hot`` and ``missing`` hold ``mask`` too, so that every pixel is
+            inpainted once from valid neighbours only (a defect never leaks into a filtered
+            neighbour's inpainted counts) and the colour compositors leave it out of every plane.
+
+        Raises:
+            ValueError: if ``mask`` is not ``shape``, or leaves no valid pixel.
+        """
+        mask = np.asarray(mask, bool)
+        if mask.shape != tuple(self.shape):
+            raise ValueError(f"the pixels to inpaint are {mask.shape[0]}x{mask.shape[1]}, the corrected frames "
+                             f"{self.shape[0]}x{self.shape[1]}")
+        other = copy.copy(self)
+        other.hot, other.missing = self.hot | mask, self.missing | mask
+        other._inpainter = Inpainter(other.missing)
+        other.active = True
+        return other
 
     def geometry(self, counts: NDArray) -> NDArray:
         """Apply the fix and the transforms (no inpainting) to (B, Hraw, Wraw) counts."""
