@@ -27,7 +27,7 @@ from typing import Literal
 import numpy as np
 from numpy.typing import NDArray
 from photonpano.errors import SourceError
-from photonpano.hot_pixels import Inpainter
+from photonpano.inpainting import Inpainter
 from photonpano.plugins.sources._capture_config import ColourSourceConfig
 
 from ._swissspad_readout import Transform
