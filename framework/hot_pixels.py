@@ -55,9 +55,10 @@ OPPOSITE_SIGMAS = 3.0
 at least half the stretches, and in none on the other side."""
 
 COLOUR_NEIGHBOURS = 8
-"""A pixel of a colour-filtered capture is compared with the median of this many nearest
-pixels behind the same filter, or none (on the SwissSPAD2 colour layout: unfiltered pixels
-within 2 px, filtered ones within 4-6 px)."""
+"""A pixel of a colour-filtered capture is compared with the median over itself and this
+many nearest pixels behind the same filter, or none, as the 3x3 median of a monochrome
+one holds the pixel and its 8 neighbours (on the SwissSPAD2 colour layout: unfiltered
+pixels within 2 px, filtered ones within 4-6 px)."""
 
 EDGE_PX = 3
 """A colour-filtered capture's frame is extended by replicating its edge this many pixels
@@ -163,10 +164,10 @@ class _Layout:
     A monochrome capture: one class, each pixel's reference the 3x3 median of
     ``sum_ranges`` (the frame's edge replicated). A colour-filtered one
     (``corrector.cfa``), in the raw counts: the unfiltered pixels, each referenced to the
-    median of its :data:`COLOUR_NEIGHBOURS` nearest unfiltered pixels (the luminance
-    there), and one class per filter, each pixel referenced to the luminance there times
-    the median ratio of its nearest same-filter pixels to the luminance at theirs (in
-    flux: a colour's ratio to the luminance varies more slowly than either). The frame's
+    median over itself and its :data:`COLOUR_NEIGHBOURS` nearest unfiltered pixels (the
+    luminance there), and one class per filter, each pixel referenced to the luminance
+    there times the median ratio to the luminance over itself and its nearest same-filter
+    pixels (in flux: a colour's ratio to the luminance varies more slowly than either). The frame's
     edge is replicated :data:`EDGE_PX` pixels out, so that a pixel on it is compared with
     its own row as much as with the next (as the 3x3 median does). The sensor's own
     masked pixels (``corrector.hot``) are in no class.
@@ -202,11 +203,10 @@ class _Layout:
         inner[EDGE_PX:-EDGE_PX, EDGE_PX:-EDGE_PX] = True
 
         def nearest(members: NDArray[np.bool_], of: NDArray[np.bool_]) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
-            """The flat indices of ``of`` and (n, K) of their nearest pixels of ``members`` (not themselves)."""
+            """The flat indices of ``of`` and (n, K + 1) of their nearest pixels of ``members`` (themselves first)."""
             pool, points = np.flatnonzero(members), np.argwhere(of)
-            distance, index = cKDTree(np.column_stack(np.unravel_index(pool, self.grid))).query(
-                points, k=COLOUR_NEIGHBOURS + 1)
-            index = np.where((distance[:, :1] == 0), index[:, 1:], index[:, :-1])
+            tree = cKDTree(np.column_stack(np.unravel_index(pool, self.grid)))
+            _, index = tree.query(points, k=COLOUR_NEIGHBOURS + 1)
             return np.ravel_multi_index(points.T, self.grid), pool[index]
 
         self.luminance = nearest(padded == -1, padded > -2)  # at every pixel, the edge's copies too
