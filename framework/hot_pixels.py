@@ -9,8 +9,9 @@ trajectory into the panorama.
 
 :func:`find_hot_pixels` finds them without a dark frame, from the capture itself. It
 reads ``segments`` short stretches spread over the capture, each as two halves, and takes
-every pixel's detection rate against the median of its 3x3 neighbourhood (the residual).
-A pixel is defective where
+every pixel's detection rate against the median of its 3x3 neighbourhood (the residual;
+on a colour-filtered sensor, against the luminance around it, times its colour's ratio to
+the luminance nearby for a pixel behind a filter). A pixel is defective where
 
 1. its residual over all stretches is more than ``sigmas`` standard deviations from zero
    (binomial noise of its neighbourhood's rate plus the scene's own spread of residuals, robustly
@@ -27,10 +28,11 @@ A pixel is defective where
    stretch's halves correlate with the last's less than half as well. In a still capture
    a defect and a sharp detail of the scene look alike, and none is flagged.
 
-:class:`Inpainter` replaces each flagged pixel's counts by the mean of its valid
-4-neighbours, rounded stochastically so that its expectation is exact and the counts stay
-integers (the SwissSPAD sources use it for their ``inpaint_mask`` too), and
-:class:`InpaintedSource` applies it to every frame range a stage reads.
+:class:`~photonpano.inpainting.Inpainter` replaces each flagged pixel's counts by the mean
+of its valid 4-neighbours, rounded stochastically so that its expectation is exact and the
+counts stay integers (the SwissSPAD sources use it for their ``inpaint_mask`` too), and
+:class:`~photonpano.inpainting.InpaintedSource` applies it to every frame range a stage
+reads (on a colour-filtered sensor, together with the sensor's own missing pixels).
 """
 
 from __future__ import annotations
@@ -107,10 +109,11 @@ def find_hot_pixels(source: PhotonSource, *, segments: int = 8, frames: int = 80
     """Find hot and dead pixels from a capture's photon counts (see the module doc).
 
     On a colour-filtered capture (a ``corrector`` with ``cfa`` codes, as the SwissSPAD
-    sources and ``simulate`` with ``cfa`` have) the raw counts are read and each pixel is
-    compared with the median of its :data:`COLOUR_NEIGHBOURS` nearest pixels behind the
-    same filter (or none); the sensor's own masked pixels (``corrector.hot``) are never
-    flagged.
+    sources and ``simulate`` with ``cfa`` have) the raw counts are read, so that defects
+    behind a filter are found too: an unfiltered pixel is compared with the luminance
+    around it, a filtered one with that luminance times its colour's ratio to the
+    luminance nearby (:data:`COLOUR_NEIGHBOURS`); the sensor's own masked pixels
+    (``corrector.hot``) are never flagged.
 
     Args:
         source: a binary capture (its ``sum_ranges``, or ``raw_sums`` and ``corrector``).
@@ -167,10 +170,10 @@ class _Layout:
     median over itself and its :data:`COLOUR_NEIGHBOURS` nearest unfiltered pixels (the
     luminance there), and one class per filter, each pixel referenced to the luminance
     there times the median ratio to the luminance over itself and its nearest same-filter
-    pixels (in flux: a colour's ratio to the luminance varies more slowly than either). The frame's
-    edge is replicated :data:`EDGE_PX` pixels out, so that a pixel on it is compared with
-    its own row as much as with the next (as the 3x3 median does). The sensor's own
-    masked pixels (``corrector.hot``) are in no class.
+    pixels (in flux: a colour's ratio to the luminance varies more slowly than either).
+    The frame's edge is replicated :data:`EDGE_PX` pixels out, so that a pixel on it is
+    compared with its own row as much as with the next (as the 3x3 median does). The
+    sensor's own masked pixels (``corrector.hot``) are in no class.
 
     Attributes:
         classes: (H, W) bool masks, one per class (the unfiltered pixels first).
