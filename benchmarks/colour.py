@@ -23,7 +23,8 @@ compositor (``drizzle``, noise-adaptive, at ``--scale``, default 1):
   colour plane interpolated to every frame pixel (normalised convolution with a tent of
   half-width 2 or 3 frame pixels), then merged with the estimated homographies.
 
-Columns: PSNR in dB per channel R/G/B against the true colour scene flux on the canvas
+The baselines read the capture as the run did (its hot and dead pixels found and left
+out, ``hot_pixels``). Columns: PSNR in dB per channel R/G/B against the true colour scene flux on the canvas
 (``psnr`` with a gain fit, ``scene_on_canvas``), all on the same pixels (observed by
 every method, eroded by 7 px); ``chroma``: :func:`~photonpano.metrics.chroma_edge_error`
 (mean |dCb|+|dCr| / 2 on the 10 % strongest luminance edges, in 8-bit codes). The last
@@ -35,6 +36,7 @@ Usage::
     python benchmarks/colour.py                 # all photos of benchmarks/photos
     python benchmarks/colour.py --scale 2       # super-resolved colour
     python benchmarks/colour.py --photos city_madison,foliage_dandelions --frames 40000 --flux 1
+    python benchmarks/colour.py --photos city_madison --set source.hot_pixel_fraction=0.01 [hot_pixels=off]
 """
 
 from __future__ import annotations
@@ -47,6 +49,7 @@ import cv2
 import numpy as np
 from photonpano.compose import compose
 from photonpano.host import PluginHost
+from photonpano.hot_pixels import with_hot_pixels_inpainted
 from photonpano.metrics import (
     canvas_from_scene_homography,
     chroma_edge_error,
@@ -106,7 +109,8 @@ def main() -> None:
         runs = {"plane drizzle": CfaChannels(make), "plane bilinear": CfaChannels(FluxCanvasConfig(scale=scale).build),
                 "frame-dm r2": FrameDemosaic(make, radius_px=2.0), "frame-dm r3": FrameDemosaic(make, radius_px=3.0)}
         panos = {"guided est-H": pano.colour}
-        panos.update({key: compose(source, est_h, comp, subbatch_px=sub, canvas_shape=shape).flux
+        read, _ = with_hot_pixels_inpainted(source, spec.hot_pixels)  # the capture as the run read it
+        panos.update({key: compose(read, est_h, comp, subbatch_px=sub, canvas_shape=shape).flux
                       for key, comp in runs.items()})
         scores = score(panos, truth)
         for key, (dbs, chroma) in scores.items():
