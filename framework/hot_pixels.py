@@ -43,11 +43,11 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from .inpainting import InpaintedSource, Inpainter
+from .inpainting import InpaintedSource
 from .stages import PhotonSource
 
-__all__ = ["HotPixels", "find_hot_pixels", "Inpainter", "InpaintedSource", "with_hot_pixels_inpainted",
-           "COLOUR_NEIGHBOURS", "MAX_CLUSTER", "OPPOSITE_SIGMAS", "STILL_SIGNIFICANCE"]
+__all__ = ["HotPixels", "find_hot_pixels", "with_hot_pixels_inpainted", "COLOUR_NEIGHBOURS", "MAX_CLUSTER",
+           "OPPOSITE_SIGMAS", "STILL_SIGNIFICANCE"]
 
 MAX_CLUSTER = 6
 """Most flagged pixels that may touch (8-connected) and still be taken for defects."""

@@ -221,7 +221,7 @@ def ground_truth_report(source, homographies: np.ndarray, pano, subbatch_px: flo
     *on the same canvas* by the same compositor; both are compared with the true scene
     flux resampled onto that canvas, so the PSNR gap measures only what the estimated
     motion costs. A capture whose hot pixels are known (the simulator's ``hot_pixel_mask``)
-    is composited here with them inpainted (:class:`~photonpano.hot_pixels.InpaintedSource`),
+    is composited here with them inpainted (:class:`~photonpano.inpainting.InpaintedSource`),
     as a run with ``hot_pixels: auto`` inpaints those it finds: the reference is then the
     best merge of those photons, not one streaked by the defects.
 
@@ -272,7 +272,7 @@ def ground_truth_report(source, homographies: np.ndarray, pano, subbatch_px: flo
 
     photons = source
     if getattr(source, "hot_pixel_mask", None) is not None:  # the sensor's known defects, as a run inpaints them
-        from .hot_pixels import InpaintedSource
+        from .inpainting import InpaintedSource
 
         photons = InpaintedSource(source, source.hot_pixel_mask)
     truths = [compose(photons, canvas_from_scene @ source.ground_truth, build(config), subbatch_px=subbatch_px,

@@ -236,7 +236,7 @@ def _run_into(spec: PipelineSpec, folder: RunFolder | None, host: PluginHost) ->
         plot = folder.write_with("trajectory.png", lambda path: plot_trajectory(path, homographies, pano.homographies,
                                                                                 source, error, sigma))
     if folder is not None and spec.outputs.video:
-        from .hot_pixels import InpaintedSource
+        from .inpainting import InpaintedSource
 
         _write_video(folder, source if hot_pixel_mask is None else InpaintedSource(source, hot_pixel_mask), pano,
                      summary, progress)

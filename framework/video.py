@@ -92,7 +92,7 @@ def open_run(folder: Path, *, source: bool = True) -> tuple[Any, Any]:
                               f"{len(h)}; the capture changed since the run")
     hot = folder / "hot_pixels.npy"
     if hot.is_file():  # the pixels the run inpainted, inpainted again
-        from .hot_pixels import InpaintedSource
+        from .inpainting import InpaintedSource
         from .npy_header import load_npy
 
         mask = load_npy(hot, "the run's hot pixels")

@@ -11,7 +11,7 @@
 2. Missing pixels: colour-filtered pixels (``cfa``) and hot/dead pixels
    (``inpaint_mask``), both in the coordinates after the fix, are replaced by the mean
    of their valid 4-neighbours (the nearest valid pixels if none is valid), rounded
-   stochastically (:class:`photonpano.hot_pixels.Inpainter`).
+   stochastically (:class:`photonpano.inpainting.Inpainter`).
 3. ``transforms``: rotations and flips in order (``rot90`` turns the image 90 degrees
    clockwise as displayed, like ``photoncube``'s ``Rot90``).
 """

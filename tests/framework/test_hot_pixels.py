@@ -8,7 +8,8 @@ The captures are simulated from the bundled photo (8 000 frames of 96x192, a pan
 import numpy as np
 import pytest
 from capture_helpers import reconstruct_simulated
-from photonpano.hot_pixels import HotPixels, InpaintedSource, Inpainter, find_hot_pixels, with_hot_pixels_inpainted
+from photonpano.hot_pixels import HotPixels, find_hot_pixels, with_hot_pixels_inpainted
+from photonpano.inpainting import InpaintedSource, Inpainter
 from photonpano.plugins.sources.simulate import SimulateConfig
 
 BASE = dict(frames=8000, height=96, width=192, flux=0.5, vibration_px=5.0, vibration_hz=30.0)
