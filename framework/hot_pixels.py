@@ -210,7 +210,7 @@ class _Layout:
             pool, points = np.flatnonzero(members), np.argwhere(of)
             tree = cKDTree(np.column_stack(np.unravel_index(pool, self.grid)))
             _, index = tree.query(points, k=COLOUR_NEIGHBOURS + 1)
-            return np.ravel_multi_index(points.T, self.grid), pool[index]
+            return np.asarray(np.ravel_multi_index(points.T, self.grid), np.int64), pool[index]
 
         self.luminance = nearest(padded == -1, padded > -2)  # at every pixel, the edge's copies too
         self.neighbours = [nearest(padded == code, (padded == code) & inner) for code in kept[1:]]
@@ -222,7 +222,8 @@ class _Layout:
         """
         if self.corrector is None:
             return np.asarray(self.source.sum_ranges(edges), np.float32)
-        return np.asarray(self.corrector.geometry(self.source.raw_sums(edges)), np.float32)
+        raw_sums: Any = getattr(self.source, "raw_sums")
+        return np.asarray(self.corrector.geometry(raw_sums(edges)), np.float32)
 
     def reference(self, rates: NDArray[np.float32]) -> NDArray[np.float32]:
         """Each pixel's reference rate, (..., H, W) float32 like ``rates``."""

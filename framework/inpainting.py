@@ -123,7 +123,7 @@ class InpaintedSource(PhotonSource):
 
     def __init__(self, source: PhotonSource, mask: NDArray[np.bool_]) -> None:
         self.source, self.mask = source, np.asarray(mask, bool)
-        corrector = getattr(source, "corrector", None)
+        corrector: Any = getattr(source, "corrector", None)
         self.inpainter: Inpainter | None = None
         if hasattr(corrector, "with_missing") and hasattr(source, "raw_sums"):  # sum_ranges: apply(raw_sums)
             self.corrector = corrector.with_missing(mask)
@@ -144,7 +144,8 @@ class InpaintedSource(PhotonSource):
         """The wrapped capture's counts (see :meth:`PhotonSource.sum_ranges`), defective pixels inpainted."""
         edges = np.asarray(edges, dtype=np.int64)
         if self.inpainter is None:
-            return self.corrector.apply(self.source.raw_sums(edges), edges)
+            raw_sums: Any = getattr(self.source, "raw_sums")
+            return self.corrector.apply(raw_sums(edges), edges)
         return self.inpainter.apply(np.asarray(self.source.sum_ranges(edges)), edges)
 
     def describe(self) -> dict[str, Any]:
