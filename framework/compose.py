@@ -245,19 +245,22 @@ class BilinearCompositor(Compositor):
         """The flux MLE per canvas pixel (see :meth:`Compositor.finish`); robust: the exposures that agree."""
         from .intensity import estimate_radiance
 
-        moving = None
+        moving = rejected = ranges = None
         if self.exposures > 1:
-            from .robust_merge import robust_combine, whole_period_frames
+            from .robust_merge import fed_ranges, keep_exposures, robust_rejection, whole_period_frames
 
             fed = [a for a in self._accs if a is not None]
-            sums, frames, moving = robust_combine(
-                np.stack([a.counts for a in fed]), np.stack([a.frames for a in fed]),
-                binary=getattr(self._source, "kind", "binary") == "binary", scale=self.scale,
-                exposure_frames=whole_period_frames(self.bounds, self._accs, self.period_frames))
+            counts, seen = np.stack([a.counts for a in fed]), np.stack([a.frames for a in fed])
+            binary = getattr(self._source, "kind", "binary") == "binary"
+            whole = whole_period_frames(self.bounds, self._accs, self.period_frames)
+            rejected = robust_rejection(counts, seen, binary=binary, scale=self.scale, exposure_frames=whole)
+            sums, frames, moving = keep_exposures(counts, seen, rejected)
+            ranges = fed_ranges(self.bounds, self._accs)
         else:
             sums, frames = self._acc.counts, self._acc.frames
         flux = estimate_radiance(self._source, sums, frames)
-        return Panorama(flux=flux, frames=frames, homographies=self._canvas.homographies, moving=moving)
+        return Panorama(flux=flux, frames=frames, homographies=self._canvas.homographies, moving=moving,
+                        rejected=rejected, exposure_ranges=ranges)
 
 
 def assemble_panorama(source: PhotonSource, homographies: NDArray[np.float64], *, scale: float = 1.0,

@@ -207,6 +207,10 @@ class Panorama:
         moving: (Hc, Wc) bool canvas pixels where a robust compositor left out the
             observations of some virtual exposures (a moving object; see
             :mod:`photonpano.robust_merge`); None from a compositor that merges every photon.
+        rejected: (K, Hc, Wc) bool which of the K virtual exposures fed the robust
+            ``flux-canvas`` left out at each canvas pixel (the mosaic levels' template:
+            where the mover was during each exposure); None from other compositors.
+        exposure_ranges: (K, 2) int64 first binary frame and end of those K exposures.
     """
 
     flux: NDArray[np.float32]
@@ -214,6 +218,8 @@ class Panorama:
     homographies: NDArray[np.float64]
     colour: NDArray[np.float32] | None = None
     moving: NDArray[np.bool_] | None = None
+    rejected: NDArray[np.bool_] | None = None
+    exposure_ranges: NDArray[np.int64] | None = None
 
 
 @dataclass(frozen=True)

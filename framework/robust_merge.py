@@ -45,8 +45,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 __all__ = ["DEFAULT_EXPOSURES", "TOLERANCE", "exposure_bounds", "exposure_index", "feed_exposures",
-           "join_exposures", "partly_seen", "whole_period_frames", "robust_combine", "robust_rejection",
-           "keep_exposures"]
+           "join_exposures", "fed_ranges", "left_out_in_frames", "partly_seen", "whole_period_frames",
+           "robust_combine", "robust_rejection", "keep_exposures"]
 
 TOLERANCE = 0.1
 """Smallest relative flux difference from the static scene that leaves an exposure out.
@@ -146,6 +146,55 @@ def whole_period_frames(bounds: NDArray[np.int64], accs: list[Any],
     if period_frames is None:
         return None
     return np.diff(bounds)[[k for k, acc in enumerate(accs) if acc is not None]]
+
+
+def fed_ranges(bounds: NDArray[np.int64], accs: list[Any]) -> NDArray[np.int64]:
+    """(K', 2) int64 first binary frame and end of each exposure fed (K' of the E ``accs``, in order).
+
+    Args:
+        bounds: (E + 1,) int64 :func:`exposure_bounds` of the capture.
+        accs: the E accumulators, None where an exposure got no frames.
+    """
+    fed = np.array([k for k, acc in enumerate(accs) if acc is not None], np.int64)
+    return np.stack([bounds[fed], bounds[fed + 1]], axis=1).astype(np.int64).reshape(-1, 2)
+
+
+def left_out_in_frames(rejected: NDArray[np.bool_], ranges: NDArray[np.int64], start: NDArray[np.int64],
+                       stop: NDArray[np.int64], to_canvas: NDArray[np.float64], shape: tuple[int, int],
+                       margin_px: int = 3) -> NDArray[np.bool_]:
+    """Where a robust merge left out the exposures of each group's frames, in the group's frame grid.
+
+    An exposure is left out where a mover was during its frames, so the exposures that
+    overlap a group's frames say where the mover was while the group was taken, even where
+    it barely stands out of the group's merged frame (a bright disc over a sun's glow):
+    the mosaic levels leave those pixels out of the group's registration
+    (:mod:`photonpano.schemes.mosaic`).
+
+    Args:
+        rejected: (K, Hc, Wc) bool exposures left out per canvas pixel (:attr:`photonpano.records.Panorama.rejected`).
+        ranges: (K, 2) int64 first binary frame and end of each exposure (:func:`fed_ranges`).
+        start: (G,) int64 first binary frame of each group.
+        stop: (G,) int64 end (exclusive) of each group.
+        to_canvas: (G, 3, 3) float64 each group's frame pixels to canvas pixels.
+        shape: ``(H, W)`` of the frame grid.
+        margin_px: dilation of what is left out, in frame pixels.
+
+    Returns:
+        (G, H, W) bool, True where group g's frames fall in an exposure left out there.
+    """
+    import cv2
+
+    h, w = shape
+    out = np.zeros((len(start), h, w), bool)
+    kernel = np.ones((2 * margin_px + 1, 2 * margin_px + 1), np.uint8)
+    for g in range(len(start)):
+        overlapping = (ranges[:, 0] < stop[g]) & (ranges[:, 1] > start[g])
+        canvas = rejected[overlapping].any(axis=0)
+        if canvas.any():
+            frame = cv2.warpPerspective(canvas.astype(np.uint8), to_canvas[g], (w, h),
+                                        flags=cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP)
+            out[g] = cv2.dilate(frame, kernel) > 0
+    return out
 
 
 def join_exposures(mine: list[Any], theirs: list[Any], add: Callable[[Any, Any], None]) -> None:

@@ -26,14 +26,16 @@ locator and returns what it found), so the windows can run on threads or process
 A scene is rarely static: with ``reject_movers`` (spec ``mosaic.reject_movers``), pixels
 of a merged frame that disagree with the panorama view by more than that many robust
 standard deviations (a passing object, or the ghost of one that the previous estimate's
-panorama still holds) are left out of its registration and its held-out cross-check, and
-the template is composited robustly (:mod:`photonpano.robust_merge`), so a mover never
-enters it (:func:`mask_disagreement`; the robustness term of burst merging: Hasinoff et
-al., "Burst photography for high dynamic range and low-light imaging on mobile cameras",
-SIGGRAPH Asia 2016, Sec. 5, and Wronski et al., "Handheld multi-frame super-resolution",
-SIGGRAPH 2019, Sec. 5). The disagreement test also untrusts the regions of a static
-scene that the current estimate misregisters, so by default (``detect_movers``) it
-engages only where a mover is found: the first mosaic level composites its template
+panorama still holds) are left out of its registration and its held-out cross-check
+(:func:`mask_disagreement`; the robustness term of burst merging: Hasinoff et al., "Burst
+photography for high dynamic range and low-light imaging on mobile cameras", SIGGRAPH
+Asia 2016, Sec. 5, and Wronski et al., "Handheld multi-frame super-resolution", SIGGRAPH
+2019, Sec. 5), and so is where the robust template (:mod:`photonpano.robust_merge`: a
+mover never enters it) left out the exposures its frames fall in
+(:func:`~photonpano.robust_merge.left_out_in_frames`: the mover meanwhile, even where it
+barely stands out of the merged frame). The disagreement test also untrusts the regions
+of a static scene that the current estimate misregisters, so by default (``detect_movers``)
+it engages only where a mover is found: the first mosaic level composites its template
 robustly and, if the robust merge left out exposures over one connected region of at
 least :data:`MOVERS_MIN_FRACTION` of the covered canvas (:func:`moving_fraction`: a
 mover's path is one region, a slightly misregistered estimate leaves many small ones),
@@ -63,6 +65,7 @@ from ..information import homography_information
 from ..locator import Locator, LocatorContext
 from ..long_pairs import long_baseline_chains
 from ..records import LocateResult, MergedFrames, PairRegistrations, Panorama
+from ..robust_merge import left_out_in_frames
 from ..stages import Compositor
 from ..views import panorama_views
 from ..watchdog import watched
@@ -70,8 +73,7 @@ from .base import LevelScheme, LevelTask
 from .holdout import HoldoutTemplate
 from .template_bias import correct_template_bias
 
-__all__ = ["MOVERS_MIN_FRACTION", "MOVERS_SIGMAS", "MosaicScheme", "mask_disagreement",
-           "moving_fraction"]
+__all__ = ["MOVERS_MIN_FRACTION", "MOVERS_SIGMAS", "MosaicScheme", "mask_disagreement", "moving_fraction"]
 
 MOVERS_SIGMAS = 5.0
 """The disagreement threshold of ``reject_movers: auto``, in robust standard deviations."""
@@ -217,6 +219,10 @@ class MosaicScheme(LevelScheme):
                                        binary_exposure(source))
             if reject is not None:
                 merged = mask_disagreement(merged, views, reject)
+                if isinstance(template, Panorama) and template.rejected is not None:  # the mover meanwhile
+                    merged = dataclasses.replace(merged, masks=merged.masks & ~left_out_in_frames(
+                        template.rejected, template.exposure_ranges, groups.start[index], groups.stop[index],
+                        to_canvas[index], merged.masks.shape[-2:]))
             return merged, views, merge_s
 
         @pure_task
@@ -294,18 +300,13 @@ class MosaicScheme(LevelScheme):
 
 
 def _noise_even(flux: NDArray[np.float32], exposure_s: float | None) -> NDArray[np.float32]:
-    """Merged-frame flux on a scale where its noise is about the same everywhere (what the locators register).
-
-    Stabilised detections for binary frames (:func:`~photonpano.binomial.stabilised_detections`,
-    ``exposure_s`` their exposure in seconds), the flux as is for intensity frames (None).
-    """
+    """Flux on the scale the locators register, its noise about even: stabilised detections (None: as is)."""
     return flux if exposure_s is None else stabilised_detections(flux, exposure_s)
 
 
 def _fractions(pano: Panorama | None) -> dict[str, float | None]:
     """``template_fraction`` and ``largest_region`` of :func:`moving_fraction` (None each without a mask)."""
-    found = moving_fraction(pano) if pano is not None else None
-    total, largest = (None, None) if found is None else found
+    total, largest = (moving_fraction(pano) if pano is not None else None) or (None, None)
     return {"template_fraction": total, "largest_region": largest}
 
 
@@ -349,9 +350,7 @@ def mask_disagreement(merged: MergedFrames, views: MergedFrames, sigmas: float =
     path over a group's frames, and the faint ends of the smear still pull a registration.
     A margin of ``margin_px`` is untrusted around it. On flux, whose noise grows with it,
     the test untrusted the bright regions of static high-contrast scenes, and a growth
-    there floods them. Measured on a disc crossing sixteen photos (docs/real_scenes.md):
-    the outdoor camera 0.096 -> 0.040 px, the Hubble field 0.053 -> 0.028 px, the sunset
-    0.278 px `ok` -> 0.125 px `degraded`.
+    there floods them (measured in docs/real_scenes.md).
 
     Args:
         merged: G merged frames (flux in photons/s, NaN where unobserved).
