@@ -204,6 +204,8 @@ class MosaicScheme(LevelScheme):
             template.prepare(groups.start, groups.stop)
         reject = self.reject_movers if movers is not None and movers["engaged"] else None
         to_canvas = template.homographies[groups.reference]
+        robust = template if isinstance(template, Panorama) else None  # its exposures left out: the mover's path
+        rejected, ranges = (None, None) if robust is None else (robust.rejected, robust.exposure_ranges)
 
         def prepare(index: NDArray[np.int64]) -> tuple[MergedFrames, MergedFrames, float]:
             """The groups' merged frames (movers left out), their panorama views and the merge's seconds."""
@@ -219,10 +221,10 @@ class MosaicScheme(LevelScheme):
                                        binary_exposure(source))
             if reject is not None:
                 merged = mask_disagreement(merged, views, reject)
-                if isinstance(template, Panorama) and template.rejected is not None:  # the mover meanwhile
+                if rejected is not None and ranges is not None:  # the mover meanwhile
                     merged = dataclasses.replace(merged, masks=merged.masks & ~left_out_in_frames(
-                        template.rejected, template.exposure_ranges, groups.start[index], groups.stop[index],
-                        to_canvas[index], merged.masks.shape[-2:]))
+                        rejected, ranges, groups.start[index], groups.stop[index], to_canvas[index],
+                        merged.masks.shape[-2:]))
             return merged, views, merge_s
 
         @pure_task
