@@ -96,8 +96,18 @@ def test_the_colour_panorama_leaves_the_defects_found_out():
         scores[name] = np.mean([psnr(rgb[..., c], truth[..., c], seen) for c in range(3)])
     assert scores["found"] > scores["clean"] - 0.5 and scores["raw"] < scores["clean"] - 8, scores
     # the luminance, with the filtered pixels and the defects inpainted in one pass
-    edges = np.array([0, 4000])
+    edges = np.array([0, 2000, 4000])
     assert abs(float(wrapped.sum_ranges(edges).mean()) / float(clean.sum_ranges(edges).mean()) - 1) < 0.01
+    # the panorama stage's colour compositor reads the counts every other stage reads, and the raw ones
+    from photonpano.plugins.compositors.colour import ColourPanorama
+    from photonpano.plugins.compositors.drizzle import DrizzleConfig
+    from photonpano.records import Canvas
+
+    stage = ColourPanorama(DrizzleConfig().build)
+    stage.prepare(Canvas(shape[0], shape[1], to_canvas), wrapped)
+    both = stage.read(wrapped, edges)
+    np.testing.assert_array_equal(both[0], wrapped.sum_ranges(edges))
+    np.testing.assert_array_equal(both[1], hot.raw_sums(edges))
 
 
 @pytest.mark.parametrize("settings", [{}, {"flux": 0.005}, {"mover_radius_px": 20.0, "mover_speed_px_per_frame": 0.08},
