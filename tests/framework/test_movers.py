@@ -363,7 +363,7 @@ def test_a_disc_crossing_a_suns_glow_is_left_out_where_the_robust_template_saw_i
     """The sunset with the disc (radius 30 px, 0.08 px/frame, 20 000 frames): 0.079 px, `ok`.
 
     Over the sun's glow the disc barely stands out of a merged frame, and the
-    disagreement test left its faint side in: 0.123 px, `degraded` (1 px while it crossed
+    disagreement test left its faint side in: 0.123 px, `degraded` (0.3 px while it crossed
     the glow). The robust template's exposures left out say where it was during each
     group's frames (docs/real_scenes.md).
     """
