@@ -60,7 +60,7 @@ COLOUR_NEIGHBOURS = 8
 """A pixel of a colour-filtered capture is compared with the median over itself and this
 many nearest pixels behind the same filter, or none, as the 3x3 median of a monochrome
 one holds the pixel and its 8 neighbours (on the SwissSPAD2 colour layout: unfiltered
-pixels within 2 px, filtered ones within 4-6 px)."""
+pixels within 2 px, filtered ones within 4-6 px). Even: the median is then one of them."""
 
 EDGE_PX = 3
 """A colour-filtered capture's frame is extended by replicating its edge this many pixels
@@ -145,8 +145,8 @@ def find_hot_pixels(source: PhotonSource, *, segments: int = 8, frames: int = 80
     # a defect never stands significantly on the other side of its neighbourhood: a pixel of
     # the scene does as the camera carries other detail over it (a stuck-low pixel's
     # residual only falls to noise where the scene there is as dark as it)
-    standing = np.stack([np.sign(total) * stretch[k]
-                         / layout.noise(layout.reference(rates[k].mean(axis=0)), stretch[k], 2 * half)
+    levels = layout.reference(rates.mean(axis=1))  # (segments, H, W)
+    standing = np.stack([np.sign(total) * stretch[k] / layout.noise(levels[k], stretch[k], 2 * half)
                          for k in range(segments)])  # (segments, H, W) standard deviations on the residual's side
     persistent = (outlier & ~(standing < -OPPOSITE_SIGMAS).any(axis=0)
                   & ((standing > OPPOSITE_SIGMAS).sum(axis=0) >= segments / 2))
@@ -236,14 +236,14 @@ class _Layout:
         rate = np.pad(images, ((0, 0), (edge, edge), (edge, edge)), mode="edge").reshape(len(images), -1)
         pixels, unfiltered = self.luminance
         luminance = np.zeros_like(rate)
-        luminance[:, pixels] = np.median(rate[:, unfiltered], axis=-1)
+        luminance[:, pixels] = _middle(rate[:, unfiltered])
         reference = luminance.copy()  # the unfiltered pixels'
         # a filtered pixel: the luminance there times its colour's ratio to the luminance
         # nearby, in flux (photons per frame), where the ratio is a constant
         flux = -np.log1p(-np.clip(rate, 0, MAX_RATE))
         luminance_flux = -np.log1p(-np.clip(luminance, 0, MAX_RATE))
         for members, nearest in self.neighbours:
-            ratio = np.median((flux[:, nearest] + FLUX_FLOOR) / (luminance_flux[:, nearest] + FLUX_FLOOR), axis=-1)
+            ratio = _middle((flux[:, nearest] + FLUX_FLOOR) / (luminance_flux[:, nearest] + FLUX_FLOOR))
             reference[:, members] = -np.expm1(-luminance_flux[:, members] * ratio)
         reference = reference.reshape(len(images), *self.grid)[:, edge:-edge, edge:-edge]
         return np.ascontiguousarray(reference).reshape(rates.shape)
@@ -261,6 +261,12 @@ class _Layout:
             mad = 1.4826 * float(np.median(np.abs(values - np.median(values)))) if len(values) else 0.0
             spread = mad if len(self.classes) == 1 else np.where(members, mad, spread)
         return np.sqrt(level * (1 - level) / frames + spread ** 2)
+
+
+def _middle(values: NDArray[np.float32]) -> NDArray[np.float32]:
+    """The median along the last axis of an odd number of values (``np.median``'s, at a third of its cost)."""
+    middle = values.shape[-1] // 2
+    return np.partition(values, middle, axis=-1)[..., middle]
 
 
 def _scene_moved(residual: NDArray[np.float32], keep: NDArray[np.bool_]) -> bool:
