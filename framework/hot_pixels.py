@@ -263,7 +263,7 @@ class _Layout:
         return np.sqrt(level * (1 - level) / frames + spread ** 2)
 
 
-def _middle(values: NDArray[np.float32]) -> NDArray[np.float32]:
+def _middle(values: NDArray[np.floating]) -> NDArray[np.floating]:
     """The median along the last axis of an odd number of values (``np.median``'s, at a third of its cost)."""
     middle = values.shape[-1] // 2
     return np.partition(values, middle, axis=-1)[..., middle]
