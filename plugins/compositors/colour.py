@@ -28,7 +28,9 @@ inpainted counts and :class:`LumaGuided` on the raw ones, from one read of the c
 Registration never sees the colour (``sum_ranges`` inpaints the filtered pixels from their
 unfiltered neighbours); these compositors read the raw counts with :meth:`read`
 (``source.raw_sums``, geometry fixed by ``source.corrector.geometry``): the SwissSPAD
-sources (``npy-cube``, ``swissspad-bin``) and ``simulate``, with ``cfa`` set.
+sources (``npy-cube``, ``swissspad-bin``) and ``simulate``, with ``cfa`` set. Every plane
+leaves out the corrector's ``hot`` pixels, which in a run hold the hot and dead pixels
+found in the capture too (:class:`~photonpano.inpainting.InpaintedSource`).
 """
 
 from __future__ import annotations
