@@ -49,7 +49,7 @@ import cv2
 import numpy as np
 from photonpano.compose import compose
 from photonpano.host import PluginHost
-from photonpano.hot_pixels import with_hot_pixels_inpainted
+from photonpano.inpainting import InpaintedSource
 from photonpano.metrics import (
     canvas_from_scene_homography,
     chroma_edge_error,
@@ -98,7 +98,8 @@ def main() -> None:
         spec = validate_spec(apply_overrides(data, args.overrides), host, origin=name)
         source = spec.source.build()
         t0 = time.perf_counter()
-        homographies, _, pano, _ = reconstruct(spec, source)
+        report: dict = {}
+        homographies, _, pano, _ = reconstruct(spec, source, report=report)
         seconds = time.perf_counter() - t0
         err = source_trajectory_error(homographies, source)
         canvas_from_scene = canvas_from_scene_homography(homographies, pano.homographies, err)
@@ -109,7 +110,8 @@ def main() -> None:
         runs = {"plane drizzle": CfaChannels(make), "plane bilinear": CfaChannels(FluxCanvasConfig(scale=scale).build),
                 "frame-dm r2": FrameDemosaic(make, radius_px=2.0), "frame-dm r3": FrameDemosaic(make, radius_px=3.0)}
         panos = {"guided est-H": pano.colour}
-        read, _ = with_hot_pixels_inpainted(source, spec.hot_pixels)  # the capture as the run read it
+        hot = report["hot_pixel_mask"]  # the capture as the run read it
+        read = source if hot is None else InpaintedSource(source, hot)
         panos.update({key: compose(read, est_h, comp, subbatch_px=sub, canvas_shape=shape).flux
                       for key, comp in runs.items()})
         scores = score(panos, truth)
