@@ -129,17 +129,8 @@ class CubicLKInterpolator(Interpolator):
         """Least-squares cubic B-spline whose mean over each group equals its keyframe."""
         from scipy.interpolate import BSpline
 
-        lengths = (groups.stop - groups.start).astype(np.float64)
-        spacing = float(np.median(np.diff(groups.reference))) if len(groups) > 1 else float(n_frames)
-        step = max(spacing, float(np.median(lengths)) / 2, 1.0)
-        count = max(int(np.ceil(n_frames / step)), 1)
-        inner = np.linspace(-0.5, n_frames - 0.5, count + 1)  # frame t covers [t-0.5, t+0.5]
-        d = inner[1] - inner[0]
-        knots = np.concatenate([inner[0] - d * np.arange(3, 0, -1), inner, inner[-1] + d * np.arange(1, 4)])
-        n_basis = len(knots) - 4
-        integral = BSpline(knots, np.eye(n_basis), 3).antiderivative()
-        lo, hi = groups.start - 0.5, groups.stop - 0.5
-        design = _Design((integral(hi) - integral(lo)) / lengths[:, None])  # group means of the basis
+        knots, design = exposure_design(groups, n_frames)
+        n_basis = design.n_basis
         shape: float | NDArray[np.float64]
         if self.config.shape_smoothness == "auto":
             folds = _folds(groups)
@@ -152,6 +143,42 @@ class CubicLKInterpolator(Interpolator):
             coef[:, columns] = _huber_fit(design, params[:, columns], weights, self.config.outlier_threshold,
                                           NOISE_FLOOR[columns])
         return BSpline(knots, coef, 3)(np.arange(n_frames, dtype=np.float64))
+
+
+def exposure_design(groups: Groups, n_frames: int) -> tuple[NDArray[np.float64], "_Design"]:
+    """The cubic B-spline basis of an exposure-average fit and its (banded) group-mean design.
+
+    Knots are uniform over ``[-0.5, n_frames - 0.5]`` (frame ``t`` covers ``[t - 0.5, t + 0.5]``),
+    one per ``max(median reference spacing, median group length / 2, 1)`` frames. Row ``g`` of
+    the design is the mean of each basis function over group ``g``'s frames.
+
+    Args:
+        groups: the level's groups (``start``, ``stop``, ``reference`` in frames).
+        n_frames: frames in the capture.
+
+    Returns:
+        ``(knots, design)``: (K + 4,) float64 knots in frames and the (G, K) :class:`_Design`.
+        Basis function ``j`` is zero outside ``[knots[j], knots[j + 4]]``, so its mean over a
+        group that misses that interval is exactly 0 (not the rounding of two equal
+        integrals, which spread every row over the whole basis: a level of 235 groups and
+        121 basis functions then had a band of 121, its normal equations took 20 ms instead of
+        0.03, and a 20 000-frame run spent a second in them).
+    """
+    from scipy.interpolate import BSpline
+
+    lengths = (groups.stop - groups.start).astype(np.float64)
+    spacing = float(np.median(np.diff(groups.reference))) if len(groups) > 1 else float(n_frames)
+    step = max(spacing, float(np.median(lengths)) / 2, 1.0)
+    count = max(int(np.ceil(n_frames / step)), 1)
+    inner = np.linspace(-0.5, n_frames - 0.5, count + 1)
+    d = inner[1] - inner[0]
+    knots = np.concatenate([inner[0] - d * np.arange(3, 0, -1), inner, inner[-1] + d * np.arange(1, 4)])
+    n_basis = len(knots) - 4
+    integral = BSpline(knots, np.eye(n_basis), 3).antiderivative()
+    lo, hi = groups.start - 0.5, groups.stop - 0.5
+    means = (integral(hi) - integral(lo)) / lengths[:, None]
+    means[(hi[:, None] <= knots[None, :n_basis]) | (lo[:, None] >= knots[None, 4:])] = 0.0
+    return knots, _Design(means)
 
 
 class _Design:

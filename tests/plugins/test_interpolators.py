@@ -123,3 +123,22 @@ def test_keyframes_whose_shape_a_passing_object_pulled_do_not_bend_their_neighbo
 
     robust, plain = error_near_the_pull(CubicLKConfig()), error_near_the_pull(CubicLKConfig(outlier_threshold=None))
     assert robust < 0.6 * plain, (robust, plain)  # measured: 0.50 against 0.99 px
+
+
+def test_the_exposure_design_is_banded_and_holds_the_group_means_of_the_basis():
+    """Each row is zero outside the basis functions its group meets: a band of at most 8 for overlapping
+    groups over 20 000 frames (the rounding of two equal integrals had spread every row over all 121), and
+    the group means of the basis inside it."""
+    from photonpano.plugins.interpolators.cubic_lk import exposure_design
+    from scipy.interpolate import BSpline
+
+    n, m = 20_000, 340
+    refs = np.arange(m // 2, n - m // 2, m // 4)  # a third level's overlapping groups
+    groups = Groups(start=refs - m // 2, stop=refs - m // 2 + m, reference=refs)
+    knots, design = exposure_design(groups, n)
+    assert design.n_basis > 100 and design.width <= 8
+    dense = np.zeros((len(groups), design.n_basis))
+    np.put_along_axis(dense, design.first[:, None] + np.arange(design.width), design.values, axis=1)
+    integral = BSpline(knots, np.eye(design.n_basis), 3).antiderivative()
+    means = (integral(groups.stop - 0.5) - integral(groups.start - 0.5)) / m
+    np.testing.assert_allclose(dense, means, rtol=0, atol=1e-12)
