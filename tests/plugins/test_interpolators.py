@@ -126,9 +126,11 @@ def test_keyframes_whose_shape_a_passing_object_pulled_do_not_bend_their_neighbo
 
 
 def test_the_exposure_design_is_banded_and_holds_the_group_means_of_the_basis():
-    """Each row is zero outside the basis functions its group meets: a band of at most 8 for overlapping
-    groups over 20 000 frames (the rounding of two equal integrals had spread every row over all 121), and
-    the group means of the basis inside it."""
+    """Each row is zero outside the basis functions its group meets, and the group means of the basis inside.
+
+    Overlapping groups over 20 000 frames give a band of at most 8 (the rounding of two equal integrals
+    had spread every row over all 121 basis functions).
+    """
     from photonpano.plugins.interpolators.cubic_lk import exposure_design
     from scipy.interpolate import BSpline
 
