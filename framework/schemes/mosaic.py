@@ -302,7 +302,7 @@ class MosaicScheme(LevelScheme):
 
 
 def _noise_even(flux: NDArray[np.float32], exposure_s: float | None) -> NDArray[np.float32]:
-    """Flux on the scale the locators register, its noise about even: stabilised detections (None: as is)."""
+    """Flux (photons/s) as the locators register it: stabilised for binary frames of ``exposure_s`` s; None: as is."""
     return flux if exposure_s is None else stabilised_detections(flux, exposure_s)
 
 
