@@ -103,8 +103,7 @@ class MosaicScheme(LevelScheme):
 
     Args:
         make_locator: builds a locator (called once per window of groups).
-        make_compositor: builds the compositor of the template (e.g. ``flux-canvas``'s
-            config ``build``).
+        make_compositor: builds the template's compositor (e.g. ``flux-canvas``'s config ``build``).
         subbatch_px: sub-batch tolerance of that template, in canvas pixels.
         window: groups merged and registered per task.
         reject_movers: robust standard deviations beyond which pixels disagreeing with
@@ -138,7 +137,7 @@ class MosaicScheme(LevelScheme):
         self.reject_movers = reject_movers
         self.make_locator = make_locator
         self.make_compositor = make_compositor
-        self.make_robust = make_robust
+        self.make_robust = make_robust or make_compositor
         self.detect_movers = detect_movers
         self.subbatch_px = subbatch_px
         self.window = window
@@ -147,9 +146,9 @@ class MosaicScheme(LevelScheme):
     def template(self, task: LevelTask) -> tuple[Panorama | HoldoutTemplate, dict[str, Any] | None]:
         """The panorama the task's merged frames are registered against, and the level's mover record.
 
-        Every binary frame at its current estimate, composited in this process, not on
-        the run's executor: from binned photons with bilinear warps it is cheap, and a
-        Dask executor would ship the capture to its workers for it. Robust where mover
+        Every binary frame at its current estimate, composited in this process: on the
+        run's threads, serially with a Dask executor (which would ship the capture to its
+        workers for it); the same template either way. Robust where mover
         rejection is on; with ``detect_movers`` the first call for a capture decides
         that for the later ones (see the module).
 
@@ -159,30 +158,31 @@ class MosaicScheme(LevelScheme):
             :attr:`~photonpano.records.LocateResult.movers` (``engaged``, ``detected``,
             ``template_fraction``, ``largest_region``), None with ``reject_movers`` off.
         """
-        def build(make: Callable[[], Compositor]) -> Panorama:
-            return compose(task.source, task.homographies, make(), subbatch_px=self.subbatch_px)
+        executor = task.executor if task.executor.in_process else None
+
+        def build(compositor: Compositor) -> Panorama:
+            return compose(task.source, task.homographies, compositor, subbatch_px=self.subbatch_px, executor=executor)
 
         def plain() -> Panorama | HoldoutTemplate:
             compositor = self.make_compositor()
             if self.holdout < 2 or type(compositor) is not BilinearCompositor:
-                return compose(task.source, task.homographies, compositor, subbatch_px=self.subbatch_px)
+                return build(compositor)
             runs = BilinearCompositor(compositor.scale, self.holdout)
-            compose(task.source, task.homographies, runs, subbatch_px=self.subbatch_px)
+            build(runs)
             return HoldoutTemplate(runs, task.source)
 
         if self.reject_movers is None:
             return plain(), None
-        robust = self.make_robust or self.make_compositor
         if not self.detect_movers:
-            pano = build(robust)
+            pano = build(self.make_robust())
             return pano, {"engaged": True, "detected": None, **_fractions(pano)}
         key = (id(task.source), task.source.n_frames)
         if key in self._engaged:  # decided at the first mosaic level
             if not self._engaged[key]:
                 return plain(), {"engaged": False, "detected": False, **_fractions(None)}
-            pano = build(robust)
+            pano = build(self.make_robust())
             return pano, {"engaged": True, "detected": False, **_fractions(pano)}
-        pano = build(robust)
+        pano = build(self.make_robust())
         found = _fractions(pano)
         engaged = self._engaged[key] = bool(found["largest_region"] is not None
                                             and found["largest_region"] >= MOVERS_MIN_FRACTION)
