@@ -118,7 +118,10 @@ class Stages:
         self.resampler, self.merger = spec.resampler.build(), spec.merger.build()
         reject = MOVERS_SIGMAS if spec.mosaic.reject_movers == "auto" else spec.mosaic.reject_movers
         self.interpolator = spec.interpolator.build()
-        built = {"pairwise": PairwiseScheme(self.locator, tuple(spec.pair_offsets), check),
+        advice = "" if check is not None or budget.plan.auto else (
+            f" (group_size {budget.group_size} is set in the spec, so the pairs were not checked on binned "
+            "frames; with group_size: auto they are, and those the locator cannot register are registered again)")
+        built = {"pairwise": PairwiseScheme(self.locator, tuple(spec.pair_offsets), check, advice),
                  "mosaic": MosaicScheme(in_merged_pixels(spec.mosaic.locator, budget.mosaic_binning).build,
                                         _told_of_flicker(spec.mosaic.template.build, flicker),
                                         subbatch_px=spec.mosaic.subbatch_px, reject_movers=reject,

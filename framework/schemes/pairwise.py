@@ -244,16 +244,19 @@ class PairwiseScheme(LevelScheme):
         check: the binned check of every registration (:class:`~photonpano.schemes.check.PairCheck`;
             the photon budget's ``check_binning``), or None; its figures are the
             result's :attr:`~photonpano.records.LocateResult.check`.
+        advice: appended to the error of a level at which no pair registered (what the
+            user can change, e.g. that an explicit group size left the check off).
     """
 
     name = "pairwise"
 
-    def __init__(self, locator: Locator, pair_offsets: tuple[int, ...] = (1,), check: PairCheck | None = None
-                 ) -> None:
+    def __init__(self, locator: Locator, pair_offsets: tuple[int, ...] = (1,), check: PairCheck | None = None,
+                 advice: str = "") -> None:
         """Create the scheme around a built locator."""
         self.locator = locator
         self.pair_offsets = tuple(pair_offsets)
         self.check = check
+        self.advice = advice
 
     def locate(self, task: LevelTask) -> LocateResult:
         """Stream-merge the groups, register pairs, solve (see :func:`locate_keyframes`)."""
@@ -279,7 +282,8 @@ class PairwiseScheme(LevelScheme):
                 merge_ahead=task.executor.in_process and task.executor.workers > 1, check=check,
                 context=LocatorContext(executor=task.executor))
         except StageError as err:
-            raise StageError("locator", type(self.locator).__name__, f"level {task.level}: {err.reason}") from None
+            raise StageError("locator", type(self.locator).__name__,
+                             f"level {task.level}: {err.reason}{self.advice}") from None
         finally:
             self.locator.end_level()
         return LocateResult(keyframes, pairs, pair_index, merged=MergedFrames.concat(*kept) if kept else None,

@@ -304,3 +304,20 @@ def test_group_size_samples_a_vibration_three_times_per_period():
     assert shaken.binning >= free.binning  # binning makes up the photons the shorter groups lose
     slow = choose_group_size(CaptureProbe(0.2, 0.01, vibration_period_frames=3333.0, vibration_px=5.0), 20_000)
     assert slow.group_size == 500 and "vibration" not in slow.reason  # 6.7 groups per period already
+
+
+def test_when_no_pair_registers_with_an_explicit_group_size_the_error_says_auto_would_check_them(tmp_path):
+    """A plain wall defeats SIFT: with m set in the spec the error names it and what ``auto`` does instead."""
+    import cv2
+    import photonpano
+    from photonpano.errors import StageError
+
+    photo = tmp_path / "wall.png"
+    cv2.imwrite(str(photo), np.full((200, 300), 128, np.uint8))
+    spec = {"source": {"plugin": "simulate", "photo": str(photo), "frames": 1200, "height": 64, "width": 96},
+            "outputs": {"trajectory_plot": False, "report": False}}
+    with pytest.raises(StageError, match=r"level 1: all \d+ pairs .* \(group_size 100 is set in the spec, so the "
+                                         r"pairs were not checked .*with group_size: auto they are"):
+        photonpano.run({**spec, "group_size": 100}, progress=False)
+    with pytest.raises(StageError, match=r"level 1: all \d+ pairs of merged frames failed to register$"):
+        photonpano.run(spec, progress=False)  # checked, and still nothing to register: no advice
