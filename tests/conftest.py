@@ -18,6 +18,27 @@ def _one_thread():
     cv2.setNumThreads(1)
 
 
+@pytest.fixture(autouse=True, scope="session")
+def _temporary_files_in_pytests_folder(tmp_path_factory):
+    """Send what the code under test writes to the temporary folder into pytest's own (cleaned by pytest).
+
+    A plugin failure's traceback file (:func:`photonpano.faults.plugin_failure`) and Dask's
+    scratch space otherwise stay in the system's ``/tmp`` after every run of the suite;
+    ``TMPDIR`` carries the folder to the processes the tests start.
+    """
+    import tempfile
+
+    folder = str(tmp_path_factory.mktemp("tmp"))
+    before, tempdir = os.environ.get("TMPDIR"), tempfile.tempdir
+    os.environ["TMPDIR"], tempfile.tempdir = folder, folder
+    yield
+    tempfile.tempdir = tempdir
+    if before is None:
+        os.environ.pop("TMPDIR", None)
+    else:
+        os.environ["TMPDIR"] = before
+
+
 @pytest.fixture
 def host():
     """A plugin host with every installed plugin (built-ins come through entry points)."""
