@@ -21,7 +21,9 @@ cached bit-packed cube through the memory-mapped ``npy-cube`` source, and prints
 - the floor: one pass over the memory-mapped cube from the page cache that unpacks and
   sums every bit, in blocks of 2 000 frames (``np.unpackbits(block, axis=-1).sum(0,
   dtype=np.uint32)``, measured in the same process), and the ratio pipeline / floor;
-- the trajectory RMSE against ground truth.
+- the trajectory RMSE against ground truth;
+- with ``--timeline``, the run's CPU use every 0.25 s and the stage the main thread was in
+  (:class:`Timeline`): where the pipeline runs on one core of two.
 
 Usage::
 
@@ -32,11 +34,13 @@ Usage::
     python benchmarks/performance.py --scene highcontrast_hubble   # any suite photo, by its stem
     python benchmarks/performance.py --scaling        # 12.5k, 25k, 50k, 100k, 200k frames
     python benchmarks/performance.py --set locator.max_features=2000   # spec overrides
+    python benchmarks/performance.py --path zigzag --scene texture_gravel --timeline  # where the time goes
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import resource
 import subprocess
@@ -126,8 +130,69 @@ def _peak_memory_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 
 
-def run_once(frames: int, overrides: list[str] = (), camera: str = "pan", scene: str = "office") -> dict:
-    """Reconstruct the cached capture in this process and return the measurements."""
+class Timeline:
+    """This process's CPU use and the main thread's stage, sampled every ``step_s`` seconds (a context manager).
+
+    The stage is the main thread's outermost photonpano calls below ``reconstruct`` (the
+    executor's own frames left out): while it waits for the workers, the call that
+    handed them the work. Stretches where the process uses one core of two are the
+    pipeline's serial parts.
+    """
+
+    def __init__(self, step_s: float = 0.05) -> None:
+        import threading
+
+        self.step_s, self.samples = step_s, []  # (seconds since start, cores used since the last sample, stage)
+        self._main, self._stop = threading.main_thread().ident, threading.Event()
+        self._thread = threading.Thread(target=self._sample, name="timeline", daemon=True)
+
+    def __enter__(self) -> Timeline:
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._stop.set()
+        self._thread.join()
+
+    def _stage(self) -> str:
+        names, frame = [], sys._current_frames().get(self._main)
+        while frame is not None:
+            module = frame.f_globals.get("__name__", "")
+            if module.startswith("photonpano") and module != "photonpano.executor":
+                names.append(frame.f_code.co_qualname)
+            frame = frame.f_back
+        names.reverse()
+        start = names.index("reconstruct") + 1 if "reconstruct" in names else 0
+        return " > ".join(names[start:start + 4])
+
+    def _sample(self) -> None:
+        import os
+
+        t0 = last_t = time.perf_counter()
+        last_cpu = sum(os.times()[:2])
+        while not self._stop.wait(self.step_s):
+            now, cpu = time.perf_counter(), sum(os.times()[:2])
+            self.samples.append((now - t0, (cpu - last_cpu) / (now - last_t), self._stage()))
+            last_t, last_cpu = now, cpu
+
+    def table(self, bucket_s: float = 0.25) -> list[str]:
+        """One line per ``bucket_s`` seconds: its start, the mean cores used and its most sampled stage."""
+        from collections import Counter
+
+        import numpy as np
+
+        lines = []
+        for start in np.arange(0.0, self.samples[-1][0] if self.samples else 0.0, bucket_s):
+            inside = [s for s in self.samples if start <= s[0] < start + bucket_s]
+            if inside:
+                stage = Counter(s[2] for s in inside).most_common(1)[0][0]
+                lines.append(f"{start:6.2f} s {np.mean([s[1] for s in inside]):4.2f} cores  {stage}")
+        return lines
+
+
+def run_once(frames: int, overrides: list[str] = (), camera: str = "pan", scene: str = "office",
+             timeline: bool = False) -> dict:
+    """Reconstruct the cached capture in this process and return the measurements (and a :class:`Timeline`'s table)."""
     from photonpano.host import PluginHost
     from photonpano.metrics import trajectory_error
     from photonpano.pipeline import reconstruct
@@ -139,9 +204,11 @@ def run_once(frames: int, overrides: list[str] = (), camera: str = "pan", scene:
     data = apply_overrides({"source": {"plugin": "npy-cube", "path": str(path)}}, list(overrides))
     spec = validate_spec(data, PluginHost(), origin="benchmark")
     _reset_peak_memory()  # the floor pass's buffers are not the pipeline's
+    sampler = Timeline() if timeline else contextlib.nullcontext()
     wall0, cpu0 = time.perf_counter(), time.process_time()
-    source = spec.source.build()
-    homographies, stats, pano, timings = reconstruct(spec, source)
+    with sampler:
+        source = spec.source.build()
+        homographies, stats, pano, timings = reconstruct(spec, source)
     wall, cpu = time.perf_counter() - wall0, time.process_time() - cpu0
     peak_mb = _peak_memory_mb()  # before the ground truth (a full-resolution scene) is loaded
     config = SimulateConfig(**simulation(camera, frames, scene))
@@ -150,13 +217,15 @@ def run_once(frames: int, overrides: list[str] = (), camera: str = "pan", scene:
     return {"scene": scene, "path": camera, "frames": frames, "wall_s": wall, "cpu_s": cpu, "floor_s": floor_s,
             "ratio": wall / floor_s, "peak_rss_mb": peak_mb,
             "rmse_px": rmse, "timings_s": timings,
-            "levels": [{"level": s["level"], "groups": s["groups"], **s["timings_s"]} for s in stats]}
+            "levels": [{"level": s["level"], "groups": s["groups"], **s["timings_s"]} for s in stats],
+            "timeline": sampler.table() if isinstance(sampler, Timeline) else None}
 
 
-def measure(frames: int, overrides: list[str] = (), camera: str = "pan", scene: str = "office") -> dict:
+def measure(frames: int, overrides: list[str] = (), camera: str = "pan", scene: str = "office",
+            timeline: bool = False) -> dict:
     """Run :func:`run_once` in a fresh process (so peak memory is the pipeline's own)."""
     cube_path(frames, camera, scene)  # simulate outside the measured process
-    args = [a for o in overrides for a in ("--set", o)]
+    args = [a for o in overrides for a in ("--set", o)] + ["--timeline"] * timeline
     out = subprocess.run([sys.executable, __file__, "--worker", str(frames), "--path", camera, "--scene", scene, *args],
                          capture_output=True, text=True, check=True)
     return json.loads(out.stdout.strip().splitlines()[-1])
@@ -171,6 +240,9 @@ def report(r: dict) -> None:
         print(f"  level {level['level']}: {level['groups']} groups, merge {level['merge']:.1f} s, "
               f"locate {level['locate']:.1f} s, interpolate {level['interpolate']:.2f} s")
     print(f"  panorama {r['timings_s']['panorama']:.1f} s")
+    if r.get("timeline"):
+        print("  timeline (seconds from the source's opening, mean cores used, the main thread's stage):")
+        print("\n".join(f"    {line}" for line in r["timeline"]))
 
 
 def main() -> None:
@@ -183,6 +255,8 @@ def main() -> None:
     parser.add_argument("--scaling", action="store_true", help="print the 12.5k..200k scaling table")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                         help="spec override, as in `photonpano run --set` (repeatable)")
+    parser.add_argument("--timeline", action="store_true",
+                        help="also print the run's CPU use every 0.25 s with the stage it was in")
     parser.add_argument("--worker", type=int, help=argparse.SUPPRESS)
     args = parser.parse_args()
     cameras = [c.strip() for c in args.path.split(",") if c.strip()]
@@ -192,12 +266,12 @@ def main() -> None:
     for scene in scenes:
         scene_settings(scene)  # an unknown name exits here, naming the choices
     if args.worker:
-        print(json.dumps(run_once(args.worker, args.set, cameras[0], scenes[0])))
+        print(json.dumps(run_once(args.worker, args.set, cameras[0], scenes[0], args.timeline)))
         return
     if not args.scaling:
         for scene in scenes:
             for camera in cameras:
-                report(measure(args.frames, args.set, camera, scene))
+                report(measure(args.frames, args.set, camera, scene, args.timeline))
         return
     print(f"{'path':>7} {'frames':>8} {'wall s':>7} {'CPU s':>7} {'floor s':>7} {'ratio':>6} {'RSS MB':>7} "
           f"{'RMSE px':>8}")
