@@ -11,12 +11,12 @@ def test_the_timeline_shows_one_busy_core_and_the_photonpano_call_it_is_in():
     from photonpano.photons import tone_map
 
     flux = np.random.default_rng(0).random((1500, 1500), dtype=np.float32)
-    with load_benchmark("performance").Timeline(step_s=0.01) as timeline:
-        end = time.perf_counter() + 0.6
+    with load_benchmark("performance").Timeline(step_s=0.05) as timeline:
+        end = time.perf_counter() + 1.2
         while time.perf_counter() < end:
             tone_map(flux)
-    table = timeline.table(bucket_s=0.2)
-    assert len(table) >= 2
-    cores = [float(line.split()[2]) for line in table]
+    table = timeline.table(bucket_s=0.25)[:-1]  # the last bucket holds the loop's end
+    assert len(table) >= 3
+    cores = [float(line.split()[2]) for line in table]  # CPU time counts in 10 ms ticks: 20 % per sample
     assert all(0.3 <= c <= 1.5 for c in cores), table  # one thread busy (less on a loaded machine), the sampler idle
-    assert sum("tone_map" in line for line in table) >= len(table) - 1, table
+    assert all(line.endswith("tone_map") for line in table), table
