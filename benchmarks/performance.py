@@ -204,9 +204,9 @@ def run_once(frames: int, overrides: list[str] = (), camera: str = "pan", scene:
     data = apply_overrides({"source": {"plugin": "npy-cube", "path": str(path)}}, list(overrides))
     spec = validate_spec(data, PluginHost(), origin="benchmark")
     _reset_peak_memory()  # the floor pass's buffers are not the pipeline's
-    sampler = Timeline() if timeline else contextlib.nullcontext()
+    sampler = Timeline() if timeline else None
     wall0, cpu0 = time.perf_counter(), time.process_time()
-    with sampler:
+    with sampler or contextlib.nullcontext():
         source = spec.source.build()
         homographies, stats, pano, timings = reconstruct(spec, source)
     wall, cpu = time.perf_counter() - wall0, time.process_time() - cpu0
@@ -218,7 +218,7 @@ def run_once(frames: int, overrides: list[str] = (), camera: str = "pan", scene:
             "ratio": wall / floor_s, "peak_rss_mb": peak_mb,
             "rmse_px": rmse, "timings_s": timings,
             "levels": [{"level": s["level"], "groups": s["groups"], **s["timings_s"]} for s in stats],
-            "timeline": sampler.table() if isinstance(sampler, Timeline) else None}
+            "timeline": sampler.table() if sampler else None}
 
 
 def measure(frames: int, overrides: list[str] = (), camera: str = "pan", scene: str = "office",

@@ -118,7 +118,7 @@ class Stages:
         self.resampler, self.merger = spec.resampler.build(), spec.merger.build()
         reject = MOVERS_SIGMAS if spec.mosaic.reject_movers == "auto" else spec.mosaic.reject_movers
         self.interpolator = spec.interpolator.build()
-        advice = "" if check is not None or budget.plan.auto else (
+        advice = "" if budget.plan.auto else (
             f" (group_size {budget.group_size} is set in the spec, so the pairs were not checked on binned "
             "frames; with group_size: auto they are, and those the locator cannot register are registered again)")
         built = {"pairwise": PairwiseScheme(self.locator, tuple(spec.pair_offsets), check, advice),

@@ -29,14 +29,10 @@ def _temporary_files_in_pytests_folder(tmp_path_factory):
     import tempfile
 
     folder = str(tmp_path_factory.mktemp("tmp"))
-    before, tempdir = os.environ.get("TMPDIR"), tempfile.tempdir
-    os.environ["TMPDIR"], tempfile.tempdir = folder, folder
-    yield
-    tempfile.tempdir = tempdir
-    if before is None:
-        os.environ.pop("TMPDIR", None)
-    else:
-        os.environ["TMPDIR"] = before
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setenv("TMPDIR", folder)
+        patch.setattr(tempfile, "tempdir", folder)
+        yield
 
 
 @pytest.fixture
