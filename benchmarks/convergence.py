@@ -15,7 +15,13 @@ leaves, and prints what is left of it after each level:
 - ``step``: the frame centre off by ``-A`` px over the first half of the capture and ``+A``
   over the second (a wrong link in level 1's chain);
 - ``perspective``: the frames' horizontal keystone (``p7``) by a ramp, ``A`` px at the
-  frame's left and right edges at the ends of the capture.
+  frame's left and right edges at the ends of the capture;
+- ``vertical-perspective``: the frames' vertical keystone (``p8``) by a ramp, ``A`` px at
+  the frame corners (horizontally) at the ends of the capture.
+
+With ``--amplitude 0`` the levels start from the truth itself, and each mode's column is
+the amplitude the levels *put in*, in px (what their registrations' noise and bias leave
+in that mode).
 
 Frame-to-mosaic registration measures each frame against a panorama made with the same
 erroneous estimate; an error the frames that see the same canvas share is partly in the
@@ -43,6 +49,15 @@ astronaut (``--photo portrait_astronaut --mode perspective --amplitude 0.6``): 0
 mosaic.template_bias_priors=per-parameter`` 0.059 -> 0.055 px (0.18, then 0.16 left), and
 the facade's turn above 0.030 -> 0.025 px (0.05, then 0.03 left).
 
+Measured 2026-11-27 (the sunset at flux 0.05, ``--photo highcontrast_sunset --set
+source.flux=0.05``): from the truth itself (``--amplitude 0``) levels 2 and 3 end at 0.077
+and 0.109 px, putting in a vertical keystone ramp of 0.051 then 0.097 px and a horizontal
+one of -0.037 then -0.086 (handwriting 0.093 and 0.110 px, coffee 0.067 and 0.090, the
+gravel 0.036 and 0.036 with no ramp); of a vertical keystone ramp of 0.4 px
+(``--mode vertical-perspective``) 0.74 is left after the two levels, against 0.19 at flux
+0.5, where from the truth they end at 0.029 and 0.031 px (``p8`` -0.009 then -0.017). See
+docs/accuracy.md ("Where the two flux-0.05 misses' error is").
+
 Usage::
 
     python benchmarks/convergence.py --photo facade_brick
@@ -57,7 +72,7 @@ from pathlib import Path
 
 import numpy as np
 
-MODES = ("shift", "xscale", "rotation", "rotation-bump", "step", "perspective")
+MODES = ("shift", "xscale", "rotation", "rotation-bump", "step", "perspective", "vertical-perspective")
 
 
 def mode_params(mode: str, steps: np.ndarray, amplitude: float, width: int, height: int) -> np.ndarray:
@@ -74,6 +89,8 @@ def mode_params(mode: str, steps: np.ndarray, amplitude: float, width: int, heig
         params[:, 4] = amplitude * np.sign(steps)
     elif mode == "perspective":
         params[:, 6] = amplitude / ((width - 1) / 2) ** 2 * steps  # x' = x - p7 x^2 about the centre
+    elif mode == "vertical-perspective":
+        params[:, 7] = amplitude / ((width - 1) / 2 * (height - 1) / 2) * steps  # x' = x - p8 x y about the centre
     elif mode == "xscale":
         params[:, 0] = amplitude / ((width - 1) / 2) * steps
     elif mode in ("rotation", "rotation-bump"):
@@ -126,8 +143,9 @@ def main(argv: list[str] | None = None) -> int:
         return geometry.params_from_homographies(geometry.about_centre(
             np.linalg.inv(truth_to_scene[frames]) @ aligned, w, h))
 
-    print(f"{capture.name}, {n} frames, amplitude {args.amplitude} px; per level: RMSE (px), mode left in the "
-          "trajectory / in the registrations (1: untouched)")
+    left = ("mode left in the trajectory / in the registrations (1: untouched)" if args.amplitude else
+            "mode put in the trajectory / in the registrations (px)")
+    print(f"{capture.name}, {n} frames, amplitude {args.amplitude} px; per level: RMSE (px), {left}")
     for mode in [m.strip() for m in args.mode.split(",") if m.strip()]:
         unit = mode_params(mode, steps, 1.0, w, h)
         injected = geometry.from_centre(geometry.homographies_from_params(args.amplitude * unit), w, h)
@@ -136,11 +154,13 @@ def main(argv: list[str] | None = None) -> int:
 
         def level_done(result, unit=unit, rows=rows) -> None:
             error = source_trajectory_error(result.homographies, source)
-            everywhere = mode_amplitude(mode_error(result.homographies, np.arange(n)), unit) / args.amplitude
+            scale = args.amplitude or 1.0  # from the truth: the amplitude put in, px
+            everywhere = mode_amplitude(mode_error(result.homographies, np.arange(n)), unit) / scale
             reference = result.groups.reference
-            registered = mode_amplitude(mode_error(result.located.keyframes, reference), unit[reference])
-            rows.append(f"level {result.level} {error.rmse_px:.3f} px, {everywhere:.2f} / "
-                        f"{registered / args.amplitude:.2f}")
+            registered = mode_amplitude(mode_error(result.located.keyframes, reference), unit[reference]) / scale
+            digits = 2 if args.amplitude else 3
+            rows.append(f"level {result.level} {error.rmse_px:.3f} px, "
+                        f"{everywhere:.{digits}f} / {registered:.{digits}f}")
 
         with make_executor(spec.executor, spec.workers, spec.dask_address) as executor:
             Stages(spec, source).estimate_motion(executor, on_level=level_done,
