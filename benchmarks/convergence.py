@@ -145,6 +145,7 @@ def main(argv: list[str] | None = None) -> int:
 
     left = ("mode left in the trajectory / in the registrations (1: untouched)" if args.amplitude else
             "mode put in the trajectory / in the registrations (px)")
+    scale, digits = (args.amplitude, 2) if args.amplitude else (1.0, 3)  # from the truth: px put in
     print(f"{capture.name}, {n} frames, amplitude {args.amplitude} px; per level: RMSE (px), {left}")
     for mode in [m.strip() for m in args.mode.split(",") if m.strip()]:
         unit = mode_params(mode, steps, 1.0, w, h)
@@ -154,11 +155,9 @@ def main(argv: list[str] | None = None) -> int:
 
         def level_done(result, unit=unit, rows=rows) -> None:
             error = source_trajectory_error(result.homographies, source)
-            scale = args.amplitude or 1.0  # from the truth: the amplitude put in, px
             everywhere = mode_amplitude(mode_error(result.homographies, np.arange(n)), unit) / scale
             reference = result.groups.reference
             registered = mode_amplitude(mode_error(result.located.keyframes, reference), unit[reference]) / scale
-            digits = 2 if args.amplitude else 3
             rows.append(f"level {result.level} {error.rmse_px:.3f} px, "
                         f"{everywhere:.{digits}f} / {registered:.{digits}f}")
 
