@@ -19,9 +19,9 @@ leaves, and prints what is left of it after each level:
 - ``vertical-perspective``: the frames' vertical keystone (``p8``) by a ramp, ``A`` px at
   the frame corners (horizontally) at the ends of the capture.
 
-With ``--amplitude 0`` the levels start from the truth itself, and each mode's column is
-the amplitude the levels *put in*, in px (what their registrations' noise and bias leave
-in that mode).
+With ``--amplitude 0`` the levels start from the truth itself (one run for every mode), and
+each mode's column is the amplitude the levels *put in*, in px (what their registrations'
+noise and bias leave in that mode).
 
 Frame-to-mosaic registration measures each frame against a panorama made with the same
 erroneous estimate; an error the frames that see the same canvas share is partly in the
@@ -147,24 +147,32 @@ def main(argv: list[str] | None = None) -> int:
             "mode put in the trajectory / in the registrations (px)")
     scale, digits = (args.amplitude, 2) if args.amplitude else (1.0, 3)  # from the truth: px put in
     print(f"{capture.name}, {n} frames, amplitude {args.amplitude} px; per level: RMSE (px), {left}")
-    for mode in [m.strip() for m in args.mode.split(",") if m.strip()]:
-        unit = mode_params(mode, steps, 1.0, w, h)
-        injected = geometry.from_centre(geometry.homographies_from_params(args.amplitude * unit), w, h)
+    modes = [m.strip() for m in args.mode.split(",") if m.strip()]
+    units = {mode: mode_params(mode, steps, 1.0, w, h) for mode in modes}
+    # each mode injected in a run of its own; from the truth, one run shows every mode
+    runs = [(mode, (mode,)) for mode in modes] if args.amplitude else [(modes[0], tuple(modes))]
+    for injected_mode, shown in runs:
+        injected = geometry.from_centre(geometry.homographies_from_params(args.amplitude * units[injected_mode]), w, h)
         start = geometry.normalize(truth @ injected)
-        rows = [f"  {mode}: start {source_trajectory_error(start, source).rmse_px:.3f} px"]
+        start_px = source_trajectory_error(start, source).rmse_px
+        rows = {mode: [f"  {mode}: start {start_px:.3f} px"] for mode in shown}
 
-        def level_done(result, unit=unit, rows=rows) -> None:
+        def level_done(result, shown=shown, rows=rows) -> None:
             error = source_trajectory_error(result.homographies, source)
-            everywhere = mode_amplitude(mode_error(result.homographies, np.arange(n)), unit) / scale
             reference = result.groups.reference
-            registered = mode_amplitude(mode_error(result.located.keyframes, reference), unit[reference]) / scale
-            rows.append(f"level {result.level} {error.rmse_px:.3f} px, "
-                        f"{everywhere:.{digits}f} / {registered:.{digits}f}")
+            trajectory, registered = mode_error(result.homographies, np.arange(n)), mode_error(
+                result.located.keyframes, reference)
+            for mode in shown:
+                everywhere = mode_amplitude(trajectory, units[mode]) / scale
+                measured = mode_amplitude(registered, units[mode][reference]) / scale
+                rows[mode].append(f"level {result.level} {error.rmse_px:.3f} px, "
+                                  f"{everywhere:.{digits}f} / {measured:.{digits}f}")
 
         with make_executor(spec.executor, spec.workers, spec.dask_address) as executor:
             Stages(spec, source).estimate_motion(executor, on_level=level_done,
                                                  resume=Checkpoint(1, start, []))
-        print("; ".join(rows))
+        for mode in shown:
+            print("; ".join(rows[mode]))
     return 0
 
 
