@@ -1,6 +1,7 @@
 """benchmarks/bound.py: the Cramer-Rao bound of a frame's homography from its photons."""
 
 import numpy as np
+import pytest
 from capture_helpers import load_benchmark
 
 
@@ -26,3 +27,40 @@ def test_the_bound_falls_with_light_and_sharper_texture():
     assert 0 < shift_bright < corner_bright  # the corners also carry rotation, scale and perspective
     assert 2.5 < corner_dim / corner_bright < 3.5  # sqrt(10) = 3.16, less where bright pixels saturate
     assert bound.corner_and_shift_bound(_scene(6.0), at, 0.5)[0] > 2 * corner_bright
+
+
+def _path(offsets_x: np.ndarray) -> np.ndarray:
+    """(T, 3, 3) translations of a frame inside :func:`_scene` (x offsets per frame, y 70 px)."""
+    path = np.repeat(np.eye(3)[None], len(offsets_x), axis=0)
+    path[:, 0, 2], path[:, 1, 2] = offsets_x, 70.0
+    return path
+
+
+def test_a_still_camera_s_trajectory_bound_pools_every_frame():
+    """Constant splines over a still capture of N frames: one frame's bound over sqrt(N), and no model error."""
+    bound = _module()
+    scene, n = _scene(2.0), 3000
+    path = _path(np.full(n, 100.0))
+    information = bound.frame_information(scene, path[0], [0.5])  # (1, 8, 8)
+    noise, model = bound.trajectory_bound(information, np.array([0]), path, [None] * 8)
+    assert noise == pytest.approx(bound.corner_and_shift_bound(scene, path[0], 0.5)[0] / np.sqrt(n), rel=1e-6)
+    assert model < 1e-9
+
+
+def test_finer_knots_cost_precision_and_coarser_ones_miss_the_vibration():
+    """Knots closer together pool fewer frames each; too far apart, the splines cannot follow a vibration."""
+    bound = _module()
+    scene, n = _scene(2.0), 4000
+    t = np.arange(n)
+    path = _path(100.0 + 5.0 * np.sin(2 * np.pi * t / 1000))  # a 5 px vibration, 1 000 frames a period
+    information = bound.frame_information(scene, path[0], [0.5])
+    sampled = np.array([0])
+
+    def at(shift: float, rest: float | None) -> tuple[float, float]:
+        return bound.trajectory_bound(information, sampled, path, [rest, rest, shift, rest, rest, shift, rest, rest])
+
+    fine, coarse = at(100, None), at(400, None)
+    assert fine[0] > coarse[0]  # fewer frames per shift knot: more noise
+    assert coarse[1] > 10 * fine[1]  # a cubic spline's model error grows as the spacing to the 4th
+    assert at(100, 500)[0] > fine[0]  # six more parameters to estimate along the capture: more noise again
+    assert bound.trajectory_bound(information, sampled, _path(100.0 + 0.01 * t), [400] * 8)[1] < 1e-6  # a pan
