@@ -159,11 +159,14 @@ def trajectory_bound(information: np.ndarray, sampled: np.ndarray, to_scene: np.
     coefficients' Fisher information is ``J = sum_t D_t' F_t D_t`` (``D_t`` the (8, K)
     basis at frame t, ``F_t`` the frame's information); any unbiased estimate of them has a
     covariance of at least ``J^-1`` (Kay 1993, Sec. 3.8), so each frame's homography
-    one of at least ``D_t J^-1 D_t'``. The scene is taken as known: an estimator that also
-    estimates the scene (a panorama) can only do worse. The splines also cannot follow the
-    true path exactly: its least-squares fit by the same splines (frame-to-scene
-    parameters about the middle frame) leaves a *model error*, which an estimator of that
-    model has on top of its noise.
+    one of at least ``D_t J^-1 D_t'``. The error is counted as the trajectory RMSE counts it
+    (:func:`photonpano.metrics.trajectory_error`): up to one homography of the whole
+    panorama, so the part of each frame's corner error that one such homography explains
+    over the evaluated frames is projected out. The scene is taken as known: an estimator
+    that also estimates the scene (a panorama) can only do worse. The splines also cannot
+    follow the true path exactly: their least-squares fit (frame-to-scene parameters about
+    the middle frame), aligned the same way, leaves a *model error*, which an estimator of
+    that model has on top of its noise.
 
     Args:
         information: (S, 8, 8) float64 information per binary frame at ``sampled`` frames
@@ -180,6 +183,7 @@ def trajectory_bound(information: np.ndarray, sampled: np.ndarray, to_scene: np.
         ``sqrt(noise^2 + model^2)``.
     """
     from photonpano import geometry
+    from photonpano.metrics import trajectory_error
 
     n = len(to_scene)
     bases = [spline_basis(n, s) for s in spacings]
@@ -193,14 +197,15 @@ def trajectory_bound(information: np.ndarray, sampled: np.ndarray, to_scene: np.
             total[offsets[k]:offsets[k + 1], offsets[i]:offsets[i + 1]] = block.T
     covariance = np.linalg.inv(total)
     frames = np.unique(np.linspace(0, n - 1, min(evaluate, n)).round().astype(np.int64))
-    rows = [b[frames].toarray() for b in bases]
-    per_frame = np.zeros((len(frames), 8, 8))
-    for i in range(8):
-        for k in range(8):
-            block = covariance[offsets[i]:offsets[i + 1], offsets[k]:offsets[k + 1]]
-            per_frame[:, i, k] = np.einsum("fa,ab,fb->f", rows[i], block, rows[k])
-    m = corner_jacobians()
-    noise = np.einsum("cpi,fij,cpj->f", m, per_frame, m) / 4  # mean over corners of the squared error
+    m = corner_jacobians().reshape(8, 8)  # (corner and axis, theta)
+    # each evaluated frame's corner moves per coefficient: (E * 8, K)
+    moves = np.concatenate([m[None, :, i, None] * b[frames].toarray()[:, None, :] for i, b in enumerate(bases)],
+                           axis=2).reshape(len(frames) * 8, -1)
+    # the corner moves one global homography of the panorama makes (the metric's alignment)
+    gauge = np.stack([np.einsum("ci,fi->fc", m, _theta(np.linalg.inv(to_scene[frames]) @ generator @ to_scene[frames]))
+                      for generator in _generators()], axis=-1).reshape(len(frames) * 8, 8)
+    aligned = moves - gauge @ (np.linalg.pinv(gauge) @ moves)
+    noise = np.einsum("rk,kl,rl->", aligned, covariance, aligned) / (len(frames) * 4)
     # model error: each frame-to-scene parameter about the middle frame fitted by the splines
     middle = to_scene[n // 2]
     params = geometry.params_from_homographies(geometry.normalize(np.linalg.inv(middle) @ to_scene))
@@ -209,10 +214,25 @@ def trajectory_bound(information: np.ndarray, sampled: np.ndarray, to_scene: np.
     for column, i in enumerate(order):
         basis = bases[i]
         fitted[:, column] = basis @ _least_squares(basis, params[:, column])
-    corners = geometry.corners(WIDTH, HEIGHT)
-    moved = geometry.apply(middle @ geometry.homographies_from_params(fitted[frames]), corners)
-    model = np.linalg.norm(moved - geometry.apply(to_scene[frames], corners), axis=-1).mean(axis=-1)
-    return float(np.sqrt(noise.mean())), float(np.sqrt(np.mean(model ** 2)))
+    model = trajectory_error(middle @ geometry.homographies_from_params(fitted), to_scene, WIDTH, HEIGHT).rmse_px
+    return float(np.sqrt(noise)), float(model)
+
+
+def _generators(step: float = 1e-6) -> list[np.ndarray]:
+    """The 8 small homographies ``I + step E_k`` of p1..p8, each divided into its move by :func:`_theta`."""
+    from photonpano import geometry
+
+    return [geometry.homographies_from_params(step * np.eye(8)[k][None])[0] for k in range(8)]
+
+
+def _theta(homographies: np.ndarray, step: float = 1e-6) -> np.ndarray:
+    """(F, 8) theta (about the frame centre, :func:`_motion_x`'s order) of near-identity homographies, per step."""
+    from photonpano import geometry
+
+    about = geometry.params_from_homographies(geometry.about_centre(geometry.normalize(homographies), WIDTH, HEIGHT))
+    return about[:, [0, 2, 4, 1, 3, 5, 6, 7]] / step
+
+
 
 
 def _least_squares(basis: sparse.csr_array, values: np.ndarray) -> np.ndarray:

@@ -36,15 +36,22 @@ def _path(offsets_x: np.ndarray) -> np.ndarray:
     return path
 
 
-def test_a_still_camera_s_trajectory_bound_pools_every_frame():
-    """Constant splines over a still capture of N frames: one frame's bound over sqrt(N), and no model error."""
+def test_the_trajectory_bound_pools_the_frames_of_each_knot_and_ignores_one_homography():
+    """Four times the frames per knot: half the bound; a still camera's constant error: one homography, not counted."""
     bound = _module()
-    scene, n = _scene(2.0), 3000
-    path = _path(np.full(n, 100.0))
-    information = bound.frame_information(scene, path[0], [0.5])  # (1, 8, 8)
-    noise, model = bound.trajectory_bound(information, np.array([0]), path, [None] * 8)
-    assert noise == pytest.approx(bound.corner_and_shift_bound(scene, path[0], 0.5)[0] / np.sqrt(n), rel=1e-6)
-    assert model < 1e-9
+    scene = _scene(2.0)
+    information = bound.frame_information(scene, _path(np.array([100.0]))[0], [0.5])  # (1, 8, 8)
+    shift_only = [None, None, 1.0, None, None, 1.0, None, None]
+
+    def still(n: int, spacing: float) -> tuple[float, float]:
+        spacings = [spacing * s if s else None for s in shift_only]
+        return bound.trajectory_bound(information, np.array([0]), _path(np.full(n, 100.0)), spacings)
+
+    short, long = still(2000, 500), still(8000, 2000)  # the same knots, 4x the frames behind each
+    assert long[0] == pytest.approx(short[0] / 2, rel=5e-3)  # (the frames sample the knots a little differently)
+    assert short[1] < 1e-9 and long[1] < 1e-9
+    constant, _ = bound.trajectory_bound(information, np.array([0]), _path(np.full(2000, 100.0)), [None] * 8)
+    assert constant < 1e-6 * short[0]
 
 
 def test_finer_knots_cost_precision_and_coarser_ones_miss_the_vibration():
