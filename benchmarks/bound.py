@@ -69,8 +69,8 @@ def frame_information(scene: np.ndarray, to_scene: np.ndarray, fluxes: list[floa
 
     Args:
         scene: (Hs, Ws) float32 linear scene intensity in [0, 1].
-        to_scene: (3, 3) float64 frame-to-scene homography of the frame (a translation
-            for the suite's paths, so scene and frame axes agree).
+        to_scene: (3, 3) float64 frame-to-scene homography of the frame (frame pixels to
+            scene pixels).
         fluxes: photons per pixel per binary frame where the scene is white.
         gradients: the scene's (x, y) central differences, float32 like ``scene`` (computed
             when None; pass them to share them over many frames).
@@ -89,12 +89,19 @@ def frame_information(scene: np.ndarray, to_scene: np.ndarray, fluxes: list[floa
     if gradients is None:
         gradients = scene_gradients(scene)
     ys, xs = np.mgrid[0:HEIGHT, 0:WIDTH].astype(np.float64)
-    points = geometry.apply(to_scene, np.stack([xs.ravel(), ys.ravel()], 1)).astype(np.float32)
-    points = points.reshape(HEIGHT, WIDTH, 2)
-    intensity, ix, iy = (cv2.remap(image, points[..., 0], points[..., 1], cv2.INTER_LINEAR)
+    points = geometry.apply(to_scene, np.stack([xs.ravel(), ys.ravel()], 1)).reshape(HEIGHT, WIDTH, 2)
+    scene_xy = points.astype(np.float32)
+    intensity, ix, iy = (cv2.remap(image, scene_xy[..., 0], scene_xy[..., 1], cv2.INTER_LINEAR)
                          for image in (scene, *gradients))
+    # d(scene point)/d(frame point) of the homography at each pixel (chain rule for turned or scaled frames)
+    h = to_scene / to_scene[2, 2]
+    depth = (h[2, 0] * xs + h[2, 1] * ys + h[2, 2])[..., None]
+    along_x = (h[0, :2] - points[..., :1] * h[2, :2]) / depth  # (H, W, 2): dX/dx, dX/dy
+    along_y = (h[1, :2] - points[..., 1:] * h[2, :2]) / depth
     xc, yc = xs - (WIDTH - 1) / 2, ys - (HEIGHT - 1) / 2
-    jacobian = ix[..., None] * _motion_x(xc, yc) + iy[..., None] * _motion_y(xc, yc)  # dI/dtheta, (H, W, 8)
+    motion_x, motion_y = _motion_x(xc, yc), _motion_y(xc, yc)  # (H, W, 8) frame point per theta
+    jacobian = (ix[..., None] * (along_x[..., :1] * motion_x + along_x[..., 1:] * motion_y)
+                + iy[..., None] * (along_y[..., :1] * motion_x + along_y[..., 1:] * motion_y))  # dI/dtheta
     out = []
     for flux in fluxes:
         expected = flux * intensity + dark
@@ -219,7 +226,7 @@ def trajectory_bound(information: np.ndarray, sampled: np.ndarray, to_scene: np.
 
 
 def _generators(step: float = 1e-6) -> list[np.ndarray]:
-    """The 8 small homographies ``I + step E_k`` of p1..p8, each divided into its move by :func:`_theta`."""
+    """The 8 homographies with one of p1..p8 at ``step`` (:func:`_theta` divides their moves by it)."""
     from photonpano import geometry
 
     return [geometry.homographies_from_params(step * np.eye(8)[k][None])[0] for k in range(8)]
@@ -231,8 +238,6 @@ def _theta(homographies: np.ndarray, step: float = 1e-6) -> np.ndarray:
 
     about = geometry.params_from_homographies(geometry.about_centre(geometry.normalize(homographies), WIDTH, HEIGHT))
     return about[:, [0, 2, 4, 1, 3, 5, 6, 7]] / step
-
-
 
 
 def _least_squares(basis: sparse.csr_array, values: np.ndarray) -> np.ndarray:
@@ -311,6 +316,9 @@ def _trajectory_table(chosen: list[Path], fluxes: list[float], shift_spacing: fl
         settings = apply_overrides(Capture(photo, "base").source_spec(), overrides)
         settings.pop("plugin")
         config = SimulateConfig(**settings)
+        if config.pixel_pitch != 1:
+            raise SystemExit(f"--set pixel_pitch={config.pixel_pitch}: the bound takes frame pixels to sample the "
+                             "scene at its own resolution (pixel_pitch 1)")
         scene = load_scene(photo, config.scene_width).astype(np.float32)
         if config.mean_intensity is not None:
             scene = np.minimum(scene * np.float32(config.mean_intensity / max(float(scene.mean()), 1e-12)), 1)

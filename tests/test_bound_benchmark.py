@@ -71,3 +71,14 @@ def test_finer_knots_cost_precision_and_coarser_ones_miss_the_vibration():
     assert coarse[1] > 10 * fine[1]  # a cubic spline's model error grows as the spacing to the 4th
     assert at(100, 500)[0] > fine[0]  # six more parameters to estimate along the capture: more noise again
     assert bound.trajectory_bound(information, sampled, _path(100.0 + 0.01 * t), [400] * 8)[1] < 1e-6  # a pan
+
+
+def test_a_frame_turned_with_its_scene_carries_the_same_information():
+    """The scene and the frame's homography turned by 90 degrees together: the same information (the chain rule)."""
+    bound = _module()
+    scene = _scene(2.0)
+    at = _path(np.array([100.0]))[0]
+    turn = np.array([[0.0, 1.0, 0.0], [-1.0, 0.0, scene.shape[1] - 1.0], [0.0, 0.0, 1.0]])  # np.rot90's map
+    straight = bound.frame_information(scene, at, [0.5])[0]
+    turned = bound.frame_information(np.ascontiguousarray(np.rot90(scene)), turn @ at, [0.5])[0]
+    assert np.allclose(turned, straight, rtol=1e-4)
