@@ -113,6 +113,33 @@ def captures(folder: Path | None = None) -> list[Capture]:
     return out
 
 
+def with_seeds(chosen: list[Capture], seeds: Sequence[int]) -> list[Capture]:
+    """Each capture once per photon draw: ``<photo>/<variant>@seed<N>``, the simulator's ``seed`` set to N.
+
+    At flux 0.05 one draw can move a capture's RMSE by half (docs/accuracy.md), so a change
+    judged there on one draw is judged on chance.
+    """
+    return [Capture(c.photo, f"{c.variant}@seed{n}", {**c.settings, "seed": n}) for c in chosen for n in seeds]
+
+
+def seed_summary(rows: list[dict]) -> list[str]:
+    """One line per capture run under several seeds (:func:`with_seeds`): its mean and worst RMSE over them.
+
+    Rows of one capture share the name before ``@seed``; failed runs count as such.
+    """
+    runs: dict[str, list[dict]] = {}
+    for row in rows:
+        runs.setdefault(row["capture"].split("@seed")[0], []).append(row)
+    lines = []
+    for name, group in runs.items():
+        rmse = [r["rmse"] for r in group if "failed" not in r]
+        failed = len(group) - len(rmse)
+        worst = f"worst {max(rmse):.3f}" if rmse else "no run"
+        mean = f"mean RMSE {np.mean(rmse):.3f}" if rmse else ""
+        lines.append(f"{name:40s} {len(group)} seeds: {mean} {worst}" + (f", {failed} failed" if failed else ""))
+    return lines
+
+
 def run_capture(capture: Capture, dump: Path | None = None, overrides: Sequence[str] = ()) -> dict:
     """Simulate and reconstruct one capture with the default settings; return its row.
 
@@ -259,6 +286,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--dump", type=Path, help="save each capture's per-frame error and sigma here (.npz)")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                         help="a spec override for every capture, as `photonpano run --set` (repeatable)")
+    parser.add_argument("--seeds", default="", help="comma-separated photon draws: each capture runs once per "
+                        "simulator seed (named <capture>@seed<N>), then its mean and worst RMSE over them")
     parser.add_argument("--write", type=Path, help="put the table into this Markdown file between "
                         "<!-- suite-table:start --> and <!-- suite-table:end -->")
     args = parser.parse_args(argv)
@@ -268,6 +297,12 @@ def main(argv: list[str] | None = None) -> int:
     if args.only:
         keys = args.only.split(",")
         chosen = [c for c in chosen if any(k in c.name for k in keys)]
+    if args.seeds:
+        try:
+            seeds = [int(n) for n in args.seeds.split(",")]
+        except ValueError:
+            parser.error(f"--seeds {args.seeds!r}: expected comma-separated whole numbers, e.g. 0,1,2")
+        chosen = with_seeds(chosen, seeds)
     if args.list:
         for c in chosen:
             print(c.name, json.dumps(c.settings))
@@ -287,6 +322,9 @@ def main(argv: list[str] | None = None) -> int:
     table = markdown(rows, summary)
     print()
     print(table)
+    if args.seeds:
+        print()
+        print("\n".join(seed_summary(rows)))
     if args.json:
         args.json.write_text(json.dumps({"rows": rows, "aggregate": summary}, indent=1))
     if args.write:

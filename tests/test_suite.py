@@ -35,3 +35,19 @@ def test_quick_subset_status_and_uncertainty_tell_the_truth():
     assert np.isfinite([r["psnr_gap"] for r in rows]).all()
     for row in rows:  # issue 27's compositor bars (measured: +0.98, +4.2, +4.0 and +0.09 dB over flux-canvas)
         assert row["over_flux_canvas"] >= -0.05 and row["over_flux_canvas_true"] >= -0.2, row
+
+
+def test_seeds_run_each_capture_once_per_photon_draw(capsys):
+    """``--seeds``: a capture per draw, named by it, and a line per capture with its mean and worst RMSE."""
+    suite = _suite()
+    assert suite.main(["--list", "--only", "city_madison/base", "--seeds", "0,3"]) == 0
+    listed = capsys.readouterr().out.splitlines()
+    assert [line.split()[0] for line in listed] == ["city_madison/base@seed0", "city_madison/base@seed3"]
+    assert '"seed": 3' in listed[1]
+    rows = [{"capture": "a/base@seed0", "rmse": 0.1}, {"capture": "a/base@seed1", "rmse": 0.3},
+            {"capture": "b/dark@seed0", "failed": "locator"}]
+    a, b = suite.seed_summary(rows)
+    assert a.split()[0] == "a/base" and "mean RMSE 0.200" in a and "worst 0.300" in a
+    assert b.startswith("b/dark") and "1 failed" in b
+    with pytest.raises(SystemExit):
+        suite.main(["--list", "--seeds", "one"])
