@@ -61,6 +61,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 WIDTH, HEIGHT = 496, 254
 """The suite's frame size in pixels."""
+THETA_P = [0, 2, 4, 1, 3, 5, 6, 7]
+"""Theta's parameters (a, b, t_x, c, d, t_y, g, h) as columns of p1..p8 about the frame centre
+(:func:`photonpano.geometry.params_from_homographies`: a = p1, b = p3, t_x = p5, ...)."""
 
 
 def frame_information(scene: np.ndarray, to_scene: np.ndarray, fluxes: list[float],
@@ -209,35 +212,34 @@ def trajectory_bound(information: np.ndarray, sampled: np.ndarray, to_scene: np.
     moves = np.concatenate([m[None, :, i, None] * b[frames].toarray()[:, None, :] for i, b in enumerate(bases)],
                            axis=2).reshape(len(frames) * 8, -1)
     # the corner moves one global homography of the panorama makes (the metric's alignment)
-    gauge = np.stack([np.einsum("ci,fi->fc", m, _theta(np.linalg.inv(to_scene[frames]) @ generator @ to_scene[frames]))
-                      for generator in _generators()], axis=-1).reshape(len(frames) * 8, 8)
+    gauge = np.einsum("ci,fik->fck", m, _panorama_moves(to_scene[frames])).reshape(len(frames) * 8, 8)
     aligned = moves - gauge @ (np.linalg.pinv(gauge) @ moves)
     noise = np.einsum("rk,kl,rl->", aligned, covariance, aligned) / (len(frames) * 4)
     # model error: each frame-to-scene parameter about the middle frame fitted by the splines
     middle = to_scene[n // 2]
     params = geometry.params_from_homographies(geometry.normalize(np.linalg.inv(middle) @ to_scene))
     fitted = np.empty_like(params)
-    order = [0, 3, 1, 4, 2, 5, 6, 7]  # p1..p8 of H = [[1+p1, p3, p5], [p2, 1+p4, p6], ...] in theta's order
-    for column, i in enumerate(order):
-        basis = bases[i]
+    for basis, column in zip(bases, THETA_P):
         fitted[:, column] = basis @ _least_squares(basis, params[:, column])
     model = trajectory_error(middle @ geometry.homographies_from_params(fitted), to_scene, WIDTH, HEIGHT).rmse_px
     return float(np.sqrt(noise)), float(model)
 
 
-def _generators(step: float = 1e-6) -> list[np.ndarray]:
-    """The 8 homographies with one of p1..p8 at ``step`` (:func:`_theta` divides their moves by it)."""
+def _panorama_moves(to_scene: np.ndarray, step: float = 1e-6) -> np.ndarray:
+    """(F, 8, 8): each frame's theta per unit of each of p1..p8 of one homography of the whole panorama.
+
+    A homography ``G`` of the panorama moves frame t by ``inv(H_t) G H_t``; its theta about the
+    frame centre, per ``step`` of each parameter of ``G`` (a first-order difference).
+    """
     from photonpano import geometry
 
-    return [geometry.homographies_from_params(step * np.eye(8)[k][None])[0] for k in range(8)]
-
-
-def _theta(homographies: np.ndarray, step: float = 1e-6) -> np.ndarray:
-    """(F, 8) theta (about the frame centre, :func:`_motion_x`'s order) of near-identity homographies, per step."""
-    from photonpano import geometry
-
-    about = geometry.params_from_homographies(geometry.about_centre(geometry.normalize(homographies), WIDTH, HEIGHT))
-    return about[:, [0, 2, 4, 1, 3, 5, 6, 7]] / step
+    moves = np.empty((len(to_scene), 8, 8))
+    inverse = np.linalg.inv(to_scene)
+    for k in range(8):
+        generator = geometry.homographies_from_params(step * np.eye(8)[k][None])[0]
+        moved = geometry.about_centre(geometry.normalize(inverse @ generator @ to_scene), WIDTH, HEIGHT)
+        moves[:, :, k] = geometry.params_from_homographies(moved)[:, THETA_P] / step
+    return moves
 
 
 def _least_squares(basis: sparse.csr_array, values: np.ndarray) -> np.ndarray:
