@@ -129,7 +129,9 @@ class Stages:
                                         detect_movers=spec.mosaic.reject_movers == "auto",
                                         holdout=spec.mosaic.holdout,
                                         correct_bias=spec.mosaic.correct_template_bias,
-                                        per_parameter_priors=spec.mosaic.template_bias_priors == "per-parameter")}
+                                        per_parameter_priors=spec.mosaic.template_bias_priors == "per-parameter",
+                                        make_chain_locator=in_merged_pixels(spec.mosaic.locator.converging(),
+                                                                            budget.mosaic_binning).build)}
         self.schemes = [built[name] for name in level_schemes(spec)]
         self.notes: list[str] = []
         plan = budget.plan

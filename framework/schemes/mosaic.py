@@ -8,20 +8,19 @@ against that panorama resampled into its reference frame's grid
 the whole capture, so registrations do not chain (no drift, no pose graph) and each group
 is registered once.
 
-Every mosaic level composites its template afresh from the photons with the estimate it
-starts from (the interpolated, smoothed trajectory). Building the next level's template
-from this level's merged frames at their registered positions instead saves that pass
-but copies each registration's error into the template, and a later level then gains
-little or loses (level 3 of four suite photographs' base captures, that way and from the
-photons: objects_coffee 0.24 -> 0.18 px, outdoor_camera 0.21 -> 0.17,
-landscape_mountains 0.13 -> 0.11, text_handwriting 0.16 -> 0.16).
+Every mosaic level composites its template afresh from the photons with the estimate it starts from (the
+interpolated, smoothed trajectory). Building the next level's template from this level's merged frames at
+their registered positions instead saves that pass but copies each registration's error into the template, and
+a later level then gains little or loses (level 3 of four suite photographs' base captures, that way and from
+the photons: objects_coffee 0.24 -> 0.18 px, outdoor_camera 0.21 -> 0.17, landscape_mountains 0.13 -> 0.11,
+text_handwriting 0.16 -> 0.16).
 
-A template made from every photon pulls each registration toward the estimate it corrects;
-``holdout`` (spec ``mosaic.holdout``, off by default) registers each group against a
-leave-one-out template instead (:mod:`photonpano.schemes.holdout`).
+A template made from every photon pulls each registration toward the estimate it corrects; ``holdout`` (spec
+``mosaic.holdout``, off by default) registers each group against a leave-one-out template instead
+(:mod:`photonpano.schemes.holdout`).
 
-Groups go to the executor in windows; each window is a pure task (it builds its own
-locator and returns what it found), so the windows can run on threads or processes.
+Groups go to the executor in windows; each window is a pure task (it builds its own locator and returns what
+it found), so the windows can run on threads or processes.
 
 A scene is rarely static: with ``reject_movers`` (spec ``mosaic.reject_movers``), pixels
 of a merged frame that disagree with the panorama view by more than that many robust
@@ -63,7 +62,7 @@ from ..executor import pure_task
 from ..guards import bridge, plausible
 from ..information import homography_information
 from ..locator import Locator, LocatorContext
-from ..long_pairs import long_baseline_chains
+from ..long_pairs import links_both_ways, long_baseline_chains, register_links
 from ..records import LocateResult, MergedFrames, PairRegistrations, Panorama
 from ..robust_merge import left_out_in_frames
 from ..stages import Compositor
@@ -121,6 +120,8 @@ class MosaicScheme(LevelScheme):
             templates from ``flux-canvas``, i.e. :class:`~photonpano.compose.BilinearCompositor`,
             only: another compositor's template holds every photon). 1 (the default): every
             photon.
+        make_chain_locator: builds the held-out chains' locator (:mod:`photonpano.long_pairs`; the pipeline's
+            from :meth:`~photonpano.locator.LocatorConfig.converging`); None: ``make_locator``.
     """
 
     name = "mosaic"
@@ -129,18 +130,14 @@ class MosaicScheme(LevelScheme):
     def __init__(self, make_locator: Callable[[], Locator], make_compositor: Callable[[], Compositor], *,
                  subbatch_px: float = 0.5, window: int = 16, reject_movers: float | None = None,
                  make_robust: Callable[[], Compositor] | None = None, detect_movers: bool = False,
-                 holdout: int = 1, correct_bias: bool = False, per_parameter_priors: bool = False) -> None:
+                 holdout: int = 1, correct_bias: bool = False, per_parameter_priors: bool = False,
+                 make_chain_locator: Callable[[], Locator] | None = None) -> None:
         """Create the scheme from factories of its locator and template compositor."""
-        self.holdout = holdout
-        self.correct_bias = correct_bias
-        self.per_parameter_priors = per_parameter_priors
-        self.reject_movers = reject_movers
-        self.make_locator = make_locator
-        self.make_compositor = make_compositor
-        self.make_robust = make_robust or make_compositor
-        self.detect_movers = detect_movers
-        self.subbatch_px = subbatch_px
-        self.window = window
+        self.holdout, self.correct_bias, self.per_parameter_priors = holdout, correct_bias, per_parameter_priors
+        self.reject_movers, self.detect_movers = reject_movers, detect_movers
+        self.make_locator, self.make_chain_locator = make_locator, make_chain_locator or make_locator
+        self.make_compositor, self.make_robust = make_compositor, make_robust or make_compositor
+        self.subbatch_px, self.window = subbatch_px, window
         self._engaged: dict[tuple[int, int], bool] = {}  # detect_movers' decision per capture (first mosaic level)
 
     def template(self, task: LevelTask) -> tuple[Panorama | HoldoutTemplate, dict[str, Any] | None]:
@@ -250,20 +247,24 @@ class MosaicScheme(LevelScheme):
             return _WindowResult(found, locator.cache_stats(), merge_s, time.perf_counter() - start,
                                  merged if task.keep_merged else None, cross, information)
 
-        @pure_task
-        def link(links: NDArray[np.int64]) -> PairRegistrations:
-            """The held-out chains' registrations, each link's later merged frame to its earlier."""
-            joined, positions = np.unique(links[:, 1:], return_inverse=True)
-            return self.make_locator().register_pairs(prepare(joined)[0], positions.reshape(-1, 2), geometry.normalize(
-                np.linalg.inv(current[links[:, 1]]) @ current[links[:, 2]]), LocatorContext())
-
         windows = [np.arange(s, min(s + self.window, len(groups))) for s in range(0, len(groups), self.window)]
         chains = (long_baseline_chains(current, groups.stop - groups.start, source.width, source.height)
                   if task.crosscheck else np.zeros((0, 3), np.int64))
+        expected = geometry.normalize(np.linalg.inv(current[chains[:, 1]]) @ current[chains[:, 2]])
+
+        @pure_task
+        def link(backward: bool) -> tuple[PairRegistrations, tuple[int, int]]:
+            """The held-out chains' links registered one way (long_pairs.register_links), the frames' width, height."""
+            joined, positions = np.unique(chains[:, 1:], return_inverse=True)
+            merged = prepare(joined)[0]
+            return register_links(self.make_chain_locator(), merged, positions.reshape(-1, 2), expected,
+                                  backward=backward), (merged.flux.shape[-1], merged.flux.shape[-2])
+
         started = time.perf_counter()
         done = None if task.progress is None else (lambda part: task.progress(len(part.registrations)))
         parts: list[_WindowResult] = task.executor.map(run, windows, done=done)
-        links = task.executor.map(link, [chains])[0] if len(chains) else None
+        ways = task.executor.map(link, [False, True]) if len(chains) else None  # both ways, on two workers
+        links = None if ways is None else links_both_ways(ways[0][0], ways[1][0], expected, *ways[0][1])
         wall = time.perf_counter() - started
         regs = PairRegistrations.concat(*(part.registrations for part in parts))
         ok = regs.ok & plausible(regs.homographies, source.width, source.height)

@@ -62,6 +62,17 @@ def test_set_reaches_the_mosaic_locator():
     assert level_schemes(spec.model_copy(update={"levels": 4})) == ["pairwise", "mosaic", "pairwise", "pairwise"]
 
 
+def test_the_mosaic_chains_register_to_convergence_and_the_template_registrations_as_the_spec_says():
+    """The held-out chains' locator comes from ``LocatorConfig.converging`` (photonpano.long_pairs)."""
+    from photonpano.reconstruction import Stages
+    from photonpano.schemes import MosaicScheme
+
+    spec = _spec(source={"plugin": "simulate", "frames": 400, "height": 64, "width": 96}, group_size=100)
+    mosaic = next(s for s in Stages(spec, spec.source.build()).schemes if isinstance(s, MosaicScheme))
+    assert (mosaic.make_locator().config.iterations, mosaic.make_locator().config.epsilon) == (10, 1e-4)
+    assert (mosaic.make_chain_locator().config.iterations, mosaic.make_chain_locator().config.epsilon) == (10, 1e-8)
+
+
 def test_levels_emit_frozen_records_in_panorama_coordinates():
     """Each level's record is frozen, names its scheme, and is in the final gauge.
 

@@ -138,3 +138,38 @@ def test_the_shape_drift_the_chains_agree_on_is_taken_out_and_their_noise_alone_
     one_left = links[:, 0] == 5
     same, moved = correct_shape_drift(registered, one_left, links, groups.reference, estimate, W, H)
     assert moved == 0.0 and np.array_equal(same, estimate)
+
+
+def test_a_link_registered_both_ways_keeps_their_mean_and_cancels_a_bias_that_follows_the_warped_frame():
+    """``links_both_ways``: a bias of +b one way and -b the other leaves the true change; ok needs both ways."""
+    from photonpano.long_pairs import links_both_ways, register_links
+
+    rng = np.random.default_rng(0)
+    expected = np.stack([geometry.translation(60.0 + k, 2.0) for k in range(5)])
+    true_change = rng.normal(0, 1e-3, (5, 8)) * [1, 1, 1, 1, 100, 100, 1e-3, 1e-3]
+    bias = np.array([4e-3, 0, 0, 0, 0.2, 0, 0, 0])  # a horizontal scale and shift that follow the warped frame
+
+    def registered(params):
+        return expected @ geometry.from_centre(geometry.homographies_from_params(params), W, H)
+
+    ok = np.array([True, True, False, True, True])
+    forward = PairRegistrations(registered(true_change + bias), np.zeros(5, np.int64), np.zeros(5, np.int64), ok)
+    backward = PairRegistrations(registered(true_change - bias), np.zeros(5, np.int64), np.zeros(5, np.int64),
+                                 np.ones(5, bool))
+    mean = links_both_ways(forward, backward, expected, W, H)
+    error = geometry.mean_corner_distance(mean.homographies, registered(true_change), W, H)
+    assert error.max() < 1e-3, error  # second order in the change
+    assert geometry.mean_corner_distance(forward.homographies, registered(true_change), W, H).min() > 0.2
+    np.testing.assert_array_equal(mean.ok, ok)
+
+    class Recorder:
+        def register_pairs(self, merged, pairs, initial, context):
+            self.pairs, self.initial = pairs, initial
+            return PairRegistrations(initial @ geometry.translation(0.5, 0.0), np.zeros(len(pairs), np.int64),
+                                     np.zeros(len(pairs), np.int64), np.ones(len(pairs), bool))
+
+    locator, pairs = Recorder(), np.array([[0, 1], [1, 2]])
+    back = register_links(locator, None, pairs, expected[:2], backward=True)
+    np.testing.assert_array_equal(locator.pairs, pairs[:, ::-1])
+    np.testing.assert_allclose(locator.initial, np.linalg.inv(expected[:2]))
+    np.testing.assert_allclose(back.homographies, geometry.translation(-0.5, 0.0) @ expected[:2], atol=1e-12)

@@ -77,3 +77,27 @@ def test_pycolmap_keypoints_follow_our_pixel_centres(host):
     good = np.all(np.abs(residual - np.median(residual, 0)) < 1, axis=1)
     assert good.sum() > 1000
     np.testing.assert_allclose(np.median(residual[good], axis=0), [0.5, 0.5], atol=0.05)
+
+
+def test_the_chains_locator_runs_ecc_to_where_it_ends(real_pair):
+    """``OpenCVEccConfig.converging``: ECC to convergence, not to the mosaic's speed-tuned stopping rule.
+
+    ECC stops when the correlation coefficient improves by less than ``epsilon``; the
+    template defaults' 1e-4 stops the real pair 0.01 px short of where 300 iterations end
+    (from the truth with the corners 1.6-2.6 px off), on the side of the start. The long
+    chains' links, which measure a shape error of a few hundredths of a pixel per link,
+    are registered with the converging config (photonpano.long_pairs).
+    """
+    from photonpano.plugins.locators.opencv_ecc import OpenCVEccConfig
+
+    template = OpenCVEccConfig(**OpenCVEccConfig.template_defaults)
+    converging = template.converging()
+    assert (converging.iterations, converging.epsilon) == (10, 1e-8)
+    assert OpenCVEccConfig(iterations=80).converging().iterations == 80  # a spec's longer run is kept
+    start = perturbed_truth()[None]
+    found = {name: config.build().register_pairs(real_pair, np.array([[0, 1]]), start).homographies[0]
+             for name, config in (("template", template), ("converging", converging),
+                                  ("end", template.model_copy(update={"iterations": 300, "epsilon": 1e-12})))}
+    assert corner_error_px(found["converging"], found["end"], 640, 480) < 0.002
+    assert corner_error_px(found["template"], found["end"], 640, 480) > 0.005
+    assert corner_error_px(found["converging"], H_TARGET_TO_SOURCE, 640, 480) < 0.05
