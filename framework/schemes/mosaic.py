@@ -120,8 +120,7 @@ class MosaicScheme(LevelScheme):
             templates from ``flux-canvas``, i.e. :class:`~photonpano.compose.BilinearCompositor`,
             only: another compositor's template holds every photon). 1 (the default): every
             photon.
-        make_chain_locator: builds the held-out chains' locator (:mod:`photonpano.long_pairs`; the pipeline's
-            from :meth:`~photonpano.locator.LocatorConfig.converging`); None: ``make_locator``.
+        make_chain_locator: builds the held-out chains' locator (:mod:`photonpano.long_pairs`); None: ``make_locator``.
     """
 
     name = "mosaic"
