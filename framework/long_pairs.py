@@ -169,12 +169,18 @@ def links_both_ways(forward: PairRegistrations, backward: PairRegistrations, exp
     Returns:
         P registrations, b's pixels to a's; ok where both ways registered.
     """
-    inverse = geometry.invert(expected)
-    change = [geometry.params_from_homographies(geometry.about_centre(inverse @ found.homographies, width, height))
-              for found in (forward, backward)]
-    mean = geometry.from_centre(geometry.homographies_from_params((change[0] + change[1]) / 2), width, height)
+    change = (_link_change(forward.homographies, expected, width, height)
+              + _link_change(backward.homographies, expected, width, height)) / 2
+    mean = geometry.from_centre(geometry.homographies_from_params(change), width, height)
     return PairRegistrations(geometry.normalize(expected @ mean), forward.matches, forward.inliers,
                              forward.ok & backward.ok)
+
+
+def _link_change(registrations: NDArray[np.float64], expected: NDArray[np.float64], width: int,
+                 height: int) -> NDArray[np.float64]:
+    """(P, 8) float64 each link's registration as a change from ``expected``: p1..p8 about the frame centre."""
+    return geometry.params_from_homographies(geometry.about_centre(
+        geometry.invert(expected) @ registrations, width, height))
 
 
 def _chain_errors(registrations: NDArray[np.float64], ok: NDArray[np.bool_], links: NDArray[np.int64],
@@ -196,8 +202,7 @@ def _chain_errors(registrations: NDArray[np.float64], ok: NDArray[np.bool_], lin
     links, registrations = links[kept], registrations[kept]
     start, stop = references[links[:, 1]], references[links[:, 2]]
     expected = geometry.invert(homographies[start]) @ homographies[stop]
-    change = geometry.params_from_homographies(geometry.about_centre(
-        geometry.invert(expected) @ registrations, width, height))  # (P, 8)
+    change = _link_change(registrations, expected, width, height)
     frames = np.arange(int(start.min()), int(stop.max()) + 1, dtype=np.float64)
     errors = []
     for m in chains:

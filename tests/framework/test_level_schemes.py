@@ -69,8 +69,9 @@ def test_the_mosaic_chains_register_to_convergence_and_the_template_registration
 
     spec = _spec(source={"plugin": "simulate", "frames": 400, "height": 64, "width": 96}, group_size=100)
     mosaic = next(s for s in Stages(spec, spec.source.build()).schemes if isinstance(s, MosaicScheme))
-    assert (mosaic.make_locator().config.iterations, mosaic.make_locator().config.epsilon) == (10, 1e-4)
-    assert (mosaic.make_chain_locator().config.iterations, mosaic.make_chain_locator().config.epsilon) == (10, 1e-8)
+    template, chains = mosaic.make_locator().config, mosaic.make_chain_locator().config
+    assert (template.iterations, template.epsilon) == (10, 1e-4)
+    assert (chains.iterations, chains.epsilon) == (10, 1e-8)
 
 
 def test_levels_emit_frozen_records_in_panorama_coordinates():
