@@ -60,15 +60,17 @@ DRIFT_STEPS = 5
 """Most steps of :func:`correct_shape_drift` (each first order in the error; three reach the
 chains' solution on the tripod pans of its docstring)."""
 
-DRIFT_SIGNIFICANCE = 6.0
+DRIFT_SIGNIFICANCE = 3.0
 """Standard errors a parameter of the chains' mean error must stand at for :func:`correct_shape_drift` to
 take any of it out (the gain ``1 - (DRIFT_SIGNIFICANCE * standard error)^2 / power``). The chains
 register different groups of the same scene, so their errors are not independent and their spread
-under-estimates the noise of their mean: on the evaluation suite at 3 standard errors the
-low-texture clock's chains agreed on a horizontal scale drift at 5.8 that is not there (0.231 ->
-0.313 px; 0.289 at 4, 0.257 at 5), and the sunset at flux 0.05, whose chains share a perspective
-error at 2.6, went to 0.404 px at 1 (0.115). A tripod pan's keystone and scale ramps stand at
-12-26 (power / noise 150-670)."""
+under-estimates the noise of their mean. With the links registered one way, the low-texture
+clock's chains agreed on a horizontal scale drift at 5.8 that is not there, so this was 6; both
+ways (:func:`links_both_ways`) that drift is gone, and on the evaluation suite at 3 no capture
+got worse and 10 got better (the facade's fast pan 0.829 -> 0.461 px, a 100 Hz lamp over the
+city 0.026 -> 0.017), as did the tripod pans (the astronaut 0.185 -> 0.108; docs/accuracy.md).
+Where the chains agree on nothing, the largest parameter stands at 2-3.4; a tripod pan's keystone
+and scale ramps at 12-26 (power / noise 150-670)."""
 
 DRIFT_TOLERANCE_PX = 0.005
 """A step of :func:`correct_shape_drift` that moves no frame by more (mean corner distance, px) is the last."""
@@ -272,18 +274,16 @@ def correct_shape_drift(registrations: NDArray[np.float64], ok: NDArray[np.bool_
     ``max(0, 1 - DRIFT_SIGNIFICANCE^2 noise / power)`` (``power`` the parameter's mean
     square over the frames, ``noise`` that of its standard error, the chains' spread over
     the square root of their number; a Wiener gain at :data:`DRIFT_SIGNIFICANCE` 1): a
-    parameter in which the chains agree with the trajectory within 6 standard errors is
+    parameter in which the chains agree with the trajectory within 3 standard errors is
     left as it is. The links' disagreements are first order in the error, so the step is
     repeated against the corrected trajectory (at most :data:`DRIFT_STEPS` times, until a
     step moves no frame's corners by more than :data:`DRIFT_TOLERANCE_PX` on average).
 
     What it corrects is the error the consecutive registrations and the mosaic template
     cannot see (module docstring): measured with default settings on 20 000-frame captures,
-    a 50-degree tripod pan (``source.pan_model: rotation``) over the city 0.314 -> 0.090 px,
-    the mountains 0.225 -> 0.106, the gravel 0.158 -> 0.063, the astronaut 0.494 -> 0.220
-    (docs/accuracy.md). At :data:`DRIFT_SIGNIFICANCE` 3 it took out more (the city 0.075,
-    the astronaut 0.135, fast pans over a room 0.501 -> 0.407 and a facade 1.089 -> 0.811)
-    but also a false drift of the low-texture clock.
+    a 50-degree tripod pan (``source.pan_model: rotation``) over the city 0.314 px uncorrected
+    -> 0.075 px, the mountains 0.225 -> 0.064, the gravel 0.158 -> 0.043, the astronaut
+    0.494 -> 0.108 (docs/accuracy.md).
 
     Args:
         registrations: (P, 3, 3) float64 each link's registration (group b's pixels to a's).

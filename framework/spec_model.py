@@ -291,12 +291,11 @@ def _mosaic_model(host: PluginHost) -> type[BaseModel]:
         "correct_shape_drift": (Annotated[bool, Field(description="Take the shape error that grows slowly along "
             "the capture out of the last level's trajectory: that level also registers 8 chains of merged frames "
             "far apart (the uncertainty's shape term, photonpano.long_pairs), and what their mean error stands "
-            "at 6 standard errors or more in a homography parameter is removed, in up to 5 steps "
+            "at 3 standard errors or more in a homography parameter is removed, in up to 5 steps "
             "(photonpano.long_pairs.correct_shape_drift; run.json levels[k].shape_drift_px). A 50-degree tripod "
-            "pan (source.pan_model: rotation), 20 000 frames: the city 0.314 -> 0.090 px, the mountains 0.225 -> "
-            "0.106, the gravel 0.158 -> 0.063, the astronaut 0.494 -> 0.220; the evaluation suite's captures "
-            "within 0.02 px (docs/accuracy.md). The chains are registered with `uncertainty: false` too. false: "
-            "as before.")], True),
+            "pan (source.pan_model: rotation), 20 000 frames: the city 0.314 -> 0.075 px, the mountains 0.225 -> "
+            "0.064, the gravel 0.158 -> 0.043, the astronaut 0.494 -> 0.108 (docs/accuracy.md). The chains are "
+            "registered with `uncertainty: false` too. false: as before.")], True),
         "template_bias_priors": (Literal["shared", "per-parameter"], Field("shared", description="The prior of "
             "that smooth error: one standard deviation for all 8 homography parameters (shared), or one per "
             "parameter (per-parameter: automatic relevance determination, photonpano.schemes.template_bias). "
