@@ -166,8 +166,8 @@ def links_both_ways(forward: PairRegistrations, backward: PairRegistrations, exp
         forward: the links' registrations b's pixels to a's.
         backward: the same links registered a's pixels to b's, inverted.
         expected: (P, 3, 3) float64 the current estimate of each link.
-        width: merged-frame width in pixels.
-        height: merged-frame height in pixels.
+        width: frame width in pixels (the merged frames are in their reference frame's grid).
+        height: frame height in pixels.
 
     Returns:
         P registrations, b's pixels to a's; ok where both ways registered.

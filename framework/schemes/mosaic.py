@@ -250,20 +250,19 @@ class MosaicScheme(LevelScheme):
         chains = (long_baseline_chains(current, groups.stop - groups.start, source.width, source.height)
                   if task.crosscheck else np.zeros((0, 3), np.int64))
         expected = geometry.normalize(np.linalg.inv(current[chains[:, 1]]) @ current[chains[:, 2]])
+        joined, positions = np.unique(chains[:, 1:], return_inverse=True)
 
         @pure_task
-        def link(backward: bool) -> tuple[PairRegistrations, tuple[int, int]]:
-            """The held-out chains' links registered one way (long_pairs.register_links), the frames' width, height."""
-            joined, positions = np.unique(chains[:, 1:], return_inverse=True)
-            merged = prepare(joined)[0]
-            return register_links(self.make_chain_locator(), merged, positions.reshape(-1, 2), expected,
-                                  backward=backward), (merged.flux.shape[-1], merged.flux.shape[-2])
+        def link(backward: bool) -> PairRegistrations:
+            """The held-out chains' links registered one way (long_pairs.register_links)."""
+            return register_links(self.make_chain_locator(), prepare(joined)[0], positions.reshape(-1, 2), expected,
+                                  backward=backward)
 
         started = time.perf_counter()
         done = None if task.progress is None else (lambda part: task.progress(len(part.registrations)))
         parts: list[_WindowResult] = task.executor.map(run, windows, done=done)
         ways = task.executor.map(link, [False, True]) if len(chains) else None  # both ways, on two workers
-        links = None if ways is None else links_both_ways(ways[0][0], ways[1][0], expected, *ways[0][1])
+        links = None if ways is None else links_both_ways(ways[0], ways[1], expected, source.width, source.height)
         wall = time.perf_counter() - started
         regs = PairRegistrations.concat(*(part.registrations for part in parts))
         ok = regs.ok & plausible(regs.homographies, source.width, source.height)
