@@ -187,35 +187,86 @@ def _link_change(registrations: NDArray[np.float64], expected: NDArray[np.float6
 
 
 def _chain_errors(registrations: NDArray[np.float64], ok: NDArray[np.bool_], links: NDArray[np.int64],
-                  references: NDArray[np.int64], homographies: NDArray[np.float64], width: int, height: int
+                  references: NDArray[np.int64], expected: NDArray[np.float64], width: int, height: int
                   ) -> tuple[NDArray[np.float64], NDArray[np.float64]] | None:
     """Each chain's estimate of the trajectory's error along it (see :func:`chain_shape_error`).
 
+    ``expected`` is (P, 3, 3) float64 the trajectory's homography along each link (group
+    b's reference frame's pixels to group a's); the other arguments are :func:`chain_shape_error`'s.
+
     Returns:
-        ``(frames, errors)``: (F,) float64 the frames from the chains' first reference
-        frame to their last, and (M, F, 8) float64 each kept chain's error there, as 8
-        parameters about the frame centre (frame-side: ``H = H_true @ E``), with their mean
-        over the F frames subtracted; None where fewer than two chains have every link
-        registered.
+        ``(nodes, errors)``: (N,) float64 the frames where a kept chain's link starts or
+        ends, increasing, and (M, N, 8) float64 each kept chain's error there, as 8
+        parameters about the frame centre (frame-side: ``H = H_true @ E``), linear in
+        between and constant beyond the chain's own ends, with its mean over the frames
+        from ``nodes[0]`` to ``nodes[-1]`` subtracted (:func:`_frame_sums`); None where
+        fewer than two chains have every link registered.
     """
     chains = [m for m in np.unique(links[:, 0]) if ok[links[:, 0] == m].all()]
     if len(chains) < 2:
         return None
     kept = np.isin(links[:, 0], chains)
-    links, registrations = links[kept], registrations[kept]
+    links, registrations, expected = links[kept], registrations[kept], expected[kept]
     start, stop = references[links[:, 1]], references[links[:, 2]]
-    expected = geometry.invert(homographies[start]) @ homographies[stop]
     change = _link_change(registrations, expected, width, height)
-    frames = np.arange(int(start.min()), int(stop.max()) + 1, dtype=np.float64)
+    nodes = np.unique(np.concatenate([start, stop])).astype(np.float64)
     errors = []
     for m in chains:
         mine = links[:, 0] == m
         at = np.concatenate([start[mine][:1], stop[mine]]).astype(np.float64)
         # the disagreements sum to the error at the chain's first frame minus that at each later one
         error = -np.vstack([np.zeros((1, 8)), np.cumsum(change[mine], axis=0)])
-        along = np.stack([np.interp(frames, at, error[:, i]) for i in range(8)], axis=1)
-        errors.append(along - along.mean(axis=0))
-    return frames, np.stack(errors)
+        errors.append(_interpolate(nodes, at, error))
+    errors = np.stack(errors)
+    linear = _frame_sums(nodes)[0]
+    return nodes, errors - (np.einsum("n,mnk->mk", linear, errors) / linear.sum())[:, None]
+
+
+def _interpolate(frames: NDArray[np.float64], nodes: NDArray[np.float64], values: NDArray[np.float64]
+                 ) -> NDArray[np.float64]:
+    """(..., F, 8) ``values`` (..., N, 8) at ``nodes`` (N,) interpolated linearly to ``frames`` (F,), constant beyond.
+
+    (:func:`numpy.interp` per parameter, in one pass.)
+    """
+    if len(nodes) == 1:
+        return np.repeat(values, len(frames), axis=-2)
+    right = np.clip(np.searchsorted(nodes, frames, side="right"), 1, len(nodes) - 1)
+    left = right - 1
+    weight = np.clip((frames - nodes[left]) / (nodes[right] - nodes[left]), 0.0, 1.0)[:, None]
+    return values[..., left, :] * (1 - weight) + values[..., right, :] * weight
+
+
+def _frame_sums(nodes: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+    """Weights of the sums over the whole frames ``nodes[0]..nodes[-1]`` of functions linear between ``nodes``.
+
+    A function with values ``y`` at the (N,) increasing whole-frame ``nodes`` sums to
+    ``linear @ y`` over those frames, and its square to ``diag @ y^2 + 2 off @ (y[:-1] y[1:])``
+    (the sums of ``t / L`` and ``(t / L)^2`` over the ``L`` frames ``t`` of each segment, in
+    closed form): the means :func:`correct_shape_drift` takes without evaluating the chains at
+    every frame of a 100 000-frame capture.
+
+    Returns:
+        ``(linear, diag, off)``: (N,), (N,) and (N - 1,) float64 weights.
+    """
+    length = np.diff(nodes)
+    first = (length - 1) / 2  # sum over t < L of t / L
+    second = (length - 1) * (2 * length - 1) / (6 * length)  # of (t / L)^2
+    linear, diag = np.zeros(len(nodes)), np.zeros(len(nodes))
+    linear[:-1] += length - first
+    linear[1:] += first
+    diag[:-1] += length - 2 * first + second
+    diag[1:] += second
+    linear[-1] += 1
+    diag[-1] += 1
+    return linear, diag, first - second
+
+
+def _frame_mean_squares(nodes: NDArray[np.float64], values: NDArray[np.float64]) -> NDArray[np.float64]:
+    """(..., 8) the mean square over the whole frames ``nodes[0]..nodes[-1]`` of ``values`` (..., N, 8)."""
+    linear, diag, off = _frame_sums(nodes)
+    sums = (np.einsum("n,...nk->...k", diag, values ** 2)
+            + 2 * np.einsum("n,...nk->...k", off, values[..., :-1, :] * values[..., 1:, :]))
+    return sums / linear.sum()
 
 
 def _size(params: NDArray[np.float64], width: int, height: int) -> NDArray[np.float64]:
@@ -254,10 +305,13 @@ def chain_shape_error(registrations: NDArray[np.float64], ok: NDArray[np.bool_],
         the chains' ends), or None where fewer than two chains have every link registered
         (a chain with a failed link is left out).
     """
-    found = _chain_errors(registrations, ok, links, references, homographies, width, height)
+    found = _chain_errors(registrations, ok, links, references, _along_links(homographies, links, references),
+                          width, height)
     if found is None:
         return None
-    frames, stacked = found  # (M, F, 8)
+    nodes, errors = found
+    frames = np.arange(nodes[0], nodes[-1] + 1)
+    stacked = _interpolate(frames, nodes, errors)  # (M, F, 8)
     mean = stacked.mean(axis=0)
     spread = np.sqrt(np.mean([_size(e - mean, width, height) ** 2 for e in stacked], axis=0) / (len(stacked) - 1))
     shape = np.sqrt(np.maximum(_size(mean, width, height) ** 2 - SIGNIFICANCE ** 2 * spread ** 2, 0.0))
@@ -301,21 +355,42 @@ def correct_shape_drift(registrations: NDArray[np.float64], ok: NDArray[np.bool_
         correction moved a frame, in pixels.
     """
     corrected = np.asarray(homographies, np.float64)
-    frames = np.arange(len(corrected), dtype=np.float64)
-    total = np.zeros((len(corrected), 8))
+    # the chains read the trajectory at the links' reference frames only: correct it there
+    # step by step, and every frame once the steps are known
+    ends = np.unique(references[links[:, 1:]])
+    at_ends = corrected[ends]
+    steps: list[tuple[NDArray[np.float64], NDArray[np.float64]]] = []
     for _ in range(DRIFT_STEPS):
-        found = _chain_errors(registrations, ok, links, references, corrected, width, height)
+        found = _chain_errors(registrations, ok, links, references,
+                              _along_links(at_ends, links, np.searchsorted(ends, references)), width, height)
         if found is None:
             break
-        spanned, stacked = found
-        mean = stacked.mean(axis=0)  # (F, 8)
-        noise = (((stacked - mean) ** 2).sum(axis=0) / (len(stacked) - 1) / len(stacked)).mean(axis=0)
-        power = (mean ** 2).mean(axis=0)
+        nodes, stacked = found
+        mean = stacked.mean(axis=0)  # (N, 8)
+        noise = _frame_mean_squares(nodes, stacked - mean).sum(axis=0) / (len(stacked) - 1) / len(stacked)
+        power = _frame_mean_squares(nodes, mean)
         gain = np.clip(1.0 - DRIFT_SIGNIFICANCE ** 2 * noise / np.maximum(power, 1e-300), 0.0, 1.0)
-        step = np.stack([np.interp(frames, spanned, mean[:, i] * gain[i]) for i in range(8)], axis=1)
-        error = geometry.from_centre(geometry.homographies_from_params(step), width, height)
-        corrected = geometry.normalize(corrected @ geometry.invert(error))
-        total += step
+        step = mean * gain
+        steps.append((nodes, step))
+        at_ends = _corrected(at_ends, ends.astype(np.float64), nodes, step, width, height)
         if _size(step, width, height).max() <= DRIFT_TOLERANCE_PX:
             break
-    return corrected, float(_size(total, width, height).max())
+    if not steps:
+        return corrected, 0.0
+    frames = np.arange(len(corrected), dtype=np.float64)
+    for nodes, step in steps:
+        corrected = _corrected(corrected, frames, nodes, step, width, height)
+    return corrected, float(_size(sum(step for _, step in steps), width, height).max())
+
+
+def _along_links(homographies: NDArray[np.float64], links: NDArray[np.int64], rows: NDArray[np.int64]
+                 ) -> NDArray[np.float64]:
+    """(P, 3, 3) the trajectory's homography along each link: ``inv(H[rows[a]]) @ H[rows[b]]``."""
+    return geometry.invert(homographies[rows[links[:, 1]]]) @ homographies[rows[links[:, 2]]]
+
+
+def _corrected(homographies: NDArray[np.float64], frames: NDArray[np.float64], nodes: NDArray[np.float64],
+               step: NDArray[np.float64], width: int, height: int) -> NDArray[np.float64]:
+    """``homographies`` (F, 3, 3) of ``frames`` less the error ``step`` ((N, 8) at ``nodes``): ``H @ inv(E)``."""
+    error = geometry.from_centre(geometry.homographies_from_params(_interpolate(frames, nodes, step)), width, height)
+    return geometry.normalize(homographies @ geometry.invert(error))

@@ -191,3 +191,23 @@ def test_a_link_registered_both_ways_keeps_their_mean_and_cancels_a_bias_that_fo
     np.testing.assert_array_equal(locator.pairs, pairs[:, ::-1])
     np.testing.assert_allclose(locator.initial, np.linalg.inv(expected[:2]))
     np.testing.assert_allclose(back.homographies, geometry.translation(-0.5, 0.0) @ expected[:2], atol=1e-12)
+
+
+def test_the_frame_means_in_closed_form_are_those_over_every_frame():
+    """The drift correction's means over the frames, from the chains' nodes only, equal those over every frame."""
+    from photonpano.long_pairs import _frame_sums, _interpolate
+
+    rng = np.random.default_rng(3)
+    nodes = np.unique(rng.integers(0, 5_000, 40)).astype(np.float64)
+    values = rng.normal(size=(3, len(nodes), 8))
+    every = _interpolate(np.arange(nodes[0], nodes[-1] + 1), nodes, values)  # (3, F, 8)
+    linear, diag, off = _frame_sums(nodes)
+    assert linear.sum() == every.shape[1]
+    np.testing.assert_allclose(np.einsum("n,mnk->mk", linear, values), every.sum(axis=1), rtol=1e-10)
+    squares = (np.einsum("n,mnk->mk", diag, values ** 2)
+               + 2 * np.einsum("n,mnk->mk", off, values[:, :-1] * values[:, 1:]))
+    np.testing.assert_allclose(squares, (every ** 2).sum(axis=1), rtol=1e-10)
+    frames = np.arange(nodes[0] - 50, nodes[-1] + 50)  # the interpolation is numpy's, constant beyond the nodes
+    interpolated = _interpolate(frames, nodes, values)
+    for k in range(8):
+        np.testing.assert_allclose(interpolated[1, :, k], np.interp(frames, nodes, values[1, :, k]))
