@@ -23,7 +23,9 @@ cached bit-packed cube through the memory-mapped ``npy-cube`` source, and prints
   dtype=np.uint32)``, measured in the same process), and the ratio pipeline / floor;
 - the trajectory RMSE against ground truth;
 - with ``--timeline``, the run's CPU use every 0.25 s and the stage the main thread was in
-  (:class:`Timeline`): where the pipeline runs on one core of two.
+  (:class:`Timeline`): where the pipeline runs on one core of two;
+- with ``--repeat N``, each capture N times, then their medians (a 2-core virtual machine's
+  speed drifts within the hour; the floor, measured in each run, shows by how much).
 
 Usage::
 
@@ -35,6 +37,7 @@ Usage::
     python benchmarks/performance.py --scaling        # 12.5k, 25k, 50k, 100k, 200k frames
     python benchmarks/performance.py --set locator.max_features=2000   # spec overrides
     python benchmarks/performance.py --path zigzag --scene texture_gravel --timeline  # where the time goes
+    python benchmarks/performance.py --path zigzag --scene city --repeat 3   # and the medians of 3 runs
 """
 
 from __future__ import annotations
@@ -245,6 +248,19 @@ def report(r: dict) -> None:
         print("\n".join(f"    {line}" for line in r["timeline"]))
 
 
+def report_medians(runs: list[dict]) -> None:
+    """Print the median wall, CPU and floor seconds and pipeline/floor ratio of repeated runs of one capture."""
+    from statistics import median
+
+    r = runs[0]
+    walls = ", ".join(f"{x['wall_s']:.1f}" for x in runs)
+    rmse = ", ".join(sorted({f"{x['rmse_px']:.3f}" for x in runs}))  # one value: the runs are deterministic
+    print(f"{r['scene']}, {r['path']}, {r['frames']} frames, median of {len(runs)} runs: "
+          f"wall {median(x['wall_s'] for x in runs):.1f} s ({walls}), CPU {median(x['cpu_s'] for x in runs):.1f} s, "
+          f"floor {median(x['floor_s'] for x in runs):.2f} s, pipeline/floor {median(x['ratio'] for x in runs):.1f}x, "
+          f"peak RSS at most {max(x['peak_rss_mb'] for x in runs):.0f} MB, trajectory RMSE {rmse} px")
+
+
 def main() -> None:
     """Parse arguments and run the benchmark."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -257,6 +273,9 @@ def main() -> None:
                         help="spec override, as in `photonpano run --set` (repeatable)")
     parser.add_argument("--timeline", action="store_true",
                         help="also print the run's CPU use every 0.25 s with the stage it was in")
+    parser.add_argument("--repeat", type=int, default=1, metavar="N",
+                        help="run each capture N times and print their medians too (this machine's speed, and "
+                             "the floor with it, drifts by 10-25 %% within an hour)")
     parser.add_argument("--worker", type=int, help=argparse.SUPPRESS)
     args = parser.parse_args()
     cameras = [c.strip() for c in args.path.split(",") if c.strip()]
@@ -268,10 +287,16 @@ def main() -> None:
     if args.worker:
         print(json.dumps(run_once(args.worker, args.set, cameras[0], scenes[0], args.timeline)))
         return
+    if args.repeat < 1:
+        parser.error(f"--repeat {args.repeat}: expected a whole number of runs >= 1")
     if not args.scaling:
         for scene in scenes:
             for camera in cameras:
-                report(measure(args.frames, args.set, camera, scene, args.timeline))
+                runs = [measure(args.frames, args.set, camera, scene, args.timeline) for _ in range(args.repeat)]
+                for r in runs:
+                    report(r)
+                if len(runs) > 1:
+                    report_medians(runs)
         return
     print(f"{'path':>7} {'frames':>8} {'wall s':>7} {'CPU s':>7} {'floor s':>7} {'ratio':>6} {'RSS MB':>7} "
           f"{'RMSE px':>8}")
