@@ -20,3 +20,14 @@ def test_the_timeline_shows_one_busy_core_and_the_photonpano_call_it_is_in():
     cores = [float(line.split()[2]) for line in table]  # CPU time counts in 10 ms ticks: 20 % per sample
     assert all(0.3 <= c <= 1.5 for c in cores), table  # one thread busy (less on a loaded machine), the sampler idle
     assert all(line.endswith("tone_map") for line in table), table
+
+
+def test_repeated_runs_print_their_medians(capsys):
+    """``--repeat``: the median of each figure over the runs, every run's wall time, the one RMSE."""
+    runs = [{"scene": "city", "path": "zigzag", "frames": 100_000, "wall_s": w, "cpu_s": c, "floor_s": f,
+             "ratio": w / f, "peak_rss_mb": m, "rmse_px": 0.051}
+            for w, c, f, m in [(15.6, 25.4, 8.0, 612), (13.0, 22.0, 6.0, 611), (14.0, 23.0, 7.0, 640)]]
+    load_benchmark("performance").report_medians(runs)
+    line = capsys.readouterr().out
+    assert "median of 3 runs: wall 14.0 s (15.6, 13.0, 14.0), CPU 23.0 s, floor 7.00 s" in line, line
+    assert "pipeline/floor 2.0x" in line and "at most 640 MB" in line and line.count("0.051") == 1, line
