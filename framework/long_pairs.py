@@ -210,14 +210,14 @@ def _chain_errors(registrations: NDArray[np.float64], ok: NDArray[np.bool_], lin
     start, stop = references[links[:, 1]], references[links[:, 2]]
     change = _link_change(registrations, expected, width, height)
     nodes = np.unique(np.concatenate([start, stop])).astype(np.float64)
-    errors = []
+    along = []
     for m in chains:
         mine = links[:, 0] == m
         at = np.concatenate([start[mine][:1], stop[mine]]).astype(np.float64)
         # the disagreements sum to the error at the chain's first frame minus that at each later one
         error = -np.vstack([np.zeros((1, 8)), np.cumsum(change[mine], axis=0)])
-        errors.append(_interpolate(nodes, at, error))
-    errors = np.stack(errors)
+        along.append(_interpolate(nodes, at, error))
+    errors = np.stack(along)
     linear = _frame_sums(nodes)[0]
     return nodes, errors - (np.einsum("n,mnk->mk", linear, errors) / linear.sum())[:, None]
 
@@ -380,7 +380,7 @@ def correct_shape_drift(registrations: NDArray[np.float64], ok: NDArray[np.bool_
     frames = np.arange(len(corrected), dtype=np.float64)
     for nodes, step in steps:
         corrected = _corrected(corrected, frames, nodes, step, width, height)
-    return corrected, float(_size(sum(step for _, step in steps), width, height).max())
+    return corrected, float(_size(np.sum([step for _, step in steps], axis=0), width, height).max())
 
 
 def _along_links(homographies: NDArray[np.float64], links: NDArray[np.int64], rows: NDArray[np.int64]
