@@ -222,18 +222,18 @@ def _chain_errors(registrations: NDArray[np.float64], ok: NDArray[np.bool_], lin
     return nodes, errors - (np.einsum("n,mnk->mk", linear, errors) / linear.sum())[:, None]
 
 
-def _interpolate(frames: NDArray[np.float64], nodes: NDArray[np.float64], values: NDArray[np.float64]
-                 ) -> NDArray[np.float64]:
-    """(..., F, 8) ``values`` (..., N, 8) at ``nodes`` (N,) interpolated linearly to ``frames`` (F,), constant beyond.
+def _interpolate(frames: NDArray[np.float64] | NDArray[np.int64], nodes: NDArray[np.float64],
+                 values: NDArray[np.float64]) -> NDArray[np.float64]:
+    """(..., F, 8) ``values`` (..., N, 8) at increasing ``nodes`` (N,) at ``frames`` (F,): :func:`numpy.interp`.
 
-    (:func:`numpy.interp` per parameter, in one pass.)
+    Linear in between, constant beyond the first and last node.
     """
-    if len(nodes) == 1:
-        return np.repeat(values, len(frames), axis=-2)
-    right = np.clip(np.searchsorted(nodes, frames, side="right"), 1, len(nodes) - 1)
-    left = right - 1
-    weight = np.clip((frames - nodes[left]) / (nodes[right] - nodes[left]), 0.0, 1.0)[:, None]
-    return values[..., left, :] * (1 - weight) + values[..., right, :] * weight
+    flat = values.reshape(-1, len(nodes), values.shape[-1])
+    out = np.empty((len(flat), len(frames), values.shape[-1]))
+    for m, chain in enumerate(flat):
+        for k in range(values.shape[-1]):
+            out[m, :, k] = np.interp(frames, nodes, chain[:, k])
+    return out.reshape(values.shape[:-2] + out.shape[1:])
 
 
 def _frame_sums(nodes: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
@@ -358,11 +358,10 @@ def correct_shape_drift(registrations: NDArray[np.float64], ok: NDArray[np.bool_
     # the chains read the trajectory at the links' reference frames only: correct it there
     # step by step, and every frame once the steps are known
     ends = np.unique(references[links[:, 1:]])
-    at_ends = corrected[ends]
+    at_ends, rows = corrected[ends], np.searchsorted(ends, references)  # a linked group's row in ``at_ends``
     steps: list[tuple[NDArray[np.float64], NDArray[np.float64]]] = []
     for _ in range(DRIFT_STEPS):
-        found = _chain_errors(registrations, ok, links, references,
-                              _along_links(at_ends, links, np.searchsorted(ends, references)), width, height)
+        found = _chain_errors(registrations, ok, links, references, _along_links(at_ends, links, rows), width, height)
         if found is None:
             break
         nodes, stacked = found
@@ -372,12 +371,12 @@ def correct_shape_drift(registrations: NDArray[np.float64], ok: NDArray[np.bool_
         gain = np.clip(1.0 - DRIFT_SIGNIFICANCE ** 2 * noise / np.maximum(power, 1e-300), 0.0, 1.0)
         step = mean * gain
         steps.append((nodes, step))
-        at_ends = _corrected(at_ends, ends.astype(np.float64), nodes, step, width, height)
+        at_ends = _corrected(at_ends, ends, nodes, step, width, height)
         if _size(step, width, height).max() <= DRIFT_TOLERANCE_PX:
             break
     if not steps:
         return corrected, 0.0
-    frames = np.arange(len(corrected), dtype=np.float64)
+    frames = np.arange(len(corrected))
     for nodes, step in steps:
         corrected = _corrected(corrected, frames, nodes, step, width, height)
     return corrected, float(_size(np.sum([step for _, step in steps], axis=0), width, height).max())
@@ -389,7 +388,7 @@ def _along_links(homographies: NDArray[np.float64], links: NDArray[np.int64], ro
     return geometry.invert(homographies[rows[links[:, 1]]]) @ homographies[rows[links[:, 2]]]
 
 
-def _corrected(homographies: NDArray[np.float64], frames: NDArray[np.float64], nodes: NDArray[np.float64],
+def _corrected(homographies: NDArray[np.float64], frames: NDArray[np.int64], nodes: NDArray[np.float64],
                step: NDArray[np.float64], width: int, height: int) -> NDArray[np.float64]:
     """``homographies`` (F, 3, 3) of ``frames`` less the error ``step`` ((N, 8) at ``nodes``): ``H @ inv(E)``."""
     error = geometry.from_centre(geometry.homographies_from_params(_interpolate(frames, nodes, step)), width, height)
