@@ -12,7 +12,8 @@ binning is the photon budget's ``check_binning``, :class:`~photonpano.budget.Bud
    counts as failed (a spurious match on photon noise correlates near 0);
 2. every failed pair is registered **directly** on the binned frames: phase
    correlation for the translation left by the current estimate, then ECC
-   (Evangelidis and Psarakis, 2008) for an affine correction
+   (Evangelidis and Psarakis, 2008) for an affine correction of the estimate, and the
+   same for a translation of the estimate's shift alone, whichever correlates better
    (:func:`~photonpano.imaging.register_binned`);
 3. with ``mover_guard`` (the default), a single bright compact region (a lit object
    crossing a dark scene) must not decide a pair: each binned frame's
