@@ -158,7 +158,7 @@ def _binned_pair(truth, photons_per_pixel, seed):
 
 @pytest.mark.parametrize("case", ["translation, estimate sheared", "rotation, estimate the identity"])
 def test_a_direct_registration_takes_the_translation_where_the_estimates_shape_is_wrong(case):
-    """The rescue's translation fits a translated pair whose estimate has a wrong shape; a rotated pair keeps the affine.
+    """The rescue's translation fits a translated pair whose estimate is misshapen; a rotated pair keeps the affine.
 
     Six photon draws at 1 photon per pixel: the pair shifted by (6, -3) px from an
     estimate scaled 2 % and sheared 1.5 % registers to 0.12 px mean corner error (0.28
