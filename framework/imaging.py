@@ -231,23 +231,12 @@ def register_binned(a: tuple[NDArray, NDArray], b: tuple[NDArray, NDArray], init
                     ) -> tuple[NDArray[np.float64], float, int]:
     """Register two binned frames directly: phase correlation, then ECC, affine and translation.
 
-    Two registrations are made, each a phase correlation then ECC (Evangelidis and
-    Psarakis, 2008) from its shift, and the one of higher correlation is returned:
-
-    - *affine*, on frame b warped by the current estimate: corrects its rotation, zoom and
-      perspective (a tripod pan, a rolling camera);
-    - *translation*, on frame b moved by the estimate's shift of the frame centre alone:
-      where the estimate's shape is wrong (a level-1 chain of noisy links gives it a
-      shear or scale of its own), the affine correction started there often stays near
-      it, on noisy or smooth frames whose correlation barely changes along it.
-
-    On the suite's brick facade panned fast (2026-11-27, level 1's rescued pairs against
-    the truth) the rescues' median error fell from 0.13-0.51 binned pixels (by pair offset)
-    to 0.04-0.07 and 32 more pairs passed, and the capture went 0.461 -> 0.153 px; four
-    photographs outside the suite at flux 0.05 (retina, moon, rocket, cell) went
-    10.8 / 0.65 / 0.46 / 0.75 -> 0.94 / 0.27 / 0.36 / 0.53 px (``docs/accuracy.md``). The
-    translation costs about a third more CPU per call (the low-texture clock's rescues:
-    18.5 against 13.9 ms).
+    Of two ECC registrations (Evangelidis and Psarakis, 2008), each from a phase
+    correlation's shift, the better-correlating is returned: an *affine* correction of b
+    warped by the current estimate (rotation, zoom, perspective), and a *translation* of b
+    moved by the estimate's centre shift alone, which a level-1 estimate's own shear or
+    scale (chained from noisy links) cannot hold on smooth or noisy frames (the suite's
+    clock 0.362 -> 0.104 px, for a third more CPU per call; ``docs/accuracy.md``).
 
     Args:
         a: :func:`binned_frame` of frame a (the moving image).
@@ -255,26 +244,22 @@ def register_binned(a: tuple[NDArray, NDArray], b: tuple[NDArray, NDArray], init
         initial: (3, 3) float64 current estimate mapping b's full-resolution pixels to a's.
         factor: the frames' binning.
         iterations: ECC iterations.
-        from_initial: run each ECC from its starting warp too (the estimate, or its shift)
-            and keep the higher correlation (phase correlation follows the edges of
-            masked-out regions, which move with them).
+        from_initial: run each ECC from its base warp too (the estimate, or its shift):
+            phase correlation follows the edges of masked-out regions, which move with them.
 
     Returns:
         ``(homography, correlation, overlap)``: (3, 3) float64 mapping b's full-resolution
-        pixels to a's, the final correlation (``initial``, -1 and 0 where ECC failed both
-        ways) and the binned pixels compared.
+        pixels to a's, the final correlation and the binned pixels compared (``initial``,
+        -1, 0 where ECC failed both ways).
     """
     import cv2
 
     start = in_binned_pixels(initial, factor)
-    h, w = b[0].shape
-    centre = np.array([[(w - 1) / 2, (h - 1) / 2]])
-    dx0, dy0 = geometry.apply(start, centre)[0] - centre[0]
-    shifted = geometry.translation(dx0, dy0)
+    centre = (np.array([b[0].shape[::-1]], np.float64) - 1) / 2  # (1, 2): x, y
+    shifted = geometry.translation(*(geometry.apply(start, centre)[0] - centre[0]))
     criteria = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, iterations, 1e-5)
-    window = cv2.createHanningWindow((w, h), cv2.CV_32F)
+    window = cv2.createHanningWindow(b[0].shape[::-1], cv2.CV_32F)
     fill_a = np.where(a[1], a[0], a[0][a[1]].mean() if a[1].any() else 0).astype(np.float32)
-    mask_a = a[1].astype(np.uint8)
     best: tuple[NDArray[np.float64], float, int] = (initial, -1.0, 0)
     for base, motion in ((start, cv2.MOTION_AFFINE), (shifted, cv2.MOTION_TRANSLATION)):
         moved, inside = _warp(b[0], b[1], base)
@@ -284,8 +269,8 @@ def register_binned(a: tuple[NDArray, NDArray], b: tuple[NDArray, NDArray], init
         starts = [np.array([[1, 0, -dx], [0, 1, -dy]], np.float32)] + [np.eye(2, 3, dtype=np.float32)] * from_initial
         for warp in starts:
             try:
-                cc, refined = cv2.findTransformECCWithMask(moved, a[0], inside.astype(np.uint8), mask_a, warp,
-                                                           motion, criteria, 1)
+                cc, refined = cv2.findTransformECCWithMask(moved, a[0], inside.astype(np.uint8),
+                                                           a[1].astype(np.uint8), warp, motion, criteria, 1)
             except cv2.error:
                 continue
             if cc > best[1]:
@@ -390,10 +375,8 @@ def shift_without_mover(a: NDArray[np.float32], b: NDArray[np.float32], shift: N
     every pixel's contrast), without each block's :func:`brightest_blob`; the shift of
     the image centre found so replaces the phase correlation's where it correlates at
     :data:`MOVER_MIN_CORRELATION` or more and differs by more than
-    :data:`MOVER_DISAGREEMENT_PX` in length. On the evaluation suite's 45 captures without
-    a mover the probe is unchanged but on two, where it moves toward the true speed
-    (interior_room/fast-pan 0.1261 -> 0.1240, true 0.12; objects_coffee/flux-0.005 0.0288
-    -> 0.0272, its base capture 0.0271).
+    :data:`MOVER_DISAGREEMENT_PX` in length (what it changed on the evaluation suite:
+    ``docs/real_scenes.md``, "The speed probe").
 
     Args:
         a: (h, w) float32 binned sum of the first of two adjacent blocks.

@@ -73,17 +73,18 @@ def test_the_level_change_term_is_the_move_since_the_first_level_after_level_1(o
 def test_a_fourth_level_does_not_hide_a_dark_scene_s_error():
     """The suite's dark outdoor capture with levels=4: the levels converge slowly, so the last step is small.
 
-    When it was 0.86 px, the last step alone predicted 0.23 px and said ok. Measured now
-    (the mosaic levels corrected for the template's own error): 0.175 px (levels 1-4: 1.14,
-    0.34, 0.20, 0.175), median sigma 0.24 px, 98.8 % of the frames within 2 sigma,
-    ``degraded`` (a few frames' sigma over 1 px).
+    When it was 0.86 px, the last step alone predicted 0.23 px and said ok. With the mosaic
+    levels corrected for the template's own error: 0.175 px (levels 1-4: 1.14, 0.34, 0.20,
+    0.175), median sigma 0.24 px, ``degraded``. Measured now (the pair check's rescue takes a
+    translation too, 2026-11-27): 0.137 px, median sigma 0.163 px, 99.2 % of the frames
+    within 2 sigma, ``ok``.
     """
     from capture_helpers import load_suite
 
     suite = load_suite()
     capture = next(c for c in suite.captures() if c.name == "outdoor_camera/dark")
     row = suite.run_capture(capture, overrides=["levels=4"])
-    assert row["rmse"] > 0.15, row  # still an error the fourth level's move alone understates
+    assert row["rmse"] > 0.1, row  # still an error the fourth level's move alone understates
     assert row["within_2_sigma"] >= 0.8 and row["sigma_median"] >= row["rmse"] / 2, row
 
 
