@@ -92,19 +92,21 @@ class _Fixed(Locator):
                                  np.full(n, 50, np.int64), np.full(n, self.ok))
 
 
-def _noisy_pair(shift, photons_per_pixel, seed=0):
-    """Two merged frames of the bundled photo, b shifted by ``shift`` pixels, at a few photons per pixel."""
+def _noisy_pair(truth, photons_per_pixel, seed=0):
+    """Two merged frames of the bundled photo at a few photons per pixel, b's pixel x at a's pixel ``truth(x)``.
+
+    ``truth`` is a (3, 3) float64 homography (b's pixels to a's).
+    """
     import cv2
+    from photonpano import geometry
     from photonpano.plugins.sources.simulate import bundled_photo, load_scene
 
     scene = load_scene(bundled_photo(), 1440)[200:500, 400:900]
     rng = np.random.default_rng(seed)
-    h, w = 200, 400
-    a = scene[50:50 + h, 50:50 + w]
-    moved = cv2.warpAffine(scene, np.float32([[1, 0, -shift[0]], [0, 1, -shift[1]]]), scene.shape[::-1])
-    b = moved[50:50 + h, 50:50 + w]  # b(x) = a(x + shift): b's pixel x is a's pixel x + shift
-    frames = [rng.poisson(photons_per_pixel * img / img.mean()).astype(np.float32) for img in (a, b)]
-    flux = np.stack(frames)
+    a = scene[50:250, 50:450]
+    b = cv2.warpPerspective(scene, geometry.translation(50, 50) @ truth, (400, 200),
+                            flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP)
+    flux = np.stack([rng.poisson(photons_per_pixel * img / img.mean()).astype(np.float32) for img in (a, b)])
     return MergedFrames(flux=flux, frames=np.ones_like(flux), images=np.zeros(flux.shape, np.uint8),
                         masks=np.ones(flux.shape, bool))
 
@@ -126,8 +128,8 @@ class _Checked:
 
 def test_check_rescues_failed_pairs_and_rejects_wrong_ones():
     """The binned check rescues failed pairs and rejects wrong ones."""
-    merged = _noisy_pair((6.0, -3.0), photons_per_pixel=1.5)
     truth = np.array([[1, 0, 6.0], [0, 1, -3.0], [0, 0, 1]])
+    merged = _noisy_pair(truth, photons_per_pixel=1.5)
     pairs, initial = np.array([[0, 1]]), np.eye(3)[None]
     failing = _Checked(_Fixed(np.eye(3), ok=False), binning=3)
     found = failing.register_pairs(merged, pairs, initial)
@@ -140,22 +142,6 @@ def test_check_rescues_failed_pairs_and_rejects_wrong_ones():
     assert np.abs(found.homographies[0][:2, 2] - truth[:2, 2]).max() < 0.5
 
 
-def _binned_pair(truth, photons_per_pixel, seed):
-    """Binned frames (2 x 2) of the bundled photo at a few photons per pixel, b's pixel x at a's ``truth(x)``."""
-    import cv2
-    from photonpano import geometry
-    from photonpano.imaging import binned_frame
-    from photonpano.plugins.sources.simulate import bundled_photo, load_scene
-
-    scene = load_scene(bundled_photo(), 1440)[200:500, 400:900].astype(np.float32)
-    rng = np.random.default_rng(seed)
-    a = scene[50:250, 50:450]
-    b = cv2.warpPerspective(scene, geometry.translation(50, 50) @ truth, (400, 200),
-                            flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP)
-    return [binned_frame(rng.poisson(photons_per_pixel * img / img.mean()).astype(np.float32),
-                         np.ones(img.shape, bool), 2) for img in (a, b)]
-
-
 @pytest.mark.parametrize("case", ["translation, estimate sheared", "rotation, estimate the identity"])
 def test_a_direct_registration_takes_the_translation_where_the_estimates_shape_is_wrong(case):
     """The rescue's translation fits a translated pair whose estimate is misshapen; a rotated pair keeps the affine.
@@ -166,7 +152,7 @@ def test_a_direct_registration_takes_the_translation_where_the_estimates_shape_i
     the identity to 0.20 px (a translation would leave 10 px).
     """
     from photonpano import geometry
-    from photonpano.imaging import register_binned
+    from photonpano.imaging import binned_frame, register_binned
 
     w, h = 400, 200
     if case.startswith("translation"):
@@ -177,7 +163,8 @@ def test_a_direct_registration_takes_the_translation_where_the_estimates_shape_i
         truth, initial = geometry.from_centre(np.array([[c, -s, 4], [s, c, 2], [0, 0, 1]]), w, h), np.eye(3)
     errors = []
     for seed in range(6):
-        a, b = _binned_pair(truth, 1.0, seed)
+        merged = _noisy_pair(truth, 1.0, seed)
+        a, b = (binned_frame(merged.flux[i], merged.masks[i], 2) for i in (0, 1))
         found, correlation, overlap = register_binned(a, b, initial, 2)
         assert correlation > 0.5 and overlap > 0.8 * a[0].size
         errors.append(geometry.mean_corner_distance(found[None], truth[None], w, h)[0])
@@ -225,7 +212,7 @@ def test_check_bins_each_frame_once_across_calls_and_drops_frames_no_longer_used
     """A frame used by consecutive calls is binned once (by content id, or digest without ids)."""
     from photonpano.schemes import check
 
-    merged = _noisy_pair((6.0, -3.0), photons_per_pixel=1.5)
+    merged = _noisy_pair(np.array([[1, 0, 6.0], [0, 1, -3.0], [0, 0, 1]]), photons_per_pixel=1.5)
     binned = []
     original = check.binned_frame
     monkeypatch.setattr(check, "binned_frame", lambda *a, **k: binned.append(1) or original(*a, **k))
