@@ -284,6 +284,7 @@ def reconstruct(spec: PipelineSpec, source: PhotonSource, *, on_level: Callable[
         :class:`~photonpano.records.Panorama` (from the spec's compositor; its
         ``homographies`` map frames to canvas pixels) and wall times in seconds.
     """
+    from .budget.binnings import full_resolution_hint
     from .executor import make_executor
     from .outputs import Checkpoint
     from .quality import assess, panorama_agreement
@@ -342,6 +343,9 @@ def reconstruct(spec: PipelineSpec, source: PhotonSource, *, on_level: Callable[
         status, warnings = assess(plan, stats, agreement, summary)
         movers = _movers_record(stats)
         notes = list(stages.notes)
+        hint = full_resolution_hint(spec, stages.source, budget.mosaic_binning, plan.photons_per_pixel_per_group)
+        if status == "degraded" and hint is not None:
+            notes.append(hint)
         if movers is not None and movers["engaged"]:
             notes.append(f"moving objects: the robust template of level {movers['level']} left out a region of "
                          f"{movers['largest_region']:.1%} of the canvas; pixels disagreeing with the panorama "

@@ -300,6 +300,40 @@ def test_mosaic_levels_register_at_full_resolution_on_short_well_lit_captures(mo
     assert _budget(capture, group_size=200, mosaic={"registration_binning": 3}).mosaic_binning == 3
 
 
+def test_a_degraded_run_whose_mosaic_was_binned_for_its_length_alone_is_told_of_full_resolution(monkeypatch):
+    """The note names mosaic.registration_binning: 1 where auto binned for length, and only on a degraded run."""
+    from photonpano import quality
+    from photonpano.budget import binnings
+    from photonpano.host import PluginHost
+    from photonpano.pipeline import reconstruct
+    from photonpano.spec import validate_spec
+
+    capture = _capture(frames=1000, height=224, width=320)  # 7.2e7 pixel-frames, binned 2x2 at level 1
+
+    def spec(**settings):
+        return validate_spec({"source": "simulate", "group_size": 200, **settings}, PluginHost())
+
+    def hint(binning=2, light=100.0, **settings):
+        return binnings.full_resolution_hint(spec(**settings), capture, binning, light)
+
+    assert hint() is None  # within the pixel-frame limit: auto registers at full resolution
+    monkeypatch.setattr(binnings, "FULL_RESOLUTION_MOSAIC_MAX", 7e7)  # a longer capture, in effect
+    assert "mosaic.registration_binning: 1" in hint() and "binned 2x2" in hint()
+    assert hint(light=None) is not None  # intensity frames: light never binds
+    assert hint(light=5.0) is None  # binned for light: full resolution would be noisier
+    assert hint(binning=1, mosaic={"registration_binning": 1}) is None
+    assert hint(mosaic={"registration_binning": 2}) is None and hint(registration_binning=2) is None
+
+    def run(status):
+        monkeypatch.setattr(quality, "assess", lambda *args, **kwargs: (status, []))
+        report = {}
+        reconstruct(spec(levels=2), capture, report=report)
+        return report["notes"]
+
+    assert any("mosaic.registration_binning: 1" in note for note in run("degraded"))
+    assert not any("registration_binning" in note for note in run("ok"))
+
+
 def test_an_explicit_group_size_short_of_light_gets_a_note_naming_the_budgets_choice():
     """An explicit m gathering clearly fewer photons than the budget wants is noted; enough light is not."""
     from photonpano.budget.probe import short_of_light
