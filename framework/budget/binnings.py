@@ -133,8 +133,9 @@ def full_resolution_hint(spec: Any, source: PhotonSource, mosaic: int,
     gather enough light for full resolution (:data:`FULL_RESOLUTION_MOSAIC_PHOTONS`), the
     binning saves time, not noise, and on a scene of little texture it is what limits the
     accuracy (100 000 frames of the evaluation suite's clock on the zigzag path: 0.295 px
-    and ``degraded`` binned, 0.131 px and ``ok`` at full resolution in 42 s instead of 23;
-    three more smooth photos outside the suite alike; docs/performance.md). A degraded
+    binned, a median predicted error of 0.32 px and ``degraded``; 0.131 px and 0.09 px at
+    full resolution in 41 s instead of 23; three smooth photos outside the suite alike,
+    from ``degraded`` to ``ok``; docs/performance.md). A degraded
     run says so and how to ask for full resolution; the default stays binned, which
     keeps the suite's 15 other photos within 0.15 px in about half the time.
 
@@ -156,4 +157,4 @@ def full_resolution_hint(spec: Any, source: PhotonSource, mosaic: int,
     return (f"the mosaic levels registered frames binned {mosaic}x{mosaic} to save time on this long capture "
             f"({_pixel_frames(source):.3g} pixel-frames); on a scene of little texture that binning limits the "
             "accuracy, and mosaic.registration_binning: 1 registers them at full resolution in about twice the "
-            "time (100 000 frames of a clock: 0.295 -> 0.131 px, degraded -> ok)")
+            "time (100 000 frames of a clock: 0.295 -> 0.131 px)")
