@@ -104,9 +104,9 @@ def mosaic_binning(spec: Any, source: PhotonSource, register: int,
     else:
         pixel_frames = _pixel_frames(source)
         light = photons_per_pixel_per_group
-        if pixel_frames > FULL_RESOLUTION_MOSAIC_MAX:
+        if _too_long(source):
             why = f"{pixel_frames:.3g} pixel-frames exceed {FULL_RESOLUTION_MOSAIC_MAX:.0e}"
-        elif light is not None and light < FULL_RESOLUTION_MOSAIC_PHOTONS:
+        elif _too_dim(light):
             why = f"{light:.3g} photons per pixel per group, under {FULL_RESOLUTION_MOSAIC_PHOTONS:g}"
         else:
             why = None
@@ -123,6 +123,17 @@ def mosaic_binning(spec: Any, source: PhotonSource, register: int,
 def _pixel_frames(source: PhotonSource) -> float:
     """Frames x height x width of ``source``."""
     return float(source.n_frames) * source.height * source.width
+
+
+def _too_long(source: PhotonSource) -> bool:
+    """Whether ``auto`` bins the mosaic levels of ``source`` for its length (:data:`FULL_RESOLUTION_MOSAIC_MAX`)."""
+    return _pixel_frames(source) > FULL_RESOLUTION_MOSAIC_MAX
+
+
+def _too_dim(photons_per_pixel_per_group: float | None) -> bool:
+    """Whether ``auto`` bins the mosaic levels for light (:data:`FULL_RESOLUTION_MOSAIC_PHOTONS`; None: never)."""
+    light = photons_per_pixel_per_group
+    return light is not None and light < FULL_RESOLUTION_MOSAIC_PHOTONS
 
 
 def full_resolution_hint(spec: Any, source: PhotonSource, mosaic: int,
@@ -149,10 +160,8 @@ def full_resolution_hint(spec: Any, source: PhotonSource, mosaic: int,
     Returns:
         One line, or None where the binning was set in the spec, was chosen for light, or is 1.
     """
-    light = photons_per_pixel_per_group
     if (mosaic == 1 or spec.mosaic.registration_binning != "auto" or spec.registration_binning != "auto"
-            or _pixel_frames(source) <= FULL_RESOLUTION_MOSAIC_MAX
-            or (light is not None and light < FULL_RESOLUTION_MOSAIC_PHOTONS)):
+            or not _too_long(source) or _too_dim(photons_per_pixel_per_group)):
         return None
     return (f"the mosaic levels registered frames binned {mosaic}x{mosaic} to save time on this long capture "
             f"({_pixel_frames(source):.3g} pixel-frames); on a scene of little texture that binning limits the "
