@@ -8,6 +8,7 @@ Writing the output folder is :mod:`photonpano.pipeline`'s.
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from functools import partial
 from typing import TYPE_CHECKING, Any, Callable
@@ -300,12 +301,14 @@ def reconstruct(spec: PipelineSpec, source: PhotonSource, *, on_level: Callable[
     if resume is not None and len(stats) >= 2 and stats[-1].get("scheme"):
         first_of_scheme[stats[-1]["scheme"]] = resume.homographies
     level_one_span: tuple[int, int] | None = None  # level 1's first and last reference frame (not known on resume)
+    level_one: NDArray[np.float64] | None = None
 
     def level_done(result: LevelResult) -> None:
-        nonlocal last, level_one_span
+        nonlocal last, level_one_span, level_one
         last = result
         if result.level == 1 and len(result.groups):
             level_one_span = (int(result.groups.reference[0]), int(result.groups.reference[-1]))
+            level_one = result.homographies
         if result.level >= 2:
             first_of_scheme.setdefault(result.scheme, result.homographies)
         if on_level is not None:
@@ -314,10 +317,42 @@ def reconstruct(spec: PipelineSpec, source: PhotonSource, *, on_level: Callable[
         if checkpoint is not None:
             checkpoint(Checkpoint(result.level, result.homographies, list(stats)))
 
+    def uncertainty_now() -> Any:
+        """The per-frame uncertainty of the last level so far (None before a level or without evidence)."""
+        if last is None:
+            return None
+        chain = stats[0].get("quality", {}).get("pose_graph_residual_px") if stats else None
+        # the level-change term compares iterations of one scheme after level 1: the level after
+        # level 1 moves the frames by level 1's error, not by the error left after it; and the move
+        # since the scheme's first such level, not the last step alone, which shrinks with every
+        # level added where convergence is slow (a fourth level hid a dark scene's 0.86 px error)
+        first = first_of_scheme.get(last.scheme)
+        return frame_uncertainty(last, source.width, source.height, chain,
+                                 previous=None if first is last.homographies else first, level_one_span=level_one_span)
+
     timings: dict[str, float] = {}
     with make_executor(spec.executor, spec.workers, spec.dask_address) as executor:
         t0 = time.perf_counter()
         homographies = stages.estimate_motion(executor, on_level=level_done, progress=progress, resume=resume)
+        found = uncertainty_now() if level_one is not None and len(stats) > 1 and full_resolution_hint(
+            spec, stages.source, stages.budget.mosaic_binning, stages.budget.plan.photons_per_pixel_per_group) else None
+        above = found.summary(source.frame_rate_hz)["above_limit"] if found is not None else []
+        if above and level_one is not None:  # the binned mosaic levels again at full resolution, from level 1
+            binned, worst = stages.budget.mosaic_binning, max(e["max_px"] or 0.0 for e in above)
+            mosaic: Any = spec.mosaic  # a model made by create_model
+            stages = Stages(spec.model_copy(update={"mosaic": mosaic.model_copy(
+                update={"registration_binning": 1})}), source)
+            why = (f"auto: binned {binned}x{binned} for the capture's length, the held-out registrations predicted "
+                   f"errors up to {worst:.2g} px: registered again at full resolution")
+            stages.budget = dataclasses.replace(stages.budget, mosaic_reason=why)
+            stages.notes.append(f"the mosaic levels, binned {binned}x{binned} to save time on this long capture, "
+                                f"left frames predicted up to {worst:.2g} px off: they ran again at full resolution "
+                                "from level 1 (mosaic.registration_binning: auto)")
+            del stats[1:]
+            first_of_scheme.clear()
+            last = found = None
+            homographies = stages.estimate_motion(executor, on_level=level_done, progress=progress,
+                                                  resume=Checkpoint(1, level_one, list(stats)))
         timings["levels"] = time.perf_counter() - t0
         t0 = time.perf_counter()
         pano = stages.compose(homographies, executor, progress("panorama", source.n_frames) if progress else None)
@@ -328,17 +363,7 @@ def reconstruct(spec: PipelineSpec, source: PhotonSource, *, on_level: Callable[
         plan = budget.plan
         agreement = panorama_agreement(stages.source, stages.merger, homographies, pano, plan.group_size,
                                        budget.agreement_binning)
-        chain = stats[0].get("quality", {}).get("pose_graph_residual_px") if stats else None
-        # the level-change term compares iterations of one scheme after level 1: the level after
-        # level 1 moves the frames by level 1's error, not by the error left after it; and the move
-        # since the scheme's first such level, not the last step alone, which shrinks with every
-        # level added where convergence is slow (a fourth level hid a dark scene's 0.86 px error)
-        uncertainty = None
-        if last is not None:
-            first = first_of_scheme.get(last.scheme)
-            uncertainty = frame_uncertainty(last, source.width, source.height, chain,
-                                            previous=None if first is last.homographies else first,
-                                            level_one_span=level_one_span)
+        uncertainty = found if found is not None else uncertainty_now()
         summary = uncertainty.summary(source.frame_rate_hz) if uncertainty is not None else None
         status, warnings = assess(plan, stats, agreement, summary)
         movers = _movers_record(stats)

@@ -334,6 +334,50 @@ def test_a_degraded_run_whose_mosaic_was_binned_for_its_length_alone_is_told_of_
     assert not any("registration_binning" in note for note in run("ok"))
 
 
+def test_a_long_capture_whose_binned_mosaic_leaves_frames_over_the_limit_runs_it_again_at_full_resolution(
+        monkeypatch):
+    """Frames predicted above the limit after binned mosaic levels: levels 2.. again at full resolution from level 1."""
+    from photonpano import uncertainty
+    from photonpano.budget import binnings
+    from photonpano.host import PluginHost
+    from photonpano.pipeline import reconstruct
+    from photonpano.spec import validate_spec
+
+    capture = _capture(frames=1000, height=224, width=320)  # 7.2e7 pixel-frames, binned 2x2 at level 1
+    spec = validate_spec({"source": "simulate", "group_size": 200, "levels": 2}, PluginHost())
+    monkeypatch.setattr(binnings, "FULL_RESOLUTION_MOSAIC_MAX", 7e7)  # a longer capture, in effect
+    real = uncertainty.frame_uncertainty
+
+    def run(predicted_px):
+        calls, seen = [], []
+
+        def predicted(*args, **kwargs):  # the binned run's prediction (the first), then the real ones
+            found = real(*args, **kwargs)
+            calls.append(len(calls))
+            if len(calls) > 1 or predicted_px is None:
+                return found
+            over = {"frames": [0, 10], "seconds": [0.0, 1e-4], "max_px": predicted_px}
+
+            class Over:  # the uncertainty found, with one range predicted over the limit
+                def summary(self, *a, **k):
+                    return {**found.summary(*a, **k), "above_limit": [over]}
+
+            return Over()
+
+        monkeypatch.setattr(uncertainty, "frame_uncertainty", predicted)
+        report = {}
+        _, stats, _, _ = reconstruct(spec, capture, report=report, on_level=lambda level: seen.append(level.level))
+        return report, [row["level"] for row in stats], seen
+
+    report, levels, seen = run(2.5)
+    budget = report["budget"]
+    assert budget["mosaic_binning"] == 1 and "registered again" in budget["reasons"]["mosaic_binning"]
+    assert any("ran again at full resolution" in note and "2.5 px" in note for note in report["notes"])
+    assert levels == [1, 2] and seen == [1, 2, 2]  # the statistics once per level; observers see both runs
+    report, levels, seen = run(None)  # nothing predicted above the limit: binned, once
+    assert report["budget"]["mosaic_binning"] == 2 and levels == [1, 2] and seen == [1, 2]
+
+
 def test_an_explicit_group_size_short_of_light_gets_a_note_naming_the_budgets_choice():
     """An explicit m gathering clearly fewer photons than the budget wants is noted; enough light is not."""
     from photonpano.budget.probe import short_of_light
