@@ -258,7 +258,11 @@ def reconstruct(spec: PipelineSpec, source: PhotonSource, *, on_level: Callable[
     Args:
         spec: a validated ``PipelineSpec`` (its ``source`` section is not used).
         source: the opened capture.
-        on_level: called with each :class:`~photonpano.records.LevelResult`.
+        on_level: called with each :class:`~photonpano.records.LevelResult` (levels 2.. twice
+            where the mosaic levels ran again at full resolution: a long capture whose
+            ``mosaic.registration_binning: auto`` binned them and whose frames they left
+            predicted above the uncertainty's limit; ``budget.binnings.full_resolution_hint``,
+            docs/performance.md).
         progress: ``progress(task, total)`` returning an ``advance(n)`` callable.
         checkpoint: called with a :class:`~photonpano.outputs.Checkpoint` after each level.
         resume: a :class:`~photonpano.outputs.Checkpoint` to continue from (None: level 1).

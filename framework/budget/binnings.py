@@ -138,7 +138,7 @@ def _too_dim(photons_per_pixel_per_group: float | None) -> bool:
 
 def full_resolution_hint(spec: Any, source: PhotonSource, mosaic: int,
                          photons_per_pixel_per_group: float | None) -> str | None:
-    """The note a degraded run gets where ``auto`` binned its mosaic levels for the capture's length alone.
+    """Where ``auto`` binned the mosaic levels for the capture's length alone, the line saying so; else None.
 
     On a long capture (over :data:`FULL_RESOLUTION_MOSAIC_MAX` pixel-frames) whose groups
     gather enough light for full resolution (:data:`FULL_RESOLUTION_MOSAIC_PHOTONS`), the
@@ -146,9 +146,11 @@ def full_resolution_hint(spec: Any, source: PhotonSource, mosaic: int,
     accuracy (100 000 frames of the evaluation suite's clock on the zigzag path: 0.295 px
     binned, a median predicted error of 0.32 px and ``degraded``; 0.131 px and 0.09 px at
     full resolution in 41 s instead of 23; three smooth photos outside the suite alike,
-    from ``degraded`` to ``ok``; docs/performance.md). A degraded
-    run says so and how to ask for full resolution; the default stays binned, which
-    keeps the suite's 15 other photos within 0.15 px in about half the time.
+    from ``degraded`` to ``ok``; docs/performance.md). The levels stay binned, which keeps
+    the suite's 15 other photos within 0.15 px in about half the time, unless the held-out
+    registrations predict frames above the limit: :func:`~photonpano.pipeline.reconstruct`
+    then runs the mosaic levels again at full resolution from level 1; a run ``degraded``
+    otherwise gets this line in its notes.
 
     Args:
         spec: a validated ``PipelineSpec``.
