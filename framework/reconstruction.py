@@ -106,33 +106,21 @@ class Stages:
         from .budget.grid import in_merged_pixels
         from .budget.probe import short_of_light
         from .hot_pixels import with_hot_pixels_inpainted
-        from .schemes import MosaicScheme, PairCheck, PairwiseScheme
-        from .schemes.mosaic import MOVERS_SIGMAS
+        from .schemes import PairCheck, PairwiseScheme
         from .spec import level_schemes
 
         source, self.hot_pixels = with_hot_pixels_inpainted(source, spec.hot_pixels)
         self.spec, self.source = spec, source
         self.budget = budget = Budget.for_capture(spec, source)
-        flicker = budget.plan.flicker
         self.locator = in_merged_pixels(spec.locator, budget.register_binning).build()
         check = PairCheck(budget.check_binning) if budget.check_binning is not None else None
         self.resampler, self.merger = spec.resampler.build(), spec.merger.build()
-        reject = MOVERS_SIGMAS if spec.mosaic.reject_movers == "auto" else spec.mosaic.reject_movers
         self.interpolator = spec.interpolator.build()
         advice = "" if budget.plan.auto else (
             f" (group_size {budget.group_size} is set in the spec, so the pairs were not checked on binned "
             "frames; with group_size: auto they are, and those the locator cannot register are registered again)")
         built = {"pairwise": PairwiseScheme(self.locator, tuple(spec.pair_offsets), check, advice),
-                 "mosaic": MosaicScheme(in_merged_pixels(spec.mosaic.locator, budget.mosaic_binning).build,
-                                        _told_of_flicker(spec.mosaic.template.build, flicker),
-                                        subbatch_px=spec.mosaic.subbatch_px, reject_movers=reject,
-                                        make_robust=_told_of_flicker(_robust_template(spec.mosaic).build, flicker),
-                                        detect_movers=spec.mosaic.reject_movers == "auto",
-                                        holdout=spec.mosaic.holdout,
-                                        correct_bias=spec.mosaic.correct_template_bias,
-                                        per_parameter_priors=spec.mosaic.template_bias_priors == "per-parameter",
-                                        make_chain_locator=in_merged_pixels(spec.mosaic.locator.converging(),
-                                                                            budget.mosaic_binning).build)}
+                 "mosaic": self._mosaic_scheme()}
         self.schemes = [built[name] for name in level_schemes(spec)]
         self.notes: list[str] = []
         plan = budget.plan
@@ -147,6 +135,31 @@ class Stages:
         if (note := short_of_light(plan, source.n_frames)) is not None:
             self.notes.append(note)
         self._fit_levels()
+
+    def _mosaic_scheme(self) -> LevelScheme:
+        """The spec's mosaic scheme, registering at the budget's ``mosaic_binning``."""
+        from .budget.grid import in_merged_pixels
+        from .schemes import MosaicScheme
+        from .schemes.mosaic import MOVERS_SIGMAS
+
+        mosaic, binning, flicker = self.spec.mosaic, self.budget.mosaic_binning, self.budget.plan.flicker
+        return MosaicScheme(in_merged_pixels(mosaic.locator, binning).build,
+                            _told_of_flicker(mosaic.template.build, flicker), subbatch_px=mosaic.subbatch_px,
+                            reject_movers=MOVERS_SIGMAS if mosaic.reject_movers == "auto" else mosaic.reject_movers,
+                            make_robust=_told_of_flicker(_robust_template(mosaic).build, flicker),
+                            detect_movers=mosaic.reject_movers == "auto", holdout=mosaic.holdout,
+                            correct_bias=mosaic.correct_template_bias,
+                            per_parameter_priors=mosaic.template_bias_priors == "per-parameter",
+                            make_chain_locator=in_merged_pixels(mosaic.locator.converging(), binning).build)
+
+    def mosaic_at_full_resolution(self, reason: str) -> None:
+        """Register the mosaic levels at full resolution from now on (budget ``mosaic_binning`` 1, because ``reason``).
+
+        They get a new scheme (its mover decision taken afresh); all else stays as it is.
+        """
+        self.budget = dataclasses.replace(self.budget, mosaic_binning=1, mosaic_reason=reason)
+        mosaic = self._mosaic_scheme()
+        self.schemes = [mosaic if scheme.needs_template else scheme for scheme in self.schemes]
 
     def _fit_levels(self) -> None:
         """Keep the levels the capture has room for, noting any dropped; none at all is an error.
@@ -259,10 +272,8 @@ def reconstruct(spec: PipelineSpec, source: PhotonSource, *, on_level: Callable[
         spec: a validated ``PipelineSpec`` (its ``source`` section is not used).
         source: the opened capture.
         on_level: called with each :class:`~photonpano.records.LevelResult` (levels 2.. twice
-            where the mosaic levels ran again at full resolution: a long capture whose
-            ``mosaic.registration_binning: auto`` binned them and whose frames they left
-            predicted above the uncertainty's limit; ``budget.binnings.full_resolution_hint``,
-            docs/performance.md).
+            where binned mosaic levels left frames predicted above the uncertainty's limit
+            and ran again at full resolution; ``budget.binnings.full_resolution_hint``).
         progress: ``progress(task, total)`` returning an ``advance(n)`` callable.
         checkpoint: called with a :class:`~photonpano.outputs.Checkpoint` after each level.
         resume: a :class:`~photonpano.outputs.Checkpoint` to continue from (None: level 1).
@@ -343,12 +354,9 @@ def reconstruct(spec: PipelineSpec, source: PhotonSource, *, on_level: Callable[
         above = found.summary(source.frame_rate_hz)["above_limit"] if found is not None else []
         if above and level_one is not None:  # the binned mosaic levels again at full resolution, from level 1
             binned, worst = stages.budget.mosaic_binning, max(e["max_px"] or 0.0 for e in above)
-            mosaic: Any = spec.mosaic  # a model made by create_model
-            stages = Stages(spec.model_copy(update={"mosaic": mosaic.model_copy(
-                update={"registration_binning": 1})}), source)
-            why = (f"auto: binned {binned}x{binned} for the capture's length, the held-out registrations predicted "
-                   f"errors up to {worst:.2g} px: registered again at full resolution")
-            stages.budget = dataclasses.replace(stages.budget, mosaic_reason=why)
+            stages.mosaic_at_full_resolution(f"auto: binned {binned}x{binned} for the capture's length, the held-out "
+                                             f"registrations predicted errors up to {worst:.2g} px: registered again "
+                                             "at full resolution")
             stages.notes.append(f"the mosaic levels, binned {binned}x{binned} to save time on this long capture, "
                                 f"left frames predicted up to {worst:.2g} px off: they ran again at full resolution "
                                 "from level 1 (mosaic.registration_binning: auto)")
