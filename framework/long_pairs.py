@@ -270,9 +270,18 @@ def _frame_mean_squares(nodes: NDArray[np.float64], values: NDArray[np.float64])
 
 
 def _size(params: NDArray[np.float64], width: int, height: int) -> NDArray[np.float64]:
-    """Mean corner distance in pixels of the homographies of ``params`` (..., 8) about the centre from the identity."""
-    moved = geometry.from_centre(geometry.homographies_from_params(params), width, height)
-    return geometry.mean_corner_distance(moved, np.broadcast_to(np.eye(3), moved.shape), width, height)
+    """Mean corner distance in pixels of the homographies of ``params`` (..., 8) about the centre from the identity.
+
+    Elementwise on the parameters (no (..., 3, 3) stack): the chains' errors are sized
+    at every frame of the capture (8 chains x 100 000 frames).
+    """
+    p = np.moveaxis(np.asarray(params, np.float64), -1, 0)
+    cx, cy = (width - 1) / 2, (height - 1) / 2
+    total = np.zeros(p.shape[1:])
+    for x, y in ((-cx, -cy), (cx, -cy), (cx, cy), (-cx, cy)):  # corners about the centre
+        scale = p[6] * x + p[7] * y + 1
+        total += np.hypot(((1 + p[0]) * x + p[2] * y + p[4]) / scale - x, (p[1] * x + (1 + p[3]) * y + p[5]) / scale - y)
+    return total / 4
 
 
 def chain_shape_error(registrations: NDArray[np.float64], ok: NDArray[np.bool_], links: NDArray[np.int64],

@@ -142,6 +142,10 @@ NEIGHBOURS = 8
 LIMIT_PX = 1.0
 """A frame whose predicted sigma exceeds this many pixels makes the run ``degraded``."""
 
+ALIGNMENT_FIT_FRAMES = 5000
+"""This many frames, evenly spaced, fit the level-change term's global alignment
+(:func:`level_change`); every frame is measured."""
+
 
 @dataclass(frozen=True)
 class FrameUncertainty:
@@ -298,12 +302,13 @@ def level_change(homographies: NDArray[np.float64], previous: NDArray[np.float64
     Returns:
         (T,) float64 per-frame mean corner distance in panorama pixels: the larger of the
         distance as it stands and after the least-squares homography that aligns
-        ``homographies`` with ``previous`` over all frames' corners.
+        ``homographies`` with ``previous`` over the corners of about
+        :data:`ALIGNMENT_FIT_FRAMES` frames, evenly spaced.
 
     Raises:
         ValueError: if the two stacks differ in shape.
     """
-    aligned = trajectory_error(homographies, previous, width, height).per_frame_px
+    aligned = trajectory_error(homographies, previous, width, height, fit_frames=ALIGNMENT_FIT_FRAMES).per_frame_px
     return np.maximum(geometry.mean_corner_distance(homographies, previous, width, height), aligned)
 
 
