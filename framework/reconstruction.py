@@ -363,7 +363,8 @@ def reconstruct(spec: PipelineSpec, source: PhotonSource, *, on_level: Callable[
             del stats[1:]
             first_of_scheme.clear()
             last = found = None
-            homographies = stages.estimate_motion(executor, on_level=level_done, progress=progress,
+            again = (lambda task, total: progress(f"{task}, full resolution", total)) if progress else None
+            homographies = stages.estimate_motion(executor, on_level=level_done, progress=again,
                                                   resume=Checkpoint(1, level_one, list(stats)))
         timings["levels"] = time.perf_counter() - t0
         t0 = time.perf_counter()

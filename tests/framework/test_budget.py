@@ -365,8 +365,15 @@ def test_a_long_capture_whose_binned_mosaic_leaves_frames_over_the_limit_runs_it
             return Over()
 
         monkeypatch.setattr(uncertainty, "frame_uncertainty", predicted)
-        report = {}
-        _, stats, _, _ = reconstruct(spec, capture, report=report, on_level=lambda level: seen.append(level.level))
+        report, done = {}, {}
+
+        def progress(task, total):  # each task name's bar: its total and the units reported done
+            done.setdefault(task, [total, 0])  # as the bars: one per task name
+            return lambda n: done[task].__setitem__(1, done[task][1] + n)
+
+        _, stats, _, _ = reconstruct(spec, capture, report=report, on_level=lambda level: seen.append(level.level),
+                                     progress=progress)
+        assert all(units <= total for total, units in done.values()), done  # no bar counts a level twice
         return report, [row["level"] for row in stats], seen
 
     report, levels, seen = run(2.5)
