@@ -280,7 +280,8 @@ def _size(params: NDArray[np.float64], width: int, height: int) -> NDArray[np.fl
     total = np.zeros(p.shape[1:])
     for x, y in ((-cx, -cy), (cx, -cy), (cx, cy), (-cx, cy)):  # corners about the centre
         scale = p[6] * x + p[7] * y + 1
-        total += np.hypot(((1 + p[0]) * x + p[2] * y + p[4]) / scale - x, (p[1] * x + (1 + p[3]) * y + p[5]) / scale - y)
+        total += np.hypot(((1 + p[0]) * x + p[2] * y + p[4]) / scale - x,
+                          (p[1] * x + (1 + p[3]) * y + p[5]) / scale - y)
     return total / 4
 
 
