@@ -270,14 +270,9 @@ def _frame_mean_squares(nodes: NDArray[np.float64], values: NDArray[np.float64])
 
 
 def _size(params: NDArray[np.float64], width: int, height: int) -> NDArray[np.float64]:
-    """Mean corner distance in pixels of the homographies of ``params`` (..., 8) about the centre from the identity.
-
-    Elementwise on the parameters (no (..., 3, 3) stack): the chains' errors are sized
-    at every frame of the capture (8 chains x 100 000 frames).
-    """
-    p = np.moveaxis(np.asarray(params, np.float64), -1, 0)
-    cx, cy = (width - 1) / 2, (height - 1) / 2
-    total = np.zeros(p.shape[1:])
+    """Mean corner distance in pixels of the homographies of ``params`` (..., 8) about the centre from the identity."""
+    p = np.moveaxis(np.asarray(params, np.float64), -1, 0)  # elementwise, no 3x3 stacks: 8 chains x 100 000 frames
+    cx, cy, total = (width - 1) / 2, (height - 1) / 2, np.zeros(p.shape[1:])
     for x, y in ((-cx, -cy), (cx, -cy), (cx, cy), (-cx, cy)):  # corners about the centre
         scale = p[6] * x + p[7] * y + 1
         total += np.hypot(((1 + p[0]) * x + p[2] * y + p[4]) / scale - x,
