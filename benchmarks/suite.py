@@ -205,7 +205,8 @@ def run_capture(capture: Capture, dump: Path | None = None, overrides: Sequence[
             "levels": [{"scheme": st["scheme"], "rmse": st.get("trajectory_rmse_px"),
                         "failed_fraction": st.get("quality", {}).get("failed_fraction"),
                         "residual_px": st.get("quality", {}).get("pose_graph_residual_px"),
-                        "movers": st.get("movers")} for st in stats]}
+                        "movers": st.get("movers"), "registration_check": st.get("registration_check")}
+                       for st in stats]}
 
 
 def aggregate(rows: list[dict]) -> dict:
