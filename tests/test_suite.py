@@ -51,3 +51,24 @@ def test_seeds_run_each_capture_once_per_photon_draw(capsys):
     assert b.startswith("b/dark") and "1 failed" in b
     with pytest.raises(SystemExit):
         suite.main(["--list", "--seeds", "one"])
+
+
+def test_the_outside_check_writes_its_photographs_for_the_suite_and_overwrites_none(tmp_path):
+    """``benchmarks/outside_photos.py``: one readable PNG per stem, which ``suite.py --photos`` turns into captures."""
+    from capture_helpers import load_benchmark
+    from PIL import Image
+
+    outside = load_benchmark("outside_photos", "outside_photos")
+    stems = ["checkerboard", "horse", "logo", "motorcycle"]
+    assert outside.main([str(tmp_path), "--only", ",".join(stems)]) == 0
+    images = {p.stem: np.asarray(Image.open(p)) for p in sorted(tmp_path.glob("*.png"))}
+    assert sorted(images) == sorted(stems)
+    assert images["horse"].dtype == np.uint8 and set(np.unique(images["horse"])) == {0, 255}  # a silhouette
+    assert images["logo"].shape[2] == 3 and images["motorcycle"].shape[2] == 3  # alpha dropped; the left view
+    names = [c.name for c in _suite().captures(tmp_path)]
+    assert len(names) == 3 * len(stems) and "checkerboard/base" in names
+    before = (tmp_path / "horse.png").read_bytes()
+    assert outside.main([str(tmp_path), "--only", "horse"]) == 1  # refused: nothing overwritten
+    assert (tmp_path / "horse.png").read_bytes() == before
+    with pytest.raises(SystemExit):
+        outside.main([str(tmp_path / "new"), "--only", "zebra"])
