@@ -6,7 +6,7 @@ checked again on photographs they were not chosen on: scikit-image's sample imag
 photographs (cells, coins, a stained tissue, the moon, a printed page, a retina, a
 rocket, a motorbike, a clock, text on a wall) the set holds scenes of flat regions and
 hard edges that no suite photograph is like: a horse's silhouette, a logo, the
-Shepp-Logan phantom and a checkerboard (docs/accuracy.md, "Checked outside the suite").
+Shepp-Logan phantom and a checkerboard (docs/accuracy.md, "Flat scenes of hard edges").
 
 Usage::
 
