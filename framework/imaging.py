@@ -12,8 +12,9 @@ integers, input ``x`` is binned ``(x + 0.5) / k - 0.5``: :func:`~photonpano.geom
   resampling against strided sums; measured up to 1e-5 on values up to 37), so each
   keeps its kernel and the results of a run do not change;
 - :func:`normalised_correlation`, :func:`phase_shift_correlation`, :func:`binned_frame`,
-  :func:`warped_correlation`, :func:`register_binned`: what the probe, the binned check
-  (:class:`~photonpano.schemes.check.PairCheck`) and the agreement measure with them.
+  :func:`warped_correlation`, :func:`register_binned`, :func:`register_binned_motions`:
+  what the probe, the binned check (:class:`~photonpano.schemes.check.PairCheck`) and
+  the agreement measure with them (a moving object's pull on them: :mod:`photonpano.movers`).
 """
 
 from __future__ import annotations
@@ -28,7 +29,7 @@ from . import geometry
 from .jit import cached_njit
 
 __all__ = ["block_mean", "bin_counts", "normalised_correlation", "phase_shift_correlation", "binned_frame",
-           "warped_correlation", "register_binned", "in_binned_pixels", "brightest_blob", "shift_without_mover"]
+           "warped_correlation", "register_binned", "register_binned_motions", "in_binned_pixels"]
 
 
 def block_mean(image: NDArray[np.floating], factor: int, mask: NDArray[np.bool_] | None = None
@@ -229,14 +230,31 @@ def warped_correlation(a: tuple[NDArray, NDArray], b: tuple[NDArray, NDArray],
 def register_binned(a: tuple[NDArray, NDArray], b: tuple[NDArray, NDArray], initial: NDArray[np.float64],
                     factor: int, *, iterations: int = 50, from_initial: bool = False
                     ) -> tuple[NDArray[np.float64], float, int]:
-    """Register two binned frames directly: phase correlation, then ECC, affine and translation.
+    """Register two binned frames directly: the better-correlating of :func:`register_binned_motions`.
 
-    Of two ECC registrations (Evangelidis and Psarakis, 2008), each from a phase
-    correlation's shift, the better-correlating is returned: an *affine* correction of b
-    warped by the current estimate (rotation, zoom, perspective), and a *translation* of b
-    moved by the estimate's centre shift alone, which a level-1 estimate's own shear or
-    scale (chained from noisy links) cannot hold on smooth or noisy frames (the suite's
-    clock 0.362 -> 0.104 px, for a third more CPU per call; ``docs/accuracy.md``).
+    An affine correction of the estimate and a translation of its shift alone, which a
+    level-1 estimate's own shear or scale (chained from noisy links) cannot hold on smooth
+    or noisy frames (the suite's clock 0.362 -> 0.104 px, for a third more CPU per call;
+    ``docs/accuracy.md``). Arguments as :func:`register_binned_motions`.
+
+    Returns:
+        ``(homography, correlation, overlap)`` of the better one (the affine one on a tie;
+        ``initial``, -1, 0 where ECC failed both ways).
+    """
+    return max(register_binned_motions(a, b, initial, factor, iterations=iterations,
+                                       from_initial=from_initial).values(), key=lambda found: found[1])
+
+
+def register_binned_motions(a: tuple[NDArray, NDArray], b: tuple[NDArray, NDArray], initial: NDArray[np.float64],
+                            factor: int, *, iterations: int = 50, from_initial: bool = False
+                            ) -> dict[str, tuple[NDArray[np.float64], float, int]]:
+    """Register two binned frames directly, twice: phase correlation, then an affine or a translation ECC.
+
+    Each ECC (Evangelidis and Psarakis, 2008) starts from a phase correlation's shift:
+    ``"affine"`` corrects b warped by the current estimate (rotation, zoom, perspective),
+    ``"translation"`` moves b by the estimate's centre shift alone. The level-1 pair check
+    chooses between them per pair, then for the level's rescues together
+    (:meth:`~photonpano.schemes.check.LevelCheck.settle`).
 
     Args:
         a: :func:`binned_frame` of frame a (the moving image).
@@ -248,9 +266,9 @@ def register_binned(a: tuple[NDArray, NDArray], b: tuple[NDArray, NDArray], init
             phase correlation follows the edges of masked-out regions, which move with them.
 
     Returns:
-        ``(homography, correlation, overlap)``: (3, 3) float64 mapping b's full-resolution
-        pixels to a's, the final correlation and the binned pixels compared (``initial``,
-        -1, 0 where ECC failed both ways).
+        ``{"affine": r, "translation": r}``, each ``r`` ``(homography, correlation,
+        overlap)``: (3, 3) float64 mapping b's full-resolution pixels to a's, the final
+        correlation and the binned pixels compared (``initial``, -1, 0 where its ECC failed).
     """
     import cv2
 
@@ -260,8 +278,9 @@ def register_binned(a: tuple[NDArray, NDArray], b: tuple[NDArray, NDArray], init
     criteria = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, iterations, 1e-5)
     window = cv2.createHanningWindow(b[0].shape[::-1], cv2.CV_32F)
     fill_a = np.where(a[1], a[0], a[0][a[1]].mean() if a[1].any() else 0).astype(np.float32)
-    best: tuple[NDArray[np.float64], float, int] = (initial, -1.0, 0)
-    for base, motion in ((start, cv2.MOTION_AFFINE), (shifted, cv2.MOTION_TRANSLATION)):
+    found_by: dict[str, tuple[NDArray[np.float64], float, int]] = {}
+    for base, motion, name in ((start, cv2.MOTION_AFFINE, "affine"), (shifted, cv2.MOTION_TRANSLATION, "translation")):
+        best = found_by[name] = (initial, -1.0, 0)
         moved, inside = _warp(b[0], b[1], base)
         fill_b = np.where(inside, moved, moved[inside].mean() if inside.any() else 0).astype(np.float32)
         (dx, dy), _ = cv2.phaseCorrelate(fill_a - fill_a.mean(), fill_b - fill_b.mean(), window)
@@ -276,125 +295,5 @@ def register_binned(a: tuple[NDArray, NDArray], b: tuple[NDArray, NDArray], init
             if cc > best[1]:
                 correction = np.vstack([refined.astype(np.float64), [0, 0, 1]])
                 found = geometry.normalize(in_binned_pixels(correction @ base, factor, back=True))
-                best = (found, float(cc), int((inside & a[1]).sum()))
-    return best
-
-
-def brightest_blob(image: NDArray[np.float32], valid: NDArray[np.bool_], *,
-                   levels: tuple[float, ...] = (0.25, 0.5, 0.75), margin: int = 3, grow: int = 6,
-                   max_fraction: float = 0.25, min_solidity: float = 0.5, min_share: float = 0.9
-                   ) -> NDArray[np.bool_]:
-    """The bright compact region that carries most of a binned frame's contrast, if there is one.
-
-    A single bright, compact region (a lit object crossing a dark scene) can carry most of
-    a binned frame's contrast, so a correlation, phase correlation or ECC of two frames
-    then follows that region's motion, which is the scene's only if the region is static.
-    The pair check registers and checks the frames again without it
-    (:class:`~photonpano.schemes.check.PairCheck`).
-
-    On a bright, textured scene the object touches the scene's own bright texture (a lit
-    disc on a brick facade's mortar lines, half as bright as it): above the first level
-    they form one web, neither small nor compact. The higher ``levels`` then cut the
-    object's core out of the web; such a core counts only where it holds at least
-    ``min_share`` of the contrast energy above its level (a static scene's brightest
-    patch of texture has rivals there, the object none), and it is grown back into the
-    pixels above the first level within ``grow`` pixels (its motion-blurred ends). On the
-    brick facade crossed by a disc of radius 30 px (level 1's merged frames, 2026-11-26)
-    the first level found the disc in 7 of the 27 frames that show it, the three levels
-    in all 27, and in none of the 63 frames of the static capture.
-
-    Args:
-        image: (h, w) float32 binned frame (:func:`binned_frame`).
-        valid: (h, w) bool its valid pixels.
-        levels: increasing fractions (each in (0, 1)); at each in turn the candidate
-            regions are where the image exceeds its median by that fraction of the
-            brightest valid pixel's excess.
-        margin: dilation of the region in binned pixels (the blurred rim).
-        grow: binned pixels by which a core found at a higher level grows into the
-            pixels above the first level.
-        max_fraction: a region over this fraction of the valid pixels (dilated) is no
-            compact object (a bright sky).
-        min_solidity: nor is a region covering less than this fraction of its convex hull
-            (a web of bright texture or noise over a bright, plain scene).
-        min_share: the energy share a region found above a higher level must hold.
-
-    Returns:
-        (h, w) bool: at the first level that gives one, the 8-connected candidate region
-        with the largest summed squared excess that is small and compact enough (and at
-        the higher levels holds ``min_share``), grown and dilated; all False where no
-        valid pixel exceeds the median or no level gives such a region.
-    """
-    import cv2
-
-    none = np.zeros(image.shape, bool)
-    if not valid.any():
-        return none
-    excess = np.where(valid, image - np.median(image[valid]), 0).astype(np.float32)
-    peak = float(excess.max())
-    if not peak > 0:
-        return none
-    for k, level in enumerate(levels):
-        count, labels = cv2.connectedComponents((excess > level * peak).astype(np.uint8), connectivity=8)
-        energy = np.bincount(labels.ravel(), weights=(excess * excess).ravel(), minlength=count)
-        energy[0] = 0  # the background label
-        blob = labels == int(np.argmax(energy))
-        if k and energy.max() < min_share * energy.sum():
-            continue
-        hull = cv2.convexHull(np.argwhere(blob)[:, ::-1].astype(np.int32))
-        if blob.sum() < min_solidity * cv2.contourArea(hull):
-            continue
-        if k:
-            near = cv2.dilate(blob.astype(np.uint8), np.ones((2 * grow + 1, 2 * grow + 1), np.uint8)) > 0
-            blob |= near & (excess > levels[0] * peak)
-        blob = cv2.dilate(blob.astype(np.uint8), np.ones((2 * margin + 1, 2 * margin + 1), np.uint8)) > 0
-        if blob.sum() <= max_fraction * valid.sum():
-            return blob
-    return none
-
-
-MOVER_DISAGREEMENT_PX = 0.5
-"""Binned pixels by which a probe's shift without the brightest blob must differ from its
-whole frames' shift to replace it (:func:`shift_without_mover`)."""
-
-MOVER_MIN_CORRELATION = 0.8
-"""Correlation the registration without the brightest blob must reach to replace a probe's
-shift (:func:`shift_without_mover`): photon noise alone keeps a dark capture's below it."""
-
-
-def shift_without_mover(a: NDArray[np.float32], b: NDArray[np.float32], shift: NDArray[np.float64],
-                        correlation: float, min_correlation: float) -> tuple[NDArray[np.float64], float]:
-    """The shift of two binned blocks, checked against a moving object's pull.
-
-    The speed probe of :func:`~photonpano.budget.probe.probe_capture` uses it. Phase
-    correlation whitens the spectrum, so the sharp rim of a bright object crossing a
-    smooth scene can carry it to the object's motion; the 75th percentile of the probes'
-    speeds then sizes the groups for that motion (objects_coffee crossed by a disc of
-    radius 30 px at 0.08 px/frame: 0.041 px/frame probed, 0.027 without the disc: groups
-    of 240 frames instead of 370, and 0.27 px RMSE instead of 0.16 with the static plan).
-    The blocks are registered again by ECC (:func:`register_binned`, which weighs
-    every pixel's contrast), without each block's :func:`brightest_blob`; the shift of
-    the image centre found so replaces the phase correlation's where it correlates at
-    :data:`MOVER_MIN_CORRELATION` or more and differs by more than
-    :data:`MOVER_DISAGREEMENT_PX` in length (what it changed on the evaluation suite:
-    ``docs/real_scenes.md``, "The speed probe").
-
-    Args:
-        a: (h, w) float32 binned sum of the first of two adjacent blocks.
-        b: (h, w) float32 the same of the second.
-        shift: (2,) float64 ``(dx, dy)`` of ``b`` relative to ``a`` by phase correlation,
-            in binned pixels.
-        correlation: the phase correlation's correlation after the shift.
-        min_correlation: the probe's correlation limit.
-
-    Returns:
-        ``(shift, correlation)``: the shift and correlation to use.
-    """
-    valid = np.isfinite(a) & np.isfinite(b)
-    blob_a, blob_b = brightest_blob(a, valid), brightest_blob(b, valid)
-    h, cc, _ = register_binned((a, valid & ~blob_a), (b, valid & ~blob_b), np.eye(3), 1, from_initial=True)
-    centre = np.array([(a.shape[1] - 1) / 2, (a.shape[0] - 1) / 2])
-    moved = geometry.apply(h, centre[None])[0] - centre  # b's centre in a's pixels
-    agree = abs(float(np.hypot(*moved)) - float(np.hypot(*shift))) <= MOVER_DISAGREEMENT_PX
-    if cc < max(min_correlation, MOVER_MIN_CORRELATION) or agree:
-        return shift, correlation
-    return moved, float(cc)
+                best = found_by[name] = (found, float(cc), int((inside & a[1]).sum()))
+    return found_by

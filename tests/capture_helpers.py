@@ -125,13 +125,14 @@ def simulate_highspeed_video(frames: int = 1200, fps: float = 1000.0, height: in
     return codes, truth
 
 
-def reconstruct_simulated(source: dict, overrides=(), keep: list | None = None):
+def reconstruct_simulated(source: dict, overrides=(), keep: list | None = None, levels: list | None = None):
     """Simulate a capture and reconstruct it as ``photonpano run`` would.
 
     Args:
         source: ``simulate`` settings (``plugin`` is added).
         overrides: ``--set``-style ``key=value`` strings for the spec.
         keep: a list the run's :class:`~photonpano.records.Panorama` is appended to.
+        levels: a list the run's level rows (``run.json``'s ``levels``) are appended to.
 
     Returns:
         ``(error, report)``: the :class:`~photonpano.metrics.TrajectoryError` against the
@@ -147,9 +148,11 @@ def reconstruct_simulated(source: dict, overrides=(), keep: list | None = None):
                          PluginHost(), origin="test")
     capture = spec.source.build()
     report: dict = {}
-    homographies, _, pano, _ = reconstruct(spec, capture, report=report)
+    homographies, stats, pano, _ = reconstruct(spec, capture, report=report)
     if keep is not None:
         keep.append(pano)
+    if levels is not None:
+        levels.extend(stats)
     return source_trajectory_error(homographies, capture), report
 
 

@@ -32,7 +32,8 @@ from typing import Any
 
 import numpy as np
 
-from ..imaging import block_mean, phase_shift_correlation, shift_without_mover
+from ..imaging import block_mean, phase_shift_correlation
+from ..movers import shift_without_mover
 
 __all__ = ["CaptureProbe", "GroupPlan", "probe_capture", "choose_group_size", "plan_group_size", "short_of_light",
            "whole_flicker_periods"]
@@ -113,7 +114,7 @@ def probe_capture(source, *, probes: int = 8, min_photons: float = 20.0, min_blo
     every probed block. At ``probes`` places spread over the capture, two adjacent
     blocks of L binary frames are summed, binned to about 32 pixels on the short side,
     and their shift is found by phase correlation, checked against a crossing bright
-    object by :func:`~photonpano.imaging.shift_without_mover`; speed = shift / L. L is the larger
+    object by :func:`~photonpano.movers.shift_without_mover`; speed = shift / L. L is the larger
     of ``min_block`` and the length that gathers ``min_photons`` detections per binned
     pixel, and is divided by 4 (down to 8 frames) while fewer than half the probes
     correlate, for motion that moves the frame by more than the correlation can follow;

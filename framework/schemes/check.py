@@ -17,7 +17,7 @@ binning is the photon budget's ``check_binning``, :class:`~photonpano.budget.Bud
    (:func:`~photonpano.imaging.register_binned`);
 3. with ``mover_guard`` (the default), a single bright compact region (a lit object
    crossing a dark scene) must not decide a pair: each binned frame's
-   :func:`~photonpano.imaging.brightest_blob` is left out and the pair registered again
+   :func:`~photonpano.movers.brightest_blob` is left out and the pair registered again
    (ECC from the phase correlation and from the current estimate); a registration of
    steps 1-2 is vetoed where the frames without their blobs correlate under it by more
    than ``guard_margin`` less than under their own registration, that one is nearer
@@ -35,6 +35,13 @@ binning is the photon budget's ``check_binning``, :class:`~photonpano.budget.Bud
    correlate at 0.99 over registrations pixels apart, a choice by correlation alone
    follows the noise (the clock under a 100 Hz lamp 0.210 -> 0.306 px with no margin,
    0.252 at 0.05; the facade crossed by the disc 0.039 and 0.034 px).
+4. at the level's end its rescues are **decided together** (:meth:`LevelCheck.settle`):
+   one pair cannot tell whether the affine correction it chose follows the camera or a
+   direction its frames do not pin (a checkerboard's rows leave the vertical scale free:
+   after level 1 its vertical scale ramped by +-2.7 px at the frame's corners), but the
+   level's rescues can. Where they scale one axis alone and do not turn (:func:`rescue_motion`),
+   every rescue that both ECCs registered takes its translation (the checkerboard
+   0.540 -> 0.075 px; ``docs/accuracy.md``, "Rescues decided together").
 
 A level's figures (correlation per pair, pairs checked out and rescued) travel in its
 :attr:`~photonpano.records.LocateResult.check` to ``run.json``'s ``registration_check``.
@@ -50,10 +57,85 @@ from numpy.typing import NDArray
 
 from .. import geometry
 from ..executor import Executor, SerialExecutor
-from ..imaging import binned_frame, brightest_blob, register_binned, warped_correlation
+from ..imaging import binned_frame, register_binned, register_binned_motions, warped_correlation
+from ..movers import brightest_blob
 from ..records import MergedFrames, PairRegistrations
 
-__all__ = ["PairCheck", "LevelCheck"]
+__all__ = ["PairCheck", "LevelCheck", "rescue_motion", "SETTLE_MIN_RESCUES", "SIGNAL_LAG1", "SIGNAL_T"]
+
+
+SETTLE_MIN_RESCUES = 10
+"""Rescues (with both ECC registrations) a level needs before they are decided together;
+with fewer, each keeps its own better registration."""
+SIGNAL_LAG1 = 0.6
+"""Lag-1 autocorrelation from which a shape parameter of the level's rescues, in the order
+they were registered, counts as a signal: a change that is smooth along the capture
+correlates from pair to pair, the noise of independent registrations does not (at 0.6 the
+smooth part holds more than half the variance)."""
+SIGNAL_T = 3.0
+"""Standard errors from zero at which a shape parameter's mean over the level's rescues
+counts as a signal (a steady change)."""
+
+
+def _inliers(cc: float) -> int:
+    """A rescue's pose-graph weight from its binned correlation: ``max(8, 100 cc^2)``."""
+    return max(8, int(round(100 * cc ** 2)))
+
+
+def _shape(affine: NDArray[np.float64], initial: NDArray[np.float64], radius: float) -> NDArray[np.float64]:
+    """(4,) float64 rotation, zoom, anisotropy, shear of ``affine``'s correction of ``initial``, pixels at ``radius``.
+
+    The correction ``affine @ inv(initial)`` is the ECC's affine warp (full-resolution
+    pixels); of its linear part ``M``: rotation ``(M10 - M01) / 2``, zoom
+    ``(M00 + M11) / 2 - 1``, anisotropy ``(M11 - M00) / 2`` (the vertical scale's excess
+    over the horizontal one, halved), shear ``(M01 + M10) / 2``, each times ``radius``.
+    """
+    d = affine @ np.linalg.inv(initial)
+    m = d[:2, :2] / d[2, 2]
+    return radius * np.array([(m[1, 0] - m[0, 1]) / 2, (m[0, 0] + m[1, 1]) / 2 - 1, (m[1, 1] - m[0, 0]) / 2,
+                              (m[0, 1] + m[1, 0]) / 2])
+
+
+def _signal(values: NDArray[np.float64]) -> dict[str, float | bool]:
+    """A shape parameter over a level's rescues: lag-1 autocorrelation, t of its mean, and whether either counts."""
+    centred = values - values.mean()
+    lag1 = float((centred[1:] * centred[:-1]).sum() / max(float((centred ** 2).sum()), 1e-300))
+    t = float(values.mean() / max(float(values.std(ddof=1)) / np.sqrt(len(values)), 1e-300))
+    return {"lag1": round(lag1, 3), "t": round(t, 2), "signal": lag1 >= SIGNAL_LAG1 or abs(t) >= SIGNAL_T}
+
+
+def rescue_motion(shapes: NDArray[np.float64]) -> tuple[str, dict[str, dict[str, float | bool]]]:
+    """Whether a level's rescues keep their affine corrections or take translations.
+
+    A camera's zoom scales both axes alike. A level whose rescues scale one axis alone
+    (zoom and anisotropy each carry a signal, ``_signal``: lag-1 autocorrelation >=
+    :data:`SIGNAL_LAG1` or a mean :data:`SIGNAL_T` standard errors from zero) and do not
+    turn (the rotation carries none) is taking up a direction its frames do not pin:
+    every rescue then takes its translation. On the checkerboard panned at flux 0.5 the
+    zoom's t is -9.8, the anisotropy's -10.0, the rotation's -1.5 (lag-1 0.46): 0.540 ->
+    0.075 px, and under a 100 Hz lamp 0.605 -> 0.038 px.
+
+    Anything else keeps each rescue's better registration. No signal is no evidence
+    that the camera does not turn: a turning capture whose rescues' rotation is lost in
+    their noise needs the affine corrections (in an experiment that decided such levels
+    for translations, turning microaneurysms went from 0.31 to 2.66 px); and a level that
+    turns keeps its rescues' one-axis scale with the turn (the checkerboard turning by up
+    to 10 degrees: 0.51 px, 5.6 with translations). ``docs/accuracy.md``, "Rescues decided
+    together".
+
+    Args:
+        shapes: (R, 4) float64 each rescue's rotation, zoom, anisotropy and shear
+            (``_shape``, pixels at the frame's half width), in the order the pairs
+            were registered; R >= 2.
+
+    Returns:
+        ``(motion, figures)``: ``"translation"`` or ``"per pair"`` (each rescue keeps its
+        better registration), and ``{"rotation", "zoom", "anisotropy"}`` each ``{"lag1",
+        "t", "signal"}``.
+    """
+    figures = {name: _signal(shapes[:, k]) for k, name in enumerate(("rotation", "zoom", "anisotropy"))}
+    one_axis = figures["zoom"]["signal"] and figures["anisotropy"]["signal"] and not figures["rotation"]["signal"]
+    return ("translation" if one_axis else "per pair"), figures
 
 
 class PairCheck:
@@ -69,12 +151,15 @@ class PairCheck:
         guard_margin: the correlation margin of ``mover_guard``.
         rescue_margin: a rescue (step 2) takes the registration without the blobs where
             it correlates better than the whole frames' own by this much (see the module).
+        settle_rescues: decide the level's rescues together (step 4 of the module).
     """
 
     def __init__(self, binning: int, *, min_correlation: float = 0.4, min_overlap: float = 0.3,
-                 mover_guard: bool = True, guard_margin: float = 0.2, rescue_margin: float = 0.05) -> None:
+                 mover_guard: bool = True, guard_margin: float = 0.2, rescue_margin: float = 0.05,
+                 settle_rescues: bool = True) -> None:
         """Set the check's binning and limits."""
         self.factor = max(1, int(binning))
+        self.settle_rescues = settle_rescues
         self.mover_guard, self.guard_margin, self.rescue_margin = mover_guard, guard_margin, rescue_margin
         self.min_correlation = min_correlation
         self.min_overlap = min_overlap
@@ -92,7 +177,7 @@ def _binned_with_blob(flux: NDArray[np.float32], mask: NDArray[np.bool_], factor
                       ) -> tuple[NDArray[np.float32], NDArray[np.bool_], NDArray[np.bool_]]:
     """A merged frame's binned image, valid pixels and bright blob.
 
-    The blob is :func:`~photonpano.imaging.brightest_blob`'s, or none without ``find_blob``
+    The blob is :func:`~photonpano.movers.brightest_blob`'s, or none without ``find_blob``
     (the mover guard is off).
     """
     image, valid = binned_frame(flux, mask, factor)
@@ -114,6 +199,41 @@ class LevelCheck:
         self.checked = self.rejected = self.rescued = 0
         self.correlations: list[float] = []
         self._binned: dict[tuple[bytes, bytes], tuple[NDArray[np.float32], NDArray[np.bool_], NDArray[np.bool_]]] = {}
+        # per call, each rescue both ECCs registered: (pair in the call, index in correlations,
+        # (affine shape, translation registration that passes the check or None))
+        self._alternatives: list[list[tuple[int, int, Any]]] = []
+        self.rescue_motion: str | None = None
+        self.rescue_shapes: dict[str, dict[str, float | bool]] | None = None
+
+    def settle(self, found: list[PairRegistrations]) -> list[PairRegistrations]:
+        """Decide the level's rescues together, once every pair is registered (step 4 of the module).
+
+        With at least :data:`SETTLE_MIN_RESCUES` rescues that both ECCs registered, whose
+        affine corrections scale one axis alone and do not turn (:func:`rescue_motion`),
+        every such rescue takes its translation where that passes the check too.
+
+        Args:
+            found: the registrations this level's calls returned, in call order (each
+                the (P) registrations of that call's pairs).
+
+        Returns:
+            The same list, the rescues revised where the level's decision is ``"translation"``.
+        """
+        rows = [alternative for call in self._alternatives for _, _, alternative in call]
+        if not self.policy.settle_rescues or len(rows) < SETTLE_MIN_RESCUES:
+            return found
+        self.rescue_motion, self.rescue_shapes = rescue_motion(np.array([shape for shape, _ in rows]))
+        if self.rescue_motion != "translation":
+            return found
+        revised = []
+        for part, call in zip(found, self._alternatives):
+            homographies, inliers, ok = part.homographies.copy(), part.inliers.copy(), part.ok.copy()
+            for p, index, (_, translation) in call:
+                if translation is not None:
+                    homographies[p], inliers[p], ok[p] = translation[0], _inliers(translation[1]), True
+                    self.correlations[index] = translation[1]
+            revised.append(PairRegistrations(homographies, part.matches, inliers, ok))
+        return revised
 
     def __call__(self, merged: MergedFrames, pairs: NDArray[np.int64], initial: NDArray[np.float64],
                  found: PairRegistrations) -> PairRegistrations:
@@ -143,12 +263,13 @@ class LevelCheck:
         self._binned = {keys[i]: binned[i] for i in frames}
         policy = self.policy
 
-        def as_rescue(h: NDArray[np.float64], cc: float) -> tuple[NDArray[np.float64], int, bool, float, bool]:
+        def as_rescue(h: NDArray[np.float64], cc: float, alternative: Any = None
+                      ) -> tuple[NDArray[np.float64], int, bool, float, bool, Any]:
             """A direct registration as a rescued pair (its inliers ``max(8, 100 cc^2)``, a pose-graph weight)."""
-            return h, max(8, int(round(100 * cc ** 2))), True, cc, True
+            return h, _inliers(cc), True, cc, True, alternative
 
-        def check(p: int) -> tuple[NDArray[np.float64], int, bool, float, bool]:
-            """Pair p's (homography, inliers, ok, correlation, rescued)."""
+        def check(p: int) -> tuple[NDArray[np.float64], int, bool, float, bool, Any]:
+            """Pair p's (homography, inliers, ok, correlation, rescued, alternative)."""
             (a, a_valid, a_blob), (b, b_valid, b_blob) = binned[int(pairs[p, 0])], binned[int(pairs[p, 1])]
             whole, rest = ((a, a_valid), (b, b_valid)), ((a, a_valid & ~a_blob), (b, b_valid & ~b_blob))
             need = policy.min_overlap * max(int(b_valid.sum()), 1)
@@ -186,18 +307,25 @@ class LevelCheck:
             if found.ok[p]:
                 cc, overlap = warped_correlation(*whole, homography, factor)
                 if holds(homography, cc, overlap):
-                    return homography, inliers, True, cc, False
-            h, cc, overlap = register_binned(*whole, initial[p], factor)
+                    return homography, inliers, True, cc, False, None
+            motions = register_binned_motions(*whole, initial[p], factor)
+            h, cc, overlap = max(motions.values(), key=lambda motion: motion[1])
             if policy.mover_guard and (a_blob.any() or b_blob.any()) and cc + policy.rescue_margin <= 1:
                 other, best, ok = registered_without()  # (a correlation above 1 - margin cannot be beaten)
                 if ok and best >= cc + policy.rescue_margin:  # the blobs lowered the correlation: they moved
                     return as_rescue(other, best)
             if holds(h, cc, overlap):
-                return as_rescue(h, cc)
+                affine, translation = motions["affine"], motions["translation"]
+                alternative = None
+                if affine[1] > -1 and translation[1] > -1:  # both ECCs registered: for settle()
+                    passes = translation[0] is h or holds(*translation)
+                    alternative = (_shape(affine[0], initial[p], (a.shape[1] * factor - 1) / 2),
+                                   translation if passes else None)
+                return as_rescue(h, cc, alternative)
             if any(vetoed):  # a registration the frames without their blobs disagree with: theirs
                 h, cc, _ = registered_without()
                 return as_rescue(h, cc)
-            return homography, inliers, False, cc, False
+            return homography, inliers, False, cc, False, None
 
         checked = self.executor.map(check, range(len(pairs)))
         if not checked:
@@ -207,6 +335,8 @@ class LevelCheck:
         self.checked += int(found.ok.sum())
         self.rejected += int((found.ok & ~(ok & ~rescued)).sum())
         self.rescued += int(rescued.sum())
+        self._alternatives.append([(p, len(self.correlations) + p, c[5]) for p, c in enumerate(checked)
+                                   if c[5] is not None])
         self.correlations.extend(c[3] for c in checked)
         return PairRegistrations(np.stack([c[0] for c in checked]), found.matches,
                                  np.array([c[1] for c in checked], found.inliers.dtype), ok)
@@ -216,10 +346,13 @@ class LevelCheck:
 
         Returns:
             ``{"binning", "checked", "rejected_by_check", "rescued",
-            "median_correlation", "min_correlation"}`` (correlations of the pairs'
-            final homographies on binned frames; -1 where ECC failed; None without pairs).
+            "median_correlation", "min_correlation", "rescue_motion", "rescue_shapes"}``
+            (correlations of the pairs' final homographies on binned frames; -1 where ECC
+            failed; None without pairs), and :meth:`settle`'s decision and
+            :func:`rescue_motion`'s figures (None where the rescues were too few to decide).
         """
         cc = np.asarray(self.correlations, np.float64)
         return {"binning": self.policy.factor, "checked": self.checked, "rejected_by_check": self.rejected,
                 "rescued": self.rescued, "median_correlation": float(np.median(cc)) if len(cc) else None,
-                "min_correlation": float(cc.min()) if len(cc) else None}
+                "min_correlation": float(cc.min()) if len(cc) else None,
+                "rescue_motion": self.rescue_motion, "rescue_shapes": self.rescue_shapes}

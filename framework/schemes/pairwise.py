@@ -55,9 +55,8 @@ class _MergedRing:
         self.frames.ids[slots] = MergedFrames.new_ids(len(slots))
 
     def register(self, locator: Locator, pairs: NDArray[np.int64], initial: NDArray[np.float64],
-                 width: int, height: int, context: LocatorContext, check: LevelCheck | None = None
-                 ) -> PairRegistrations:
-        """Register group pairs held in the ring (then ``check`` them); implausible results count as failed.
+                 context: LocatorContext) -> tuple[MergedFrames, NDArray[np.int64], PairRegistrations]:
+        """Register group pairs held in the ring.
 
         The locator gets the frames of the groups ``pairs`` use (group order) and the
         pairs as their frame ids (:meth:`Locator.register_pairs`).
@@ -66,20 +65,16 @@ class _MergedRing:
             locator: the built locator.
             pairs: (P, 2) int64 group indices, each group among the last ``capacity`` put.
             initial: (P, 3, 3) float64 starts (b's pixels to a's).
-            width: frame width in pixels.
-            height: frame height in pixels.
             context: how the locator's call may run.
-            check: the level's check of the registrations, or None.
 
         Returns:
-            (P) registrations; ``ok`` False where failed, rejected by ``check`` or implausible.
+            ``(frames, positions, found)``: the frames the locator got, the (P, 2) int64
+            pairs as positions in them, and the locator's (P) registrations.
         """
         groups = np.unique(pairs)
         frames = self.frames.take(groups % self.capacity)
         found = locator.register_pairs(frames, frames.ids[np.searchsorted(groups, pairs)], initial, context)
-        if check is not None:
-            found = check(frames, np.searchsorted(groups, pairs), initial, found)
-        return found.with_ok(found.ok & plausible(found.homographies, width, height))
+        return frames, np.searchsorted(groups, pairs), found
 
 
 def _overlapping(pairs: NDArray[np.int64], keyframes: NDArray[np.float64], width: int, height: int,
@@ -144,8 +139,8 @@ def locate_keyframes(locator: Locator, merge: Callable[[NDArray[np.int64]], Merg
             (``merge`` must then be callable from another thread). With a thread pool
             behind both, its workers stay busy across each window's last tasks.
         context: how the locator's calls may run (its executor; None: serially).
-        check: checks (and rescues) every locator call's registrations
-            (:class:`~photonpano.schemes.check.LevelCheck`), or None.
+        check: checks (and rescues) every locator call's registrations, then settles the
+            level's rescues together (:class:`~photonpano.schemes.check.LevelCheck`), or None.
 
     Returns:
         ``(keyframes, pair_index, pairs)``: (G, 3, 3) float64 homographies, (P, 2)
@@ -161,7 +156,7 @@ def locate_keyframes(locator: Locator, merge: Callable[[NDArray[np.int64]], Merg
     ring = _MergedRing(min(g, 2 * window + max(offsets, default=0)))
     predicted = np.linalg.inv(current[:-1]) @ current[1:]
     chain_parts: list[PairRegistrations] = []
-    extra_parts: list[tuple[NDArray[np.int64], PairRegistrations]] = []
+    calls: list[tuple[NDArray[np.int64], int, PairRegistrations]] = []  # (pairs, consecutive ones, found)
     # One locator call per window: its consecutive pairs, and the longer pairs ending in the
     # previous window, whose overlap the chain up to there predicts. A frame is thus used
     # by consecutive calls only, and a locator's per-call cache describes it once.
@@ -188,11 +183,18 @@ def locate_keyframes(locator: Locator, merge: Callable[[NDArray[np.int64]], Merg
         index_all = np.concatenate(index)
         if not len(index_all):
             continue
-        found = ring.register(locator, index_all, np.concatenate(initial), width, height,
-                              context or LocatorContext(), check)
+        starts = np.concatenate(initial)
+        frames, positions, found = ring.register(locator, index_all, starts, context or LocatorContext())
+        if check is not None:
+            found = check(frames, positions, starts, found)
+        found = found.with_ok(found.ok & plausible(found.homographies, width, height))  # implausible: failed
+        calls.append((index_all, n_chain, found))
         chain_parts.append(found.take(slice(0, n_chain)))
-        if len(index_all) > n_chain:
-            extra_parts.append((index_all[n_chain:], found.take(slice(n_chain, None))))
+    founds = [found for _, _, found in calls]
+    if check is not None and calls:  # the level's rescues decided together
+        founds = [f.with_ok(f.ok & plausible(f.homographies, width, height)) for f in check.settle(founds)]
+    chain_parts = [f.take(slice(0, n)) for (_, n, _), f in zip(calls, founds)]
+    extra_parts = [(i[n:], f.take(slice(n, None))) for (i, n, _), f in zip(calls, founds) if len(i) > n]
     chain_index = pairs_at_offsets(g, (1,))
     chain = PairRegistrations.concat(*chain_parts)
     keyframes = chain_keyframes(current, chain)

@@ -171,6 +171,72 @@ def test_a_direct_registration_takes_the_translation_where_the_estimates_shape_i
     assert np.mean(errors) < (0.18 if case.startswith("translation") else 0.3)
 
 
+@pytest.mark.parametrize("case, expected", [("one axis scaling", "translation"), ("independent noise", "per pair"),
+                                            ("a turn with one axis scaling", "per pair"),
+                                            ("a steady zoom", "per pair")])
+def test_a_level_s_rescues_take_translations_only_where_they_scale_one_axis_without_turning(case, expected):
+    """rescue_motion: one axis scaling alone -> translations; noise, a turn or a zoom of both axes -> kept.
+
+    200 rescues, shapes in pixels at the frame's half width with unit noise. One axis
+    scaling ramps the vertical scale (zoom and anisotropy alike, as on the checkerboard);
+    the turn adds a sine of 1 px over noise of 0.5 to it; the zoom is 0.5 px per pair.
+    """
+    from photonpano.schemes.check import rescue_motion
+
+    rng = np.random.default_rng(3)
+    shapes = rng.normal(0.0, 1.0, (200, 4))
+    ramp = np.linspace(-1.0, 1.0, 200)
+    if "one axis" in case:
+        shapes[:, 1] += -2.0 + ramp
+        shapes[:, 2] = shapes[:, 1] + rng.normal(0.0, 0.1, 200)
+    if "turn" in case:
+        shapes[:, 0] = 0.5 * shapes[:, 0] + np.sin(3 * np.pi * ramp)
+    if case == "a steady zoom":
+        shapes[:, 1] += 0.5
+    motion, figures = rescue_motion(shapes)
+    assert motion == expected, figures
+    assert set(figures) == {"rotation", "zoom", "anisotropy"}
+
+
+@pytest.mark.parametrize("rescues", [12, 6])
+def test_a_level_settled_for_translations_gives_each_rescue_its_translation(rescues, monkeypatch):
+    """settle(): the level's decision reaches the right pairs of the right calls, and the figures.
+
+    Pairs shifted by (6, -3) px from an estimate that knows it, their locator failing,
+    one pair per call; the decision is forced to ``"translation"``. With 12 rescues (at
+    least SETTLE_MIN_RESCUES) every rescue ends a translation of the estimate within
+    0.5 px of the truth, its correlation in the level's figures; with 6 the level keeps
+    them as they are and decides nothing.
+    """
+    from photonpano.executor import SerialExecutor
+    from photonpano.schemes import PairCheck, check
+    from photonpano.schemes.check import SETTLE_MIN_RESCUES
+
+    shapes = []
+    monkeypatch.setattr(check, "rescue_motion", lambda s: (shapes.append(s), ("translation", {}))[1])
+    truth = np.array([[1, 0, 6.0], [0, 1, -3.0], [0, 0, 1]])
+    level = PairCheck(2).start_level(SerialExecutor())
+    calls = []
+    for seed in range(rescues):
+        merged = _noisy_pair(truth, 1.0, seed)
+        failed = _Fixed(np.eye(3), ok=False).register_pairs(merged, merged.frame_ids()[np.array([[0, 1]])],
+                                                            truth[None])
+        calls.append(level(merged, np.array([[0, 1]]), truth[None], failed))
+    assert all(found.ok[0] for found in calls) and level.figures()["rescued"] == rescues
+    settled = level.settle(calls)
+    figures = level.figures()
+    if rescues < SETTLE_MIN_RESCUES:
+        assert settled is calls and figures["rescue_motion"] is None and not shapes
+        return
+    assert figures["rescue_motion"] == "translation" and shapes[0].shape == (rescues, 4)
+    homographies = np.concatenate([found.homographies for found in settled])
+    assert np.abs(homographies[:, :2, :2] - np.eye(2)).max() < 1e-9  # translations of the estimate
+    assert np.abs(homographies[:, :2, 2] - truth[:2, 2]).max() < 0.5
+    assert all(found.ok[0] for found in settled)
+    assert figures["median_correlation"] == pytest.approx(np.median(level.correlations))
+    assert min(level.correlations) > 0.4
+
+
 def test_check_flags_pure_noise():
     """The binned check flags pure noise."""
     rng = np.random.default_rng(1)

@@ -264,7 +264,7 @@ def test_the_pair_checks_rescue_follows_the_scene_not_a_bright_disc_crossing_it(
 
 def test_brightest_blob_finds_the_disc_not_a_brighter_star_and_not_a_bright_sky():
     """The region with the most contrast energy, dilated; none where it is over a quarter of the frame."""
-    from photonpano.imaging import brightest_blob
+    from photonpano.movers import brightest_blob
 
     image = np.zeros((100, 200), np.float32)
     yy, xx = np.mgrid[:100, :200]
@@ -282,7 +282,7 @@ def test_brightest_blob_finds_the_disc_not_a_brighter_star_and_not_a_bright_sky(
 
 def test_brightest_blob_cuts_a_disc_out_of_the_bright_texture_it_touches():
     """A disc on a bright web of lines is found at a higher level; the web alone is no blob."""
-    from photonpano.imaging import brightest_blob
+    from photonpano.movers import brightest_blob
 
     yy, xx = np.mgrid[:120, :240]
     web = np.where((yy % 20 < 3) | (xx % 30 < 3), 0.5, 0.1).astype(np.float32)  # mortar lines
