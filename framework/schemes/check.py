@@ -151,15 +151,12 @@ class PairCheck:
         guard_margin: the correlation margin of ``mover_guard``.
         rescue_margin: a rescue (step 2) takes the registration without the blobs where
             it correlates better than the whole frames' own by this much (see the module).
-        settle_rescues: decide the level's rescues together (step 4 of the module).
     """
 
     def __init__(self, binning: int, *, min_correlation: float = 0.4, min_overlap: float = 0.3,
-                 mover_guard: bool = True, guard_margin: float = 0.2, rescue_margin: float = 0.05,
-                 settle_rescues: bool = True) -> None:
+                 mover_guard: bool = True, guard_margin: float = 0.2, rescue_margin: float = 0.05) -> None:
         """Set the check's binning and limits."""
         self.factor = max(1, int(binning))
-        self.settle_rescues = settle_rescues
         self.mover_guard, self.guard_margin, self.rescue_margin = mover_guard, guard_margin, rescue_margin
         self.min_correlation = min_correlation
         self.min_overlap = min_overlap
@@ -220,7 +217,7 @@ class LevelCheck:
             The same list, the rescues revised where the level's decision is ``"translation"``.
         """
         rows = [alternative for call in self._alternatives for _, _, alternative in call]
-        if not self.policy.settle_rescues or len(rows) < SETTLE_MIN_RESCUES:
+        if len(rows) < SETTLE_MIN_RESCUES:
             return found
         self.rescue_motion, self.rescue_shapes = rescue_motion(np.array([shape for shape, _ in rows]))
         if self.rescue_motion != "translation":
