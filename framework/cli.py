@@ -175,10 +175,12 @@ def main() -> None:
     warnings.showwarning = lambda message, *args, **kwargs: typer.secho(f"warning: {message}", err=True,
                                                                         fg=typer.colors.YELLOW)
     from .cli_io import GuardedStdout, silence_stdout, stdout_problem
+    from .faults import interrupts_outside_compilers
     from .watchdog import command_line, exit_if_stuck
 
     sys.stdout = GuardedStdout(sys.stdout)
     command_line()
+    interrupts_outside_compilers()  # Ctrl-C while numba loads a kernel would be lost or crash on exit
     code: int | str | None = 0
     try:
         app()
