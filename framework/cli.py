@@ -180,10 +180,10 @@ def main() -> None:
 
     sys.stdout = GuardedStdout(sys.stdout)
     command_line()
-    interrupts_outside_compilers()  # Ctrl-C while numba loads a kernel would be lost or crash on exit
     code: int | str | None = 0
     try:
-        app()
+        with interrupts_outside_compilers():  # Ctrl-C while numba loads a kernel would be lost or crash on exit
+            app()
     except KeyboardInterrupt:
         typer.echo("interrupted", err=True)
         code = 130

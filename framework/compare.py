@@ -155,6 +155,7 @@ def _compare_one(item: str, base: dict[str, Any], host: PluginHost, origin: str,
                  rows: list[dict[str, Any]], refine: bool) -> tuple[Any, np.ndarray | None]:
     """Run one locator (see :func:`compare_locators`); append its row; return the source and homographies."""
     from .executor import make_executor
+    from .faults import interrupts_outside_compilers
     from .metrics import source_trajectory_error
     from .progress import start_task
     from .reconstruction import Stages
@@ -192,7 +193,8 @@ def _compare_one(item: str, base: dict[str, Any], host: PluginHost, origin: str,
                 log(f"{label}: level {stats['level']}: locate {stats['timings_s'].get('locate', 0):.1f} s, "
                     f"{stats['failed_pairs']} failed pairs" + _rmse_text(stats.get("trajectory_rmse_px")))
 
-        with guarding(host), make_executor(spec.executor, spec.workers, spec.dask_address) as executor:
+        with guarding(host), interrupts_outside_compilers(), \
+                make_executor(spec.executor, spec.workers, spec.dask_address) as executor:
             homographies = stages.estimate_motion(executor, on_level=on_level,
                                                   progress=lambda task, total: start_task(f"{label}: {task}", total))
     except PhotonpanoError as exc:

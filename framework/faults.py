@@ -17,7 +17,8 @@ or in llvmlite's clean-up, where it is lost (the run goes on as if no key was pr
 or leaves LLVM's state half-built (the process dies with a segmentation fault on its
 way out; measured: a first call of three cached kernels interrupted at random moments
 of its 0.3 s, 2 of 150 crashed and 20 went on). :func:`interrupts_outside_compilers`
-makes the command line's Ctrl-C wait until numba and llvmlite have returned.
+makes Ctrl-C wait until numba and llvmlite have returned, for the command line
+and for a run started from Python.
 """
 
 from __future__ import annotations
@@ -100,17 +101,27 @@ def _on_interrupt(signum: int, frame: FrameType | None) -> None:
         _retry[0].start()
 
 
-def interrupts_outside_compilers() -> None:
-    """Make Ctrl-C (``SIGINT``) wait while the main thread is inside numba or llvmlite.
+@contextlib.contextmanager
+def interrupts_outside_compilers() -> Iterator[None]:
+    """Within the block, Ctrl-C (``SIGINT``) waits while the main thread is inside numba or llvmlite.
 
     The interrupt is raised as ``KeyboardInterrupt`` as usual, except while numba loads
     or compiles a kernel, where it is sent again every :data:`RETRY_S` seconds until the
     main thread has left :data:`COMPILERS` (a load takes milliseconds, a compile about a
-    second). Call from the main thread; a ``SIGINT`` that is ignored (a background job
-    of a non-interactive shell) or handled by someone else is left as it is.
+    second). Only Python's own handler is replaced, in the main thread, and put back
+    after the block: a ``SIGINT`` that is ignored (a background job of a
+    non-interactive shell) or handled by someone else (a notebook's kernel) is left as
+    it is, and so is a nested block.
     """
-    if signal.getsignal(signal.SIGINT) is signal.default_int_handler:
+    ours = threading.current_thread() is threading.main_thread() and \
+        signal.getsignal(signal.SIGINT) is signal.default_int_handler
+    if ours:
         signal.signal(signal.SIGINT, _on_interrupt)
+    try:
+        yield
+    finally:
+        if ours and signal.getsignal(signal.SIGINT) is _on_interrupt:
+            signal.signal(signal.SIGINT, signal.default_int_handler)  # a held-back interrupt still arrives
 
 
 def _plugin_modules(host: Any) -> dict[str, tuple[str, str]]:

@@ -29,7 +29,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .errors import PhotonpanoError
-from .faults import unwrapped_interrupts
+from .faults import interrupts_outside_compilers, unwrapped_interrupts
 from .hdr import write_flux_tiff
 from .host import PluginHost
 from .metrics import ground_truth_report, plot_trajectory, source_trajectory_error
@@ -138,7 +138,8 @@ def run_pipeline(spec: PipelineSpec, out_dir: Path | None, host: PluginHost, *, 
         from .video_encode import require_av
 
         require_av()  # before the run, not after it
-    with guarding(host), reporting(host):  # a hung plugin call: PluginHung, outside the folder (kept as on Ctrl-C)
+    # a hung plugin call: PluginHung, outside the folder (kept as on Ctrl-C); Ctrl-C waits while numba loads a kernel
+    with guarding(host), reporting(host), interrupts_outside_compilers():
         if out_dir is None:
             with unwrapped_interrupts():
                 return _run_into(spec, None, host)

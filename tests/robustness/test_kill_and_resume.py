@@ -128,11 +128,10 @@ def test_ctrl_c_exits_promptly_and_keeps_the_checkpoints(reference, tmp_path):
 
 
 _COMPILE_THEN_WAIT = """
-import os, signal, sys, threading, time
+import os, signal, sys, threading, time, traceback
 import numba
+import numpy as np
 from photonpano.faults import interrupts_outside_compilers
-
-interrupts_outside_compilers()
 
 @numba.njit(cache=False)
 def kernel(x):
@@ -141,16 +140,17 @@ def kernel(x):
         total += x[i] ** 2 if i % 3 else x[i]
     return total
 
-import numpy as np
 threading.Timer(0.05, os.kill, (os.getpid(), signal.SIGINT)).start()  # lands while numba compiles (~0.3 s)
 try:
-    kernel(np.ones(4))
-    print("compiled", flush=True)
-    time.sleep(5)
+    with interrupts_outside_compilers():
+        kernel(np.ones(4))
+        print("compiled", flush=True)
+        time.sleep(5)
 except KeyboardInterrupt as interrupt:
-    names = [frame.f_code.co_filename for frame, _ in __import__("traceback").walk_tb(interrupt.__traceback__)]
-    inside = any(name.startswith(os.path.dirname(numba.__file__)) for name in names)
+    inside = any(frame.f_code.co_filename.startswith(os.path.dirname(numba.__file__))
+                 for frame, _ in traceback.walk_tb(interrupt.__traceback__))
     print("interrupted inside numba" if inside else "interrupted", flush=True)
+    print("restored" if signal.getsignal(signal.SIGINT) is signal.default_int_handler else "not restored")
     sys.exit(130)
 """
 
@@ -164,6 +164,25 @@ def test_ctrl_c_while_numba_compiles_waits_for_the_compile_and_is_not_lost(tmp_p
     result = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=60,
                             preexec_fn=sigint_as(signal.SIG_DFL), env={**os.environ, "NUMBA_CACHE_DIR": str(tmp_path)})
     assert result.returncode == 130, result.stderr
-    assert result.stdout.split() == ["compiled", "interrupted"], result.stdout
+    assert result.stdout.split() == ["compiled", "interrupted", "restored"], result.stdout
     assert "Exception ignored" not in result.stderr
     assert time.perf_counter() - start < 5  # the interrupt came right after the compile, not after the sleep
+
+
+def test_ctrl_c_ignored_or_handled_elsewhere_is_left_alone():
+    from photonpano.faults import interrupts_outside_compilers
+
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)  # a background job of a non-interactive shell
+    try:
+        with interrupts_outside_compilers():
+            assert signal.getsignal(signal.SIGINT) is signal.SIG_IGN
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+        with interrupts_outside_compilers():
+            held = signal.getsignal(signal.SIGINT)
+            assert held is not signal.default_int_handler
+            with interrupts_outside_compilers():  # nested: the outer block's handler stays
+                assert signal.getsignal(signal.SIGINT) is held
+            assert signal.getsignal(signal.SIGINT) is held
+        assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+    finally:
+        signal.signal(signal.SIGINT, previous)
