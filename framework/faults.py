@@ -1,4 +1,4 @@
-"""Blame a plugin for an unexpected exception: one line naming the plugin and stage.
+"""Faults of a run: the plugin to blame for an unexpected exception, and Ctrl-C where it is safe.
 
 A bug in plugin code (a locator, an observer hook, ``source_for_input``) surfaces as
 an arbitrary exception from deep inside the pipeline. :func:`plugin_failure` walks its
