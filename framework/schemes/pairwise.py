@@ -161,6 +161,11 @@ def locate_keyframes(locator: Locator, merge: Callable[[NDArray[np.int64]], Merg
     # previous window, whose overlap the chain up to there predicts. A frame is thus used
     # by consecutive calls only, and a locator's per-call cache describes it once.
     merged = _merged_windows(merge, windows, merge_ahead)
+
+    def sane(found: PairRegistrations) -> PairRegistrations:
+        """``found`` with its implausible registrations counted as failed."""
+        return found.with_ok(found.ok & plausible(found.homographies, width, height))
+
     for w in range(len(windows) + 1):
         index, initial = [np.zeros((0, 2), np.int64)], [np.zeros((0, 3, 3))]
         if w < len(windows):
@@ -187,12 +192,12 @@ def locate_keyframes(locator: Locator, merge: Callable[[NDArray[np.int64]], Merg
         frames, positions, found = ring.register(locator, index_all, starts, context or LocatorContext())
         if check is not None:
             found = check(frames, positions, starts, found)
-        found = found.with_ok(found.ok & plausible(found.homographies, width, height))  # implausible: failed
+        found = sane(found)
         calls.append((index_all, n_chain, found))
         chain_parts.append(found.take(slice(0, n_chain)))
     founds = [found for _, _, found in calls]
     if check is not None and calls:  # the level's rescues decided together
-        founds = [f.with_ok(f.ok & plausible(f.homographies, width, height)) for f in check.settle(founds)]
+        founds = [sane(f) for f in check.settle(founds)]
     chain_parts = [f.take(slice(0, n)) for (_, n, _), f in zip(calls, founds)]
     extra_parts = [(i[n:], f.take(slice(n, None))) for (i, n, _), f in zip(calls, founds) if len(i) > n]
     chain_index = pairs_at_offsets(g, (1,))
