@@ -40,6 +40,7 @@ Usage::
     python benchmarks/bound.py                              # every suite photo, flux 0.5 and 0.05
     python benchmarks/bound.py --photos city_madison,interior_clock --flux 0.5 --frames 300
     python benchmarks/bound.py --trajectory --photos highcontrast_sunset --flux 0.05
+    python benchmarks/bound.py --trajectory --folder /tmp/outside --flux 0.05   # the outside check's photos
     python benchmarks/bound.py --trajectory --photos interior_clock --flux 0.5 --set frames=100000
         --set path=zigzag --set sweep_px=40 --set sweep_period_frames=20000 --set speed_px_per_frame=0.004
         # (one line) performance.py's 100 000-frame zigzag
@@ -264,6 +265,8 @@ def main(argv: list[str] | None = None) -> int:
     """Print the bound per photo and flux (or, with ``--trajectory``, per knot spacing)."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--photos", default="", help="comma-separated photo stems (default: every suite photo)")
+    parser.add_argument("--folder", type=Path, default=None,
+                        help="take the photos from this folder instead of the suite's (as suite.py --photos)")
     parser.add_argument("--flux", default="0.5,0.05", help="comma-separated fluxes (photons/pixel/frame)")
     parser.add_argument("--frames", type=int, default=1000, help="N, the binary frames pooled (default 1000)")
     parser.add_argument("--trajectory", action="store_true",
@@ -280,7 +283,7 @@ def main(argv: list[str] | None = None) -> int:
     from suite import photos
 
     fluxes = [float(f) for f in args.flux.split(",")]
-    chosen = [p for p in photos() if not args.photos or p.stem in args.photos.split(",")]
+    chosen = [p for p in photos(args.folder) if not args.photos or p.stem in args.photos.split(",")]
     if args.trajectory:
         rest = [None if r == "constant" else float(r) for r in args.rest_spacing.split(",")]
         return _trajectory_table(chosen, fluxes, args.shift_spacing, rest, args.set)

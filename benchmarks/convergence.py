@@ -109,7 +109,8 @@ def mode_amplitude(errors: np.ndarray, unit: np.ndarray) -> float:
 def main(argv: list[str] | None = None) -> int:
     """Inject the mode, run the refining levels from it and print what is left after each."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--photo", default="facade_brick", help="an evaluation-suite photo's stem")
+    parser.add_argument("--photo", default="facade_brick",
+                        help="an evaluation-suite photo's stem, or the path of another photograph")
     parser.add_argument("--variant", default="base", help="the suite capture of the photo (base, mover, ...)")
     parser.add_argument("--mode", default=",".join(MODES[:3]), help=f"comma-separated: {', '.join(MODES)}")
     parser.add_argument("--amplitude", type=float, default=0.4, help="px at the frame corner or edge")
@@ -126,7 +127,8 @@ def main(argv: list[str] | None = None) -> int:
     from photonpano.spec import apply_overrides, validate_spec
 
     settings = {**suite.HARD, **suite.NUISANCE}.get(args.variant, {})
-    capture = suite.Capture(suite.PHOTOS / f"{args.photo}.jpg", args.variant, settings)
+    photo = Path(args.photo) if Path(args.photo).suffix else suite.PHOTOS / f"{args.photo}.jpg"
+    capture = suite.Capture(photo, args.variant, settings)
     if not capture.photo.exists():
         parser.error(f"--photo {args.photo}: no {capture.photo}")
     spec = validate_spec(apply_overrides({"source": capture.source_spec()}, args.set), PluginHost(),
