@@ -19,7 +19,9 @@ and a signal of the watchdog's own, not ``SIGINT``, because ``SIGINT``'s disposi
 not ours to count on: a background job of a non-interactive shell (``photonpano run ...
 &``) starts with it ignored, which left every call unwatched. The handler raises only
 for a hang the watchdog reported; any other ``SIGUSR2`` goes to the handler that was
-there before (``SIG_DFL``: the default action). The previous handler is restored when
+there before (``SIG_DFL``: the default action). While the main thread is inside numba or
+llvmlite (a kernel loading or compiling) the interrupt waits until it has left them, as
+Ctrl-C does (:mod:`photonpano.faults`). The previous handler is restored when
 the run ends, unless a signal sent for a hang may still be on its way (then the inert
 handler stays). The command line then exits
 at once even if the hung call sits in a worker thread that cannot be joined; if the
@@ -53,6 +55,7 @@ from collections.abc import Iterator
 from typing import Any
 
 from .errors import PluginError
+from .faults import RETRY_S, _in_compiler, _plugin_modules
 
 __all__ = ["HOOK_TIMEOUT_S", "GRACE_S", "ENV", "SIGNAL", "PluginHung", "watched", "guarding", "limit_s", "hung",
            "longest", "exit_if_stuck", "command_line", "running_calls", "wait_futures"]
@@ -274,12 +277,20 @@ def _install_handler() -> None:
 def _on_signal(signum: int, frame: Any) -> None:
     """The main thread's :data:`SIGNAL` handler: ``KeyboardInterrupt`` for a reported hang, else the previous one.
 
+    Inside numba or llvmlite the hang's interrupt is held back and the signal sent again
+    in :data:`~photonpano.faults.RETRY_S` seconds, as Ctrl-C is
+    (:func:`~photonpano.faults.interrupts_outside_compilers`): raised there it is lost
+    or leaves LLVM's state half-built.
+
     Raises:
         KeyboardInterrupt: a watched call hung and the run is still guarded
             (:func:`guarding` turns it into :class:`PluginHung`).
     """
     with _lock:
         ours = _state["owed"] > 0
+        if ours and _state["message"] is not None and _state["armed"] and _in_compiler(frame):
+            _send_later()  # still owed: the signal comes back once numba or llvmlite has returned
+            return
         if ours:
             _state["owed"] -= 1
         previous = _state["previous"]
@@ -292,6 +303,24 @@ def _on_signal(signum: int, frame: Any) -> None:
     elif previous == signal.SIG_DFL and SIGNAL is not None:  # not ours, nor anyone's: the default action
         signal.signal(SIGNAL, signal.SIG_DFL)
         os.kill(os.getpid(), SIGNAL)
+
+
+def _send_later() -> None:
+    """Send :data:`SIGNAL` to the main thread again in :data:`~photonpano.faults.RETRY_S` seconds.
+
+    The signal stays owed; one that cannot be sent (the main thread is gone) is not.
+    """
+    def send() -> None:
+        try:
+            signal.pthread_kill(main, SIGNAL)
+        except (OSError, ValueError):
+            with _lock:
+                _state["owed"] -= 1
+
+    main = threading.main_thread().ident
+    timer = threading.Timer(RETRY_S, send)
+    timer.daemon = True
+    timer.start()
 
 
 def _start_thread() -> None:
@@ -344,8 +373,6 @@ def _plugin_name(plugin: Any, thread: int) -> str:
     host = _state["host"]
     frame = sys._current_frames().get(thread)
     if host is not None and frame is not None:
-        from .faults import _plugin_modules
-
         owners = _plugin_modules(host)
         while frame is not None:
             owner = owners.get(frame.f_globals.get("__name__", ""))

@@ -208,3 +208,58 @@ def test_a_foreign_signal_goes_to_the_previous_handler(monkeypatch):
         assert seen == [watchdog.SIGNAL]
     finally:
         signal.signal(watchdog.SIGNAL, previous)
+
+
+_HANG_WHILE_NUMBA_COMPILES = """
+import os, sys, time, traceback
+import numba
+import numpy as np
+from photonpano import watchdog
+
+os.environ[watchdog.ENV] = "0.05"  # passed while the kernel compiles (~0.3 s)
+
+
+class Plugin:
+    class config:
+        plugin = "my-merger"
+
+
+@numba.njit(cache=False)
+def kernel(x):
+    total = 0.0
+    for i in range(x.shape[0]):
+        total += x[i] ** 2 if i % 3 else x[i]
+    return total
+
+try:
+    with watchdog.guarding(), watchdog.watched("merger", Plugin(), "merge"):
+        kernel(np.ones(4))
+        print("compiled", flush=True)
+        time.sleep(5)
+except watchdog.PluginHung as hung:
+    interrupt = hung.__context__
+    inside = any(frame.f_code.co_filename.startswith(os.path.dirname(numba.__file__))
+                 for frame, _ in traceback.walk_tb(interrupt.__traceback__))
+    print("hung inside numba" if inside else "hung", flush=True)
+    sys.exit(1)
+"""
+
+
+def test_a_hang_reported_while_numba_compiles_waits_for_the_compile(tmp_path):
+    """The watchdog's interrupt is held back inside numba and llvmlite, as Ctrl-C is (``faults``).
+
+    Raised there it would be lost (the run goes on past its limit) or leave LLVM's state
+    half-built (a segmentation fault on the way out).
+    """
+    import subprocess
+    import sys
+
+    script = tmp_path / "compile.py"
+    script.write_text(_HANG_WHILE_NUMBA_COMPILES)
+    start = time.perf_counter()
+    result = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=60,
+                            env={**os.environ, "NUMBA_CACHE_DIR": str(tmp_path)})
+    assert result.returncode == 1, result.stderr
+    assert result.stdout.split() == ["compiled", "hung"], result.stdout
+    assert "Exception ignored" not in result.stderr
+    assert time.perf_counter() - start < 5  # the interrupt came right after the compile, not after the sleep
