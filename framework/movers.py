@@ -5,10 +5,13 @@ correlation, phase correlation or ECC of two frames follows the object, not the 
 steps guard against it: the level-1 pair check (:class:`~photonpano.schemes.check.PairCheck`,
 ``mover_guard``) and the speed probe (:func:`~photonpano.budget.probe.probe_capture`) register
 the frames again without each one's :func:`brightest_blob` (``docs/real_scenes.md``, "Moving
-objects").
+objects"). A mosaic level's robust template finds a mover by the regions it left out
+(:func:`moving_fraction`).
 """
 
 from __future__ import annotations
+
+from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import NDArray
@@ -16,7 +19,10 @@ from numpy.typing import NDArray
 from . import geometry
 from .imaging import register_binned
 
-__all__ = ["brightest_blob", "shift_without_mover", "MOVER_DISAGREEMENT_PX", "MOVER_MIN_CORRELATION"]
+if TYPE_CHECKING:
+    from .records import Panorama
+
+__all__ = ["brightest_blob", "moving_fraction", "shift_without_mover", "MOVER_DISAGREEMENT_PX", "MOVER_MIN_CORRELATION"]
 
 
 def brightest_blob(image: NDArray[np.float32], valid: NDArray[np.bool_], *,
@@ -137,3 +143,27 @@ def shift_without_mover(a: NDArray[np.float32], b: NDArray[np.float32], shift: N
     if cc < max(min_correlation, MOVER_MIN_CORRELATION) or agree:
         return shift, correlation
     return moved, float(cc)
+
+
+def moving_fraction(pano: Panorama) -> tuple[float, float] | None:
+    """Fractions of a panorama's covered canvas where its robust merge left observations out.
+
+    Args:
+        pano: a panorama; its ``moving`` mask is None from a compositor that merges
+            every photon.
+
+    Returns:
+        ``(total, largest)`` in [0, 1]: all left-out covered pixels, and the largest
+        8-connected region of them (a mover's path is one region; a slightly
+        misregistered estimate leaves many small ones, e.g. around stars), over the
+        covered pixels (``frames > 0``); None without a mask.
+    """
+    import cv2
+
+    if pano.moving is None:
+        return None
+    covered = max(int(np.count_nonzero(pano.frames > 0)), 1)
+    moving = (pano.moving & (pano.frames > 0)).astype(np.uint8)
+    count, _, stats, _ = cv2.connectedComponentsWithStats(moving, connectivity=8)
+    largest = int(stats[1:, cv2.CC_STAT_AREA].max()) if count > 1 else 0
+    return round(int(np.count_nonzero(moving)) / covered, 6), round(largest / covered, 6)

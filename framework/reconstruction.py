@@ -29,21 +29,6 @@ if TYPE_CHECKING:
 __all__ = ["Stages", "reconstruct"]
 
 
-def _robust_template(mosaic: Any) -> Any:
-    """The mosaic scheme's template compositor config made robust, for while ``reject_movers`` is on.
-
-    A mover that enters the template (its faint ghost along its path) is not caught by
-    the disagreement test and pulls the registrations; the robust merge
-    (:mod:`photonpano.robust_merge`) keeps it out, and its left-out fraction is the
-    scheme's mover detection. Compositors without a ``robust`` field are used as
-    configured.
-    """
-    template = mosaic.template
-    if "robust" in type(template).model_fields:
-        template = template.model_copy(update={"robust": True})
-    return template
-
-
 def _told_of_flicker(build: Callable[[], Compositor], flicker: Any) -> Callable[[], Compositor]:
     """``build``, its compositors told of the capture's flicker (:meth:`~photonpano.stages.Compositor.expect_flicker`).
 
@@ -141,16 +126,20 @@ class Stages:
         from .budget.grid import in_merged_pixels
         from .schemes import MosaicScheme
         from .schemes.mosaic import MOVERS_SIGMAS
+        from .schemes.settings import affine_from_level, affine_locator, robust_template
 
         mosaic, binning, flicker = self.spec.mosaic, self.budget.mosaic_binning, self.budget.plan.flicker
+        affine = affine_locator(mosaic.locator)
         return MosaicScheme(in_merged_pixels(mosaic.locator, binning).build,
                             _told_of_flicker(mosaic.template.build, flicker), subbatch_px=mosaic.subbatch_px,
                             reject_movers=MOVERS_SIGMAS if mosaic.reject_movers == "auto" else mosaic.reject_movers,
-                            make_robust=_told_of_flicker(_robust_template(mosaic).build, flicker),
+                            make_robust=_told_of_flicker(robust_template(mosaic).build, flicker),
                             detect_movers=mosaic.reject_movers == "auto", holdout=mosaic.holdout,
                             correct_bias=mosaic.correct_template_bias,
                             per_parameter_priors=mosaic.template_bias_priors == "per-parameter",
-                            make_chain_locator=in_merged_pixels(mosaic.locator.converging(), binning).build)
+                            make_chain_locator=in_merged_pixels(mosaic.locator.converging(), binning).build,
+                            make_affine_locator=None if affine is None else in_merged_pixels(affine, binning).build,
+                            affine_from_level=affine_from_level(self.spec) if affine is not None else None)
 
     def mosaic_at_full_resolution(self, reason: str) -> None:
         """Register the mosaic levels at full resolution from now on (budget ``mosaic_binning`` 1, because ``reason``).

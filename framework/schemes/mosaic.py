@@ -20,7 +20,9 @@ A template made from every photon pulls each registration toward the estimate it
 (:mod:`photonpano.schemes.holdout`).
 
 Groups go to the executor in windows; each window is a pure task (it builds its own locator and returns what
-it found), so the windows can run on threads or processes.
+it found), so the windows can run on threads or processes. From ``affine_from_level`` on (spec
+``mosaic.perspective_levels``) the windows register affine corrections: the perspective terms are the least
+determined of a registration against the panorama, and each level's bias in them adds up.
 
 A scene is rarely static: with ``reject_movers`` (spec ``mosaic.reject_movers``), pixels
 of a merged frame that disagree with the panorama view by more than that many robust
@@ -63,6 +65,7 @@ from ..guards import bridge, plausible
 from ..information import homography_information
 from ..locator import Locator, LocatorContext
 from ..long_pairs import links_both_ways, long_baseline_chains, register_links
+from ..movers import moving_fraction
 from ..records import LocateResult, MergedFrames, PairRegistrations, Panorama
 from ..robust_merge import left_out_in_frames
 from ..stages import Compositor
@@ -121,6 +124,8 @@ class MosaicScheme(LevelScheme):
             only: another compositor's template holds every photon). 1 (the default): every
             photon.
         make_chain_locator: builds the held-out chains' locator (:mod:`photonpano.long_pairs`); None: ``make_locator``.
+        make_affine_locator: builds the locator of the levels from ``affine_from_level`` on (affine corrections).
+        affine_from_level: the first level (1-based, of all levels) registered by ``make_affine_locator``; None: none.
     """
 
     name = "mosaic"
@@ -130,9 +135,12 @@ class MosaicScheme(LevelScheme):
                  subbatch_px: float = 0.5, window: int = 16, reject_movers: float | None = None,
                  make_robust: Callable[[], Compositor] | None = None, detect_movers: bool = False,
                  holdout: int = 1, correct_bias: bool = False, per_parameter_priors: bool = False,
-                 make_chain_locator: Callable[[], Locator] | None = None) -> None:
+                 make_chain_locator: Callable[[], Locator] | None = None,
+                 make_affine_locator: Callable[[], Locator] | None = None,
+                 affine_from_level: int | None = None) -> None:
         """Create the scheme from factories of its locator and template compositor."""
         self.holdout, self.correct_bias, self.per_parameter_priors = holdout, correct_bias, per_parameter_priors
+        self.make_affine_locator, self.affine_from_level = make_affine_locator or make_locator, affine_from_level
         self.reject_movers, self.detect_movers = reject_movers, detect_movers
         self.make_locator, self.make_chain_locator = make_locator, make_chain_locator or make_locator
         self.make_compositor, self.make_robust = make_compositor, make_robust or make_compositor
@@ -226,7 +234,8 @@ class MosaicScheme(LevelScheme):
         @pure_task
         def run(index: NDArray[np.int64]) -> _WindowResult:
             start = time.perf_counter()
-            locator = self.make_locator()
+            later = self.affine_from_level is not None and task.level >= self.affine_from_level
+            locator = (self.make_affine_locator if later else self.make_locator)()
             n = len(index)
             cross_checked = task.crosscheck and n > 1
             # the held-out pairs register the merged frames again: named by ids, each is
@@ -309,30 +318,6 @@ def _fractions(pano: Panorama | None) -> dict[str, float | None]:
     """``template_fraction`` and ``largest_region`` of :func:`moving_fraction` (None each without a mask)."""
     total, largest = (moving_fraction(pano) if pano is not None else None) or (None, None)
     return {"template_fraction": total, "largest_region": largest}
-
-
-def moving_fraction(pano: Panorama) -> tuple[float, float] | None:
-    """Fractions of a panorama's covered canvas where its robust merge left observations out.
-
-    Args:
-        pano: a panorama; its ``moving`` mask is None from a compositor that merges
-            every photon.
-
-    Returns:
-        ``(total, largest)`` in [0, 1]: all left-out covered pixels, and the largest
-        8-connected region of them (a mover's path is one region; a slightly
-        misregistered estimate leaves many small ones, e.g. around stars), over the
-        covered pixels (``frames > 0``); None without a mask.
-    """
-    import cv2
-
-    if pano.moving is None:
-        return None
-    covered = max(int(np.count_nonzero(pano.frames > 0)), 1)
-    moving = (pano.moving & (pano.frames > 0)).astype(np.uint8)
-    count, _, stats, _ = cv2.connectedComponentsWithStats(moving, connectivity=8)
-    largest = int(stats[1:, cv2.CC_STAT_AREA].max()) if count > 1 else 0
-    return round(int(np.count_nonzero(moving)) / covered, 6), round(largest / covered, 6)
 
 
 def mask_disagreement(merged: MergedFrames, views: MergedFrames, sigmas: float = 5.0, grow_sigmas: float = 2.0,

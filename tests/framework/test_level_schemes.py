@@ -74,6 +74,32 @@ def test_the_mosaic_chains_register_to_convergence_and_the_template_registration
     assert (chains.iterations, chains.epsilon) == (10, 1e-8)
 
 
+def test_mosaic_levels_after_the_first_register_affine_corrections_as_the_spec_says():
+    """``mosaic.perspective_levels``: the later mosaic levels' template registrations are affine; the chains are not."""
+    from photonpano.executor import SerialExecutor
+    from photonpano.reconstruction import Stages
+    from photonpano.schemes import MosaicScheme
+    from photonpano.schemes.settings import affine_from_level, affine_locator
+
+    source = {"plugin": "simulate", "frames": 2400, "height": 128, "width": 248, "vibration_px": 2}
+    spec = _spec(source=source, group_size=300, levels=3, mosaic={"correct_template_bias": False})
+    mosaic = next(s for s in Stages(spec, spec.source.build()).schemes if isinstance(s, MosaicScheme))
+    assert mosaic.affine_from_level == 3 and mosaic.make_affine_locator().config.motion == "affine"
+    assert mosaic.make_locator().config.motion == mosaic.make_chain_locator().config.motion == "homography"
+    seen = []
+    Stages(spec, spec.source.build()).estimate_motion(SerialExecutor(), on_level=seen.append)
+    perspective = [np.abs(r.located.registrations.homographies[:, 2, :2]).max() for r in seen[1:]]
+    assert perspective[0] > 1e-7 and perspective[1] == 0.0  # level 2 registers p7, p8; level 3 does not
+
+    assert affine_from_level(_spec(levels=5, mosaic={"perspective_levels": 2})) == 4
+    assert affine_from_level(_spec(level_schemes=["pairwise", "pairwise", "mosaic"], levels=4)) == 4
+    assert affine_from_level(_spec(mosaic={"perspective_levels": None})) is None
+    assert affine_from_level(_spec(level_schemes=["pairwise"])) is None
+    assert affine_locator(_spec(mosaic={"locator": {"motion": "euclidean"}}).mosaic.locator) is None
+    with pytest.raises(SpecError, match="perspective_levels"):
+        _spec(mosaic={"perspective_levels": 0})
+
+
 def test_levels_emit_frozen_records_in_panorama_coordinates():
     """Each level's record is frozen, names its scheme, and is in the final gauge.
 
