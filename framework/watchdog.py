@@ -310,15 +310,18 @@ def _send_later() -> None:
 
     The signal stays owed; one that cannot be sent (the main thread is gone) is not.
     """
-    def send() -> None:
+    def send(thread: int, signum: int) -> None:
         try:
-            signal.pthread_kill(main, SIGNAL)
+            signal.pthread_kill(thread, signum)
         except (OSError, ValueError):
             with _lock:
                 _state["owed"] -= 1
 
-    main = threading.main_thread().ident
-    timer = threading.Timer(RETRY_S, send)
+    main, signum = threading.main_thread().ident, SIGNAL
+    if main is None or signum is None:  # never: the handler runs in the main thread, for SIGNAL
+        _state["owed"] -= 1
+        return
+    timer = threading.Timer(RETRY_S, send, (main, signum))
     timer.daemon = True
     timer.start()
 
