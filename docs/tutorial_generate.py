@@ -87,7 +87,7 @@ COMMANDS = {
 }
 """The tutorial's commands (run in the scratch folder, so outputs name relative paths)."""
 
-FIGURE = re.compile(r"(\d+(?:\.\d+)?)<!--(\w+)-->")
+FIGURE = re.compile(r"(-?\d+(?:\.\d+)?)<!--(\w+)-->")
 OUTPUT = re.compile(r"(<!--output:(\w+)-->\n```text\n)(.*?)(```)", re.S)
 NUMBER = re.compile(r"(\d+(?:\.\d+)?)")
 

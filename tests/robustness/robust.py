@@ -29,6 +29,16 @@ outputs: {trajectory_plot: false, report: false}
 """
 """The run of the kill and resume tests: three levels (the later two against the panorama)."""
 
+COMPILED_AT_FIRST_CALL = """
+@numba.njit(cache=False)
+def kernel(x):
+    total = 0.0
+    for i in range(x.shape[0]):
+        total += x[i] ** 2 if i % 3 else x[i]
+    return total
+"""
+"""A numba kernel that compiles at its first call (about 0.3 s), for scripts that interrupt a compile."""
+
 
 def invoke(*args):
     """Run the command line in this process with ``-q``; return click's result.

@@ -9,7 +9,7 @@ import time
 
 import pytest
 from photonpano import watchdog
-from robust import TINY, assert_one_line_error, run_subprocess, write_plugin
+from robust import COMPILED_AT_FIRST_CALL, TINY, assert_one_line_error, run_subprocess, write_plugin
 
 HANGING_LOCATOR = """
     import time
@@ -223,14 +223,7 @@ class Plugin:
     class config:
         plugin = "my-merger"
 
-
-@numba.njit(cache=False)
-def kernel(x):
-    total = 0.0
-    for i in range(x.shape[0]):
-        total += x[i] ** 2 if i % 3 else x[i]
-    return total
-
+""" + COMPILED_AT_FIRST_CALL + """
 try:
     with watchdog.guarding(), watchdog.watched("merger", Plugin(), "merge"):
         kernel(np.ones(4))

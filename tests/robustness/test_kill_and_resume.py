@@ -12,7 +12,7 @@ import time
 import numpy as np
 import pytest
 from photonpano import outputs
-from robust import SMALL_SPEC, assert_sound_folder, run_subprocess, sigint_as
+from robust import COMPILED_AT_FIRST_CALL, SMALL_SPEC, assert_sound_folder, run_subprocess, sigint_as
 
 
 @pytest.fixture(scope="module")
@@ -132,14 +132,7 @@ import os, signal, sys, threading, time, traceback
 import numba
 import numpy as np
 from photonpano.faults import interrupts_outside_compilers
-
-@numba.njit(cache=False)
-def kernel(x):
-    total = 0.0
-    for i in range(x.shape[0]):
-        total += x[i] ** 2 if i % 3 else x[i]
-    return total
-
+""" + COMPILED_AT_FIRST_CALL + """
 threading.Timer(0.05, os.kill, (os.getpid(), signal.SIGINT)).start()  # lands while numba compiles (~0.3 s)
 try:
     with interrupts_outside_compilers():
