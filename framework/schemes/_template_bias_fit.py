@@ -37,9 +37,10 @@ def fit_error(model: NDArray[np.float64], measured: NDArray[np.float64], informa
     parameter's own, shared by its knots (:func:`relevance`).
 
     Args:
-        model: (G, 8, K * 8) float64 registrations per unit knot parameter.
-        measured: (G, 8) float64 registered parameters.
-        information: (G, 8, 8) float64 their information.
+        model: (G, P, K * 8) float64 registrations per unit knot parameter (P = 8, or 6
+            for affine registrations: ``p1..p6``).
+        measured: (G, P) float64 registered parameters.
+        information: (G, P, P) float64 their information.
         n_knots: K.
         width: frame width in pixels.
         height: frame height in pixels.
@@ -49,8 +50,8 @@ def fit_error(model: NDArray[np.float64], measured: NDArray[np.float64], informa
         ``(a, prior_px)``: (K * 8,) float64 knot parameters and (8,) float64 the prior
         standard deviation of each of p1..p8, in pixels at the frame corner.
     """
-    corner = corner_scale(width, height)
-    per_knot = np.tile(corner, n_knots)
+    per_knot = np.tile(corner_scale(width, height), n_knots)
+    corner = corner_scale(width, height)[:measured.shape[1]]  # the registered parameters
     scaled = model * corner[None, :, None] / per_knot[None, None, :]
     values = measured * corner
     weights = information / (corner[:, None] * corner[None, :])
@@ -60,7 +61,7 @@ def fit_error(model: NDArray[np.float64], measured: NDArray[np.float64], informa
     ridge = 1e-3 * np.trace(normal) / len(normal)
     first = np.linalg.solve(normal + ridge * np.eye(len(normal)), right)
     residual = values - scaled @ first
-    noise = max(float(np.median(np.einsum("gi,gij,gj->g", residual, weights, residual))) / 8, 1e-300)
+    noise = max(float(np.median(np.einsum("gi,gij,gj->g", residual, weights, residual))) / len(corner), 1e-300)
     precision, projected_right = normal / noise, right / noise
     eigenvalues, vectors = np.linalg.eigh(precision)
     eigenvalues = np.maximum(eigenvalues, 0.0)

@@ -147,6 +147,10 @@ class MosaicScheme(LevelScheme):
         self.subbatch_px, self.window = subbatch_px, window
         self._engaged: dict[tuple[int, int], bool] = {}  # detect_movers' decision per capture (first mosaic level)
 
+    def _affine(self, level: int) -> bool:
+        """Whether ``level`` (1-based) registers affine corrections (``affine_from_level``)."""
+        return self.affine_from_level is not None and level >= self.affine_from_level
+
     def template(self, task: LevelTask) -> tuple[Panorama | HoldoutTemplate, dict[str, Any] | None]:
         """The panorama the task's merged frames are registered against, and the level's mover record.
 
@@ -234,8 +238,7 @@ class MosaicScheme(LevelScheme):
         @pure_task
         def run(index: NDArray[np.int64]) -> _WindowResult:
             start = time.perf_counter()
-            later = self.affine_from_level is not None and task.level >= self.affine_from_level
-            locator = (self.make_affine_locator if later else self.make_locator)()
+            locator = (self.make_affine_locator if self._affine(task.level) else self.make_locator)()
             n = len(index)
             cross_checked = task.crosscheck and n > 1
             # the held-out pairs register the merged frames again: named by ids, each is
@@ -285,7 +288,8 @@ class MosaicScheme(LevelScheme):
             image = template.flux if exposure is None else stabilised_detections(template.flux, exposure)
             corrected, found = correct_template_bias(template.homographies, image, groups.start, groups.stop,
                                                      groups.reference, regs.homographies, ok, source.width,
-                                                     source.height, per_parameter_priors=self.per_parameter_priors)
+                                                     source.height, per_parameter_priors=self.per_parameter_priors,
+                                                     affine=self._affine(task.level))
             regs, bias = dataclasses.replace(regs, homographies=corrected), found.record()
         keyframes = bridge(current, geometry.normalize(current @ regs.homographies), ok)
         cache: dict[str, int] = {}

@@ -210,7 +210,8 @@ def template_displacement(homographies: NDArray[np.float64], x_canvas: NDArray[n
 def correct_template_bias(homographies: NDArray[np.float64], image: NDArray[np.floating], starts: NDArray[np.int64],
                           stops: NDArray[np.int64], references: NDArray[np.int64],
                           registrations: NDArray[np.float64], ok: NDArray[np.bool_], width: int,
-                          height: int, per_parameter_priors: bool = False) -> tuple[NDArray[np.float64], TemplateBias]:
+                          height: int, per_parameter_priors: bool = False,
+                          affine: bool = False) -> tuple[NDArray[np.float64], TemplateBias]:
     """Registrations against a template of the current estimate, corrected for the template's own error.
 
     See the module for the model. Args are in the pixels the registrations were made in
@@ -232,6 +233,9 @@ def correct_template_bias(homographies: NDArray[np.float64], image: NDArray[np.f
         per_parameter_priors: the error model's prior has one standard deviation per
             homography parameter (:func:`~photonpano.schemes._template_bias_fit.relevance`);
             False: one for all 8.
+        affine: the registrations are affine (``p7 = p8 = 0``; ``mosaic.perspective_levels``):
+            each measures the least-squares projection of the displacement it sees onto
+            ``p1..p6``, and its correction stays affine.
 
     Returns:
         ``(corrected, record)``: (G, 3, 3) float64 registrations (unchanged where ``ok`` is
@@ -244,14 +248,14 @@ def correct_template_bias(homographies: NDArray[np.float64], image: NDArray[np.f
     # one BLAS thread: the products' rounding must not depend on the executor (a Dask worker runs with one)
     with threadpool_limits(limits=1, user_api="blas"):
         return _correct(homographies, image, starts, stops, references, registrations, ok, width, height,
-                        per_parameter_priors)
+                        per_parameter_priors, 6 if affine else 8)
 
 
 def _correct(homographies: NDArray[np.float64], image: NDArray[np.floating], starts: NDArray[np.int64],
              stops: NDArray[np.int64], references: NDArray[np.int64], registrations: NDArray[np.float64],
-             ok: NDArray[np.bool_], width: int, height: int,
-             per_parameter_priors: bool) -> tuple[NDArray[np.float64], TemplateBias]:
-    """:func:`correct_template_bias`'s work."""
+             ok: NDArray[np.bool_], width: int, height: int, per_parameter_priors: bool,
+             measured_parameters: int) -> tuple[NDArray[np.float64], TemplateBias]:
+    """:func:`correct_template_bias`'s work; the registrations measure ``p1..p{measured_parameters}``."""
     g = len(references)
     measured = geometry.params_from_homographies(geometry.about_centre(registrations, width, height))  # (G, 8)
     unchanged = np.asarray(registrations, np.float64).copy(), TemplateBias(0, (), 0.0)
@@ -270,28 +274,35 @@ def _correct(homographies: NDArray[np.float64], image: NDArray[np.floating], sta
     references_h = np.ascontiguousarray(homographies[references], np.float64)
     corner = corner_scale(width, height)
 
+    q = slice(0, measured_parameters)
+
     def conditioned(information: NDArray[np.float64]) -> NDArray[np.bool_]:
-        return np.asarray(np.linalg.cond(information / (corner[:, None] * corner[None, :])) < 1e10)
+        return np.asarray(np.linalg.cond(information / (corner[q, None] * corner[None, q])) < 1e10)
 
     lengths = stops - starts
     fit = np.flatnonzero(ok & (lengths >= np.median(lengths)))  # not the short anchor groups at the ends
     information, response = _projections(references_h[fit], *cells, displacement=displacement)  # (F, 8, K * 8)
-    keep = conditioned(information)
+    keep = conditioned(information[:, q, q])
     if int(np.count_nonzero(keep)) < 8:
         return unchanged
     fit, information, response = fit[keep], information[keep], response[keep]
     # a group's mean of the knots' weights: the weights at its middle frame (they are linear between knots)
     middle = (starts[fit] + stops[fit] - 1) / 2
-    model = np.linalg.solve(information, response) - np.einsum(
-        "gk,ij->gikj", knot_weights(middle.astype(np.float64), knots), np.eye(8)).reshape(len(fit), 8, n_knots * 8)
-    errors, prior = fit_error(model, measured[fit], information, n_knots, width, height, per_parameter_priors)
+    own = np.einsum("gk,ij->gikj", knot_weights(middle.astype(np.float64), knots), np.eye(8)).reshape(
+        len(fit), 8, n_knots * 8)
+    # the registration measures its own error and the template's, each projected on its parameters
+    information_q = information[:, q, q]
+    model = np.linalg.solve(information_q, response[:, q] - information[:, q] @ own)
+    errors, prior = fit_error(model, measured[fit][:, q], information_q, n_knots, width, height,
+                              per_parameter_priors)
     # every registration's bias: its response to the template's fitted displacement field
     information, response = _projections(references_h, *cells, field=(displacement @ errors).reshape(-1, 2))
+    information, response = information[:, q, q], response[:, q]
     usable = ok & conditioned(information)
     if not usable.any():
         return unchanged
     bias = np.zeros((g, 8))
-    bias[usable] = np.linalg.solve(information[usable], response[usable][..., None])[..., 0]
+    bias[usable, q] = np.linalg.solve(information[usable], response[usable][..., None])[..., 0]
     size, measured_size = (float(np.sqrt(np.mean((v[usable] * corner) ** 2))) for v in (bias, measured))
     if size > measured_size:  # a share larger than what the registrations moved: scaled down to it
         bias *= measured_size / size

@@ -82,7 +82,7 @@ def test_mosaic_levels_after_the_first_register_affine_corrections_as_the_spec_s
     from photonpano.schemes.settings import affine_from_level, affine_locator
 
     source = {"plugin": "simulate", "frames": 2400, "height": 128, "width": 248, "vibration_px": 2}
-    spec = _spec(source=source, group_size=300, levels=3, mosaic={"correct_template_bias": False})
+    spec = _spec(source=source, group_size=300, levels=3)
     mosaic = next(s for s in Stages(spec, spec.source.build()).schemes if isinstance(s, MosaicScheme))
     assert mosaic.affine_from_level == 3 and mosaic.make_affine_locator().config.motion == "affine"
     assert mosaic.make_locator().config.motion == mosaic.make_chain_locator().config.motion == "homography"
@@ -90,6 +90,7 @@ def test_mosaic_levels_after_the_first_register_affine_corrections_as_the_spec_s
     Stages(spec, spec.source.build()).estimate_motion(SerialExecutor(), on_level=seen.append)
     perspective = [np.abs(r.located.registrations.homographies[:, 2, :2]).max() for r in seen[1:]]
     assert perspective[0] > 1e-7 and perspective[1] == 0.0  # level 2 registers p7, p8; level 3 does not
+    assert seen[2].located.template_bias["knots"] > 0  # and level 3's template-bias correction kept them affine
 
     assert affine_from_level(_spec(levels=5, mosaic={"perspective_levels": 2})) == 4
     assert affine_from_level(_spec(level_schemes=["pairwise", "pairwise", "mosaic"], levels=4)) == 4

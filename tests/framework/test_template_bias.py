@@ -70,16 +70,25 @@ def drifting_estimate():
     return spec, source, estimate
 
 
-def _level_error(spec, source, estimate, correct: bool, per_parameter: bool = False) -> tuple[float, dict | None]:
-    """RMSE (px, after global alignment) of the keyframes one mosaic level registers, and its record."""
+def _level_error(spec, source, estimate, correct: bool, per_parameter: bool = False,
+                 affine: bool = False, located: list | None = None) -> tuple[float, dict | None]:
+    """RMSE (px, after global alignment) of the keyframes one mosaic level registers, and its record.
+
+    ``affine``: the level registers affine corrections (``mosaic.perspective_levels``);
+    ``located``: gets the level's :class:`~photonpano.schemes.LocateResult`.
+    """
     m = 300
     groups = spec.resampler.build().groups(source.n_frames, m, 2)
+    affine_locator = spec.mosaic.locator.model_copy(update={"motion": "affine"}).build if affine else None
     scheme = MosaicScheme(spec.mosaic.locator.build, spec.mosaic.template.build, correct_bias=correct,
-                          per_parameter_priors=per_parameter)
+                          per_parameter_priors=per_parameter, make_affine_locator=affine_locator,
+                          affine_from_level=2 if affine else None)
     task = LevelTask(2, source, spec.merger.build(), groups, estimate, m, SerialExecutor())
-    located = scheme.locate(task)
-    found = trajectory_error(located.keyframes, source.ground_truth[groups.reference], source.width, source.height)
-    return found.rmse_px, located.template_bias
+    result = scheme.locate(task)
+    if located is not None:
+        located.append(result)
+    found = trajectory_error(result.keyframes, source.ground_truth[groups.reference], source.width, source.height)
+    return found.rmse_px, result.template_bias
 
 
 def test_the_correction_takes_the_template_s_share_out_of_a_mosaic_level(drifting_estimate):
@@ -99,6 +108,23 @@ def test_the_correction_takes_the_template_s_share_out_of_a_mosaic_level(driftin
     assert before > 0.3
     assert plain > before / 3  # the template's share is real
     assert corrected < plain / 2 and corrected < 0.1
+
+
+def test_affine_registrations_are_corrected_on_their_own_parameters_and_stay_affine(drifting_estimate):
+    """At an affine mosaic level the model projects the template's share on p1..p6, and the correction adds no keystone.
+
+    The estimate's drift (a shift and a roll) is affine. Measured (254x496 frames): 0.050 px
+    without the correction, 0.036 px with it. Fitted as if the registrations measured all 8
+    parameters, their zero keystones read as measurements, the correction gave them
+    keystones of its own, and the level ended at 0.310 px.
+    """
+    spec, source, estimate = drifting_estimate
+    plain, _ = _level_error(spec, source, estimate, correct=False, affine=True)
+    located: list = []
+    corrected, record = _level_error(spec, source, estimate, correct=True, affine=True, located=located)
+    assert record is not None and record["knots"] >= 4
+    assert np.all(located[0].registrations.homographies[:, 2, :2] == 0.0)
+    assert corrected < 0.8 * plain and corrected < 0.05, (plain, corrected)
 
 
 def test_a_keystone_ramp_is_taken_out_by_a_level_with_a_prior_per_parameter(drifting_estimate):
