@@ -30,8 +30,8 @@ The bias is linear in the error for sub-pixel errors, so it is modelled and remo
    ``S``: ``P_g[u] = inv(sum J' S J) sum J' S u`` (the Gauss-Newton step; Baker and
    Matthews, IJCV 56, 2004). Group ``g`` sees its mean error ``e_g`` against the
    template's, so its registration measures ``m_g = -e_g + P_g[L a] + noise``. At an
-   affine level (``mosaic.perspective_levels``) the projection is onto ``p1..p6`` (its
-   own error included: ``-inv(S_aa) S_a. e_g``), and the correction stays affine.
+   affine level (``mosaic.perspective_levels``) both terms are projected onto ``p1..p6``
+   the same way (the registration's own error too), and the correction stays affine.
 4. ``a`` is the maximum a-posteriori fit of the registrations (weighted by each one's
    information; a Gaussian prior of one standard deviation per knot parameter, in pixels
    at the frame corner, chosen by maximising the marginal likelihood: MacKay, "Bayesian
