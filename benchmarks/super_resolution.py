@@ -22,7 +22,8 @@ Measured (issue 27, 2-core machine; docs/performance.md has the table and the
 diagnosis): bundled photo undersampled +5.31 dB, standard +5.42 dB; undersampled
 ``city_madison`` +3.42, ``texture_gravel`` +2.71, ``portrait_astronaut`` +3.26 dB (the
 earlier noise-adaptive blend, ``--set compositor.restoration=blend``: +2.66, +1.16,
-+1.68, +1.52, +1.57 dB).
++1.68, +1.52, +1.57 dB). Since the blur weight by scale (2026-11-28): undersampled, the
+bundled photo +5.57 dB and the 15 suite photographs +2.52 to +6.72 dB.
 
 Usage::
 
