@@ -56,8 +56,8 @@ DEBLUR_SUPER_RESOLVED = 0.2
 """The blur weight at ``scale`` >= 2 (:func:`deblur_for_scale`). There the sensor's own
 blur is on the canvas's scale, and the two blurs make the cubic B-spline, whose gain at
 the canvas Nyquist frequency (``sinc(1/2)^4``, 0.164) the ``[a, 1 - 2a, a]`` kernel
-matches at ``a = 0.209``; at ``scale: 1`` the drop's own triangle dominates
-(``sinc(1/2)^2``, ``a = 0.149``). Measured with estimated motion on the 15 suite
+matches at ``a = 0.209`` (at ``scale: 1`` the drop's triangle alone would give
+``sinc(1/2)^2``, ``a = 0.149``; that scale keeps the measured 1/6). Measured with estimated motion on the 15 suite
 photographs, undersampled capture at ``scale: 2`` (``benchmarks/super_resolution.py
 --photo P --captures undersampled --set compositor.deblur=A``): gain over the bilinear
 merge with the true motion, mean / least, 1/6 +3.83 / +2.45 dB, 0.19 +3.96 / +2.51, 0.2
