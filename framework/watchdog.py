@@ -309,6 +309,7 @@ def _send_later() -> None:
     """Send :data:`SIGNAL` to the main thread again in :data:`~photonpano.faults.RETRY_S` seconds.
 
     The signal stays owed; one that cannot be sent (the main thread is gone) is not.
+    Called with ``_lock`` held (from :func:`_on_signal`); the timer's thread takes it itself.
     """
     def send(thread: int, signum: int) -> None:
         try:

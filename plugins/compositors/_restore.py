@@ -68,8 +68,13 @@ standard``) 0.2 lost to 1/6 (mean +6.18 against +6.43 dB, Hubble +2.64 against +
 def deblur_for_scale(scale: float) -> float:
     """The default blur weight ``a`` that :func:`dct_wiener` inverts at a super-resolution ``scale``.
 
-    :data:`DEBLUR` at ``scale`` <= 1, :data:`DEBLUR_SUPER_RESOLVED` at ``scale`` >= 2,
-    linear in between.
+    Args:
+        scale: canvas pixels per frame pixel (> 0).
+
+    Returns:
+        The per-axis weight ``a`` of the ``[a, 1 - 2a, a]`` canvas blur (dimensionless):
+        :data:`DEBLUR` at ``scale`` <= 1, :data:`DEBLUR_SUPER_RESOLVED` at ``scale`` >= 2,
+        linear in between.
     """
     share = min(max(float(scale) - 1.0, 0.0), 1.0)
     return DEBLUR + share * (DEBLUR_SUPER_RESOLVED - DEBLUR)
