@@ -14,8 +14,9 @@ resolves detail finer than the frame pixels where ``flux-canvas`` cannot.
 Small drops gather few photons per canvas pixel: with ``noise_adaptive`` (the default,
 photon sources) the fine estimate is kept as far as its detail stands above its photon
 noise. By default (``restoration: wiener``, :mod:`._restore`) a sliding-DCT Wiener
-filter denoises the fine drops and inverts their blur (issue 27: +2.7 to +5.3 dB above
-the bilinear merge at ``scale: 2`` on an undersampled capture, +5.4 dB at ``scale: 1``);
+filter denoises the fine drops and inverts their blur (issue 27, the 15 suite photographs
+with estimated motion: +2.7 to +6.8 dB above the bilinear merge with the true motion at
+``scale: 2`` on an undersampled capture, +3.6 to +11.4 dB at ``scale: 1``);
 ``restoration: blend`` blends each canvas pixel with a wide drop instead
 (:mod:`._adaptive`, a local Wiener weight from the binomial statistics of the counts),
 which the measurements below describe.
