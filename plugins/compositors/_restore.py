@@ -148,28 +148,23 @@ def dct_wiener(noisy: NDArray[np.float32], variance: NDArray[np.float32], deblur
     k = np.arange(BLOCK)
     axis = (1 - 2 * deblur + 2 * deblur * np.cos(np.pi * k / BLOCK)).astype(np.float32)
     gain = np.outer(axis, axis)
-    # each block's noise variance: the mean over the block, times NOISE_FACTOR
-    sigma2 = _block_sums(v) * np.float32(NOISE_FACTOR / BLOCK ** 2)
-    strips = _strips(*sigma2.shape)
+    strips = [slice(first, last + BLOCK - 1)  # the image rows of each strip of block rows
+              for first, last in _strips(y.shape[0] - BLOCK + 1, y.shape[1] - BLOCK + 1)]
     # step 1: hard-thresholded pilot
     pilot_sum, pilot_weight = np.zeros(y.shape, np.float32), np.zeros(y.shape, np.float32)
-    threshold = np.float32(hard_threshold ** 2) * sigma2
-    for first, last in strips:
-        rows = slice(first, last + BLOCK - 1)
-        coeffs = _forward(y[rows], c)
-        keep = coeffs * coeffs > threshold[first:last, :, None, None]
+    for rows in strips:
+        coeffs, sigma2 = _forward(y[rows], c), _block_noise(v[rows])
+        keep = coeffs * coeffs > np.float32(hard_threshold ** 2) * sigma2[..., None, None]
         keep[..., 0, 0] = True
         coeffs[~keep] = 0
         kept = np.maximum(keep.sum(axis=(2, 3), dtype=np.float32), np.float32(1))
-        _inverse_add(coeffs, 1 / (kept * sigma2[first:last] + np.float32(1e-12)), c,
-                     pilot_sum[rows], pilot_weight[rows])
+        _inverse_add(coeffs, 1 / (kept * sigma2 + np.float32(1e-12)), c, pilot_sum[rows], pilot_weight[rows])
     pilot_image = (pilot_sum / np.maximum(pilot_weight, np.float32(1e-30))).astype(np.float32, copy=False)
     # step 2: Wiener deconvolution with the pilot's power
     out_sum, out_weight = pilot_sum, pilot_weight  # reused: the pilot is in ``pilot_image``
     out_sum[:], out_weight[:] = 0, 0
-    for first, last in strips:
-        rows = slice(first, last + BLOCK - 1)
-        noise = sigma2[first:last, :, None, None]
+    for rows in strips:
+        noise = _block_noise(v[rows])[..., None, None]
         power = np.square(_forward(pilot_image[rows], c))  # the pilot's power blurred: gain^2 S
         filt = power / ((power + noise) * gain)  # gain S / (gain^2 S + sigma^2)
         filt[..., 0, 0] = 1 / gain[0, 0]
@@ -192,12 +187,15 @@ def _strips(rows: int, columns: int) -> list[tuple[int, int]]:
     return [(first, min(rows, first + step)) for first in range(0, rows, step)]
 
 
-def _block_sums(image: NDArray[np.float32]) -> NDArray[np.float32]:
-    """(H - 7, W - 7) float32 sums of ``image`` over every 8 x 8 block (running sums in float64)."""
-    total = np.zeros((image.shape[0] + 1, image.shape[1] + 1), np.float64)
-    np.cumsum(np.cumsum(image, axis=0, dtype=np.float64), axis=1, out=total[1:, 1:])
-    return (total[BLOCK:, BLOCK:] - total[:-BLOCK, BLOCK:] - total[BLOCK:, :-BLOCK]
-            + total[:-BLOCK, :-BLOCK]).astype(np.float32)
+def _block_noise(variance: NDArray[np.float32]) -> NDArray[np.float32]:
+    """(R, W - 7) float32 each block's noise variance, from a strip's (R + 7, W) ``variance``.
+
+    The mean over the block times :data:`NOISE_FACTOR`, from running sums in float64.
+    """
+    total = np.zeros((variance.shape[0] + 1, variance.shape[1] + 1), np.float64)
+    np.cumsum(np.cumsum(variance, axis=0, dtype=np.float64), axis=1, out=total[1:, 1:])
+    sums = total[BLOCK:, BLOCK:] - total[:-BLOCK, BLOCK:] - total[BLOCK:, :-BLOCK] + total[:-BLOCK, :-BLOCK]
+    return (sums * (NOISE_FACTOR / BLOCK ** 2)).astype(np.float32)
 
 
 def _forward(rows: NDArray[np.float32], c: NDArray[np.float32]) -> NDArray[np.float32]:
