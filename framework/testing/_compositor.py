@@ -156,7 +156,15 @@ class CompositorContract(PluginContract):
             f"scene (> {self.max_offset_px} px)")
 
     def test_threads_and_chunks_do_not_change_the_result(self, config: Any, capture: Any) -> None:
-        """Fed in small chunks on 3 threads (forks joined) == fed serially in big chunks."""
+        """Fed in small chunks on 3 threads (forks joined) == fed serially in big chunks.
+
+        The accumulated frames must agree to float32 rounding (rtol 1e-4). The flux to
+        rtol 5e-3: a compositor may restore its canvas with a thresholding estimator
+        (drizzle's Wiener restoration zeroes DCT coefficients under 2.7 noise standard
+        deviations), where a coefficient at its threshold flips with the summation order
+        (drizzle with Gaussian drops: 64 of 7 194 canvas pixels, at most 0.18 %). A lost or
+        doubled chunk shows in the frames.
+        """
         if type(config).missing_requirements():
             pytest.skip("optional requirement missing")
         from photonpano.executor import make_executor
@@ -165,4 +173,4 @@ class CompositorContract(PluginContract):
         with make_executor("threads", 3) as executor:
             threaded = self._compose(config.build(), capture, chunk_batches=7, executor=executor)
         np.testing.assert_allclose(threaded.frames, serial.frames, rtol=1e-4, atol=1e-3)
-        np.testing.assert_allclose(threaded.flux, serial.flux, rtol=1e-4, atol=1e-2)
+        np.testing.assert_allclose(threaded.flux, serial.flux, rtol=5e-3, atol=1e-2)
