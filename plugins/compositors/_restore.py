@@ -214,7 +214,7 @@ def _inverse_add(coeffs: NDArray[np.float32], weights: NDArray[np.float32], c: N
     """Add each block's inverse DCT times its weight into ``out``, and the weights into ``acc``.
 
     Args:
-        coeffs: (R, W - 7, 8, 8) float32 coefficients as :func:`_forward`'s (overwritten).
+        coeffs: (R, W - 7, 8, 8) float32 coefficients as :func:`_forward`'s (read only).
         weights: (R, W - 7) float32 each block's weight.
         c: (8, 8) float32 :func:`_dct_matrix`.
         out: (R + 7, W) float32 the rows the blocks cover (added to).
