@@ -252,9 +252,11 @@ class _Layout:
         """(H, W) standard deviation of a pixel's residual over ``frames`` frames.
 
         The binomial noise of its reference ``level`` (a rate), and its class's spread of
-        ``residual`` (1.4826 x the median absolute deviation over the class's pixels).
+        ``residual`` (1.4826 x the median absolute deviation over the class's pixels). A
+        rate is taken at least one frame from 0 and from 1: a saturated capture's pixels
+        (rate 1, no spread) would otherwise be judged against a deviation of 0.
         """
-        level = np.clip(level, 1.0 / frames, 1.0)
+        level = np.clip(level, 1.0 / frames, 1.0 - 1.0 / frames)
         spread: Any = 0.0
         for members in self.classes:
             values = residual[members]

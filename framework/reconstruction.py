@@ -87,7 +87,7 @@ class Stages:
 
     def __init__(self, spec: PipelineSpec, source: PhotonSource) -> None:
         """Build every stage of ``spec`` for ``source``."""
-        from .budget import Budget
+        from .budget import Budget, saturation_note
         from .budget.grid import in_merged_pixels
         from .budget.probe import short_of_light
         from .hot_pixels import with_hot_pixels_inpainted
@@ -104,6 +104,8 @@ class Stages:
         advice = "" if budget.plan.auto else (
             f" (group_size {budget.group_size} is set in the spec, so the pairs were not checked on binned "
             "frames; with group_size: auto they are, and those the locator cannot register are registered again)")
+        saturated = saturation_note(budget.plan.probe)
+        advice += f"; {saturated}" if saturated else ""
         built = {"pairwise": PairwiseScheme(self.locator, tuple(spec.pair_offsets), check, advice),
                  "mosaic": self._mosaic_scheme()}
         self.schemes = [built[name] for name in level_schemes(spec)]

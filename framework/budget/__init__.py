@@ -31,7 +31,33 @@ from typing import Any
 from .binnings import auto_binning, mosaic_binning, registration_binning
 from .probe import CaptureProbe, GroupPlan, plan_group_size
 
-__all__ = ["Budget", "GroupPlan", "CaptureProbe", "agreement_binning", "check_binning", "auto_binning"]
+__all__ = ["Budget", "GroupPlan", "CaptureProbe", "agreement_binning", "check_binning", "auto_binning",
+           "saturation_note", "SATURATED"]
+
+
+SATURATED = 0.99
+"""Mean detections per pixel per binary frame from which :func:`saturation_note` calls a capture saturated."""
+
+
+def saturation_note(probe: CaptureProbe | None) -> str | None:
+    """For a capture whose pixels detect a photon in nearly every binary frame: why no pair registers.
+
+    Where ``1 - exp(-phi tau)`` is near 1 everywhere, a merged frame counts the few frames
+    without a detection and its flux is mostly noise (a simulated capture at 1 000 dark
+    counts per pixel per frame: "all 39 pairs of merged frames failed to register").
+
+    Args:
+        probe: the capture's :func:`probe_capture` (None, or an intensity source's: no note).
+
+    Returns:
+        One line: the detection rate and the remedy; None below :data:`SATURATED`.
+    """
+    ones = probe.photons_per_pixel_per_frame if probe is not None else None
+    if ones is None or ones < SATURATED:
+        return None
+    return (f"the capture is saturated: its pixels detect a photon in {ones:.1%} of the binary frames, so a "
+            "merged frame holds little but noise (less light is needed: a shorter exposure or a neutral-density "
+            "filter)")
 
 
 def agreement_binning(plan: GroupPlan, photons: float = 20.0) -> int:

@@ -503,3 +503,19 @@ def test_when_no_pair_registers_with_an_explicit_group_size_the_error_says_auto_
         photonpano.run({**spec, "group_size": 100}, progress=False)
     with pytest.raises(StageError, match=r"level 1: all \d+ pairs of merged frames failed to register$"):
         photonpano.run(spec, progress=False)  # checked, and still nothing to register: no advice
+
+
+@pytest.mark.filterwarnings("error::RuntimeWarning")  # the hot-pixel search divided 0 by a deviation of 0
+def test_when_no_pair_registers_because_every_pixel_fires_the_error_says_the_capture_is_saturated():
+    """1 000 dark counts per pixel per frame: the error gives the detection rate; a bright capture gets no note."""
+    import photonpano
+    from photonpano.budget import saturation_note
+    from photonpano.errors import StageError
+
+    spec = {"source": {"plugin": "simulate", "frames": 1200, "height": 64, "width": 96, "dark_count_rate": 1000.0},
+            "outputs": {"trajectory_plot": False, "report": False}}
+    with pytest.raises(StageError, match=r"level 1: all \d+ pairs .*failed to register; the capture is saturated: its "
+                                         r"pixels detect a photon in 100\.0% of the binary frames"):
+        photonpano.run(spec, progress=False)
+    assert saturation_note(probe_capture(_capture(flux=3.0))) is None  # bright (flux 3), not saturated: 34 % of pixel-frames fire
+    assert saturation_note(None) is None
