@@ -25,6 +25,8 @@ against the confidence rules of ``docs/outputs.md``:
   median sigma is within 3x of its RMSE.
 
 ``--quick`` runs a small subset (what CI runs, through ``tests/test_suite.py``).
+``--stress`` runs the regimes of :data:`STRESS` instead, outside the yardstick: two per
+photograph, by turns (docs/accuracy.md, "Regimes outside the suite").
 
 Usage::
 
@@ -32,6 +34,7 @@ Usage::
     python benchmarks/suite.py --quick
     python benchmarks/suite.py --only city_madison,dark --write docs/accuracy.md
     python benchmarks/suite.py --photos other/folder    # the same recipe on other photographs
+    python benchmarks/suite.py --stress --photos other/folder
 """
 
 from __future__ import annotations
@@ -70,6 +73,17 @@ NUISANCE = {
 }
 """Third capture of each photo, assigned by turns: name -> simulate settings over the base."""
 
+STRESS = {
+    "reverse-pan": {"speed_px_per_frame": -0.02},
+    "tripod-pan": {"pan_model": "rotation"},
+    "dark-counts-0.05": {"flux": 0.05, "dark_count_rate": 0.01},
+    "big-vibration": {"vibration_px": 15.0, "vibration_hz": 20.0},
+    "small-sensor": {"height": 128, "width": 256},
+    "bright-zigzag": {"flux": 3.0, "path": "zigzag"},
+    "slow-wander-0.05": {"path": "shake", "flux": 0.05, "speed_px_per_frame": 0.005, "shake_px": 4.0},
+}
+"""Regimes no default was chosen on (``--stress``): name -> simulate settings over the base."""
+
 QUICK = ["city_madison/base", "outdoor_camera/dark", "foliage_grass/flux-0.005", "office_equirect/rotation-zoom"]
 """The subset CI runs (one easy, two hard, and rotation + zoom, where the compositor is tested hardest)."""
 
@@ -102,8 +116,16 @@ def photos(folder: Path | None = None) -> list[Path]:
     return sorted(PHOTOS.glob("*.jpg")) + [bundled_photo()]
 
 
-def captures(folder: Path | None = None) -> list[Capture]:
-    """Three captures per photo: the base, a hard one and a nuisance or length, assigned by turns."""
+def captures(folder: Path | None = None, stress: bool = False) -> list[Capture]:
+    """Three captures per photo: the base, a hard one and a nuisance or length, assigned by turns.
+
+    With ``stress``, two of :data:`STRESS` per photo instead, by turns (the i-th photo's
+    regimes i and i + 3).
+    """
+    if stress:
+        regimes = list(STRESS.items())
+        return [Capture(photo, *regimes[k % len(regimes)]) for i, photo in enumerate(photos(folder))
+                for k in (i, i + 3)]
     out = []
     hard, nuisance = list(HARD.items()), list(NUISANCE.items())
     for i, photo in enumerate(photos(folder)):
@@ -280,6 +302,7 @@ def main(argv: list[str] | None = None) -> int:
     """Run the suite (or a part), print the table and aggregate; exit 1 when a confidence rule breaks."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help=f"only {', '.join(QUICK)}")
+    parser.add_argument("--stress", action="store_true", help=f"the regimes outside the suite: {', '.join(STRESS)}")
     parser.add_argument("--only", default="", help="comma-separated substrings of capture names to run")
     parser.add_argument("--photos", type=Path, help="a folder of other photographs to run the same recipe on")
     parser.add_argument("--list", action="store_true", help="list the captures and exit")
@@ -292,7 +315,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--write", type=Path, help="put the table into this Markdown file between "
                         "<!-- suite-table:start --> and <!-- suite-table:end -->")
     args = parser.parse_args(argv)
-    chosen = captures(args.photos)
+    chosen = captures(args.photos, args.stress)
     if args.quick:
         chosen = [c for c in chosen if c.name in QUICK]
     if args.only:

@@ -17,6 +17,18 @@ def test_the_suite_has_forty_captures_of_ten_photographs_and_every_regime():
     assert {c.name for c in captures} >= set(suite.QUICK)
 
 
+def test_the_stress_regimes_are_two_per_photograph_and_each_builds_a_capture():
+    """``--stress``: regimes outside the yardstick, each a valid ``simulate`` spec (built, not run)."""
+    from photonpano.plugins.sources.simulate import SimulateConfig
+
+    suite = _suite()
+    captures = suite.captures(stress=True)
+    photos = suite.photos()
+    assert len(captures) == 2 * len(photos) and {c.variant for c in captures} == set(suite.STRESS)
+    for capture in captures[:len(suite.STRESS)]:
+        SimulateConfig(**{k: v for k, v in capture.source_spec().items() if k != "plugin"})
+
+
 @pytest.mark.slow
 @pytest.mark.timeout(600)
 def test_quick_subset_status_and_uncertainty_tell_the_truth():
