@@ -29,7 +29,8 @@ from . import geometry
 from .jit import cached_njit
 
 __all__ = ["block_mean", "bin_counts", "normalised_correlation", "phase_shift_correlation", "binned_frame",
-           "warped_correlation", "register_binned", "register_binned_motions", "in_binned_pixels"]
+           "warped_correlation", "register_binned", "register_binned_motions", "in_binned_pixels",
+           "refine_binned_homography"]
 
 
 def block_mean(image: NDArray[np.floating], factor: int, mask: NDArray[np.bool_] | None = None
@@ -297,3 +298,31 @@ def register_binned_motions(a: tuple[NDArray, NDArray], b: tuple[NDArray, NDArra
                 found = geometry.normalize(in_binned_pixels(correction @ base, factor, back=True))
                 best = found_by[name] = (found, float(cc), int((inside & a[1]).sum()))
     return found_by
+
+
+def refine_binned_homography(a: tuple[NDArray, NDArray], b: tuple[NDArray, NDArray], homography: NDArray[np.float64],
+                             factor: int, *, iterations: int = 30) -> tuple[NDArray[np.float64], float, int]:
+    """Refine a registration of two binned frames by a homography ECC: its perspective too.
+
+    b warped by ``homography`` is registered to a by OpenCV's ECC with the full eight
+    parameters, from the identity. The pair check refines each rescue's affine
+    registration so (:meth:`~photonpano.schemes.check.LevelCheck.settle` decides whether
+    the level keeps the perspective). Arguments as :func:`register_binned_motions`.
+
+    Returns:
+        ``(homography, correlation, overlap)``: (3, 3) float64 mapping b's full-resolution
+        pixels to a's, the final correlation and the binned pixels compared
+        (``homography``, -1, 0 where ECC failed).
+    """
+    import cv2
+
+    base = in_binned_pixels(homography, factor)
+    moved, inside = _warp(b[0], b[1], base)
+    criteria = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, iterations, 1e-5)
+    try:
+        cc, refined = cv2.findTransformECCWithMask(moved, a[0], inside.astype(np.uint8), a[1].astype(np.uint8),
+                                                   np.eye(3, dtype=np.float32), cv2.MOTION_HOMOGRAPHY, criteria, 1)
+    except cv2.error:
+        return homography, -1.0, 0
+    found = geometry.normalize(in_binned_pixels(refined.astype(np.float64) @ base, factor, back=True))
+    return found, float(cc), int((inside & a[1]).sum())

@@ -57,7 +57,8 @@ from numpy.typing import NDArray
 
 from .. import geometry
 from ..executor import Executor, SerialExecutor
-from ..imaging import binned_frame, register_binned, register_binned_motions, warped_correlation
+from ..imaging import (binned_frame, refine_binned_homography, register_binned, register_binned_motions,
+                       warped_correlation)
 from ..movers import brightest_blob
 from ..records import MergedFrames, PairRegistrations
 
@@ -94,6 +95,14 @@ def _shape(affine: NDArray[np.float64], initial: NDArray[np.float64], radius: fl
     m = d[:2, :2] / d[2, 2]
     return radius * np.array([(m[1, 0] - m[0, 1]) / 2, (m[0, 0] + m[1, 1]) / 2 - 1, (m[1, 1] - m[0, 0]) / 2,
                               (m[0, 1] + m[1, 0]) / 2])
+
+
+def _keystone(homography: NDArray[np.float64], affine: NDArray[np.float64], width: int, height: int
+              ) -> tuple[float, float]:
+    """The perspective ``homography`` adds to ``affine``: its ``p7 (w/2)^2`` and ``p8 (h/2)^2`` about the centre, pixels."""
+    d = geometry.about_centre(homography @ np.linalg.inv(affine), width, height)
+    d = d / d[2, 2]
+    return float(d[2, 0] * ((width - 1) / 2) ** 2), float(d[2, 1] * ((height - 1) / 2) ** 2)
 
 
 def _signal(values: NDArray[np.float64]) -> dict[str, float | bool]:
@@ -219,16 +228,25 @@ class LevelCheck:
         rows = [alternative for call in self._alternatives for _, _, alternative in call]
         if len(rows) < SETTLE_MIN_RESCUES:
             return found
-        self.rescue_motion, self.rescue_shapes = rescue_motion(np.array([shape for shape, _ in rows]))
-        if self.rescue_motion != "translation":
-            return found
+        keystones = np.array([row[2] for row in rows if row[3] is not None]).reshape(-1, 2)
+        tilts = {name: _signal(keystones[:, k]) for k, name in enumerate(("horizontal", "vertical"))
+                 } if len(keystones) >= SETTLE_MIN_RESCUES else {}
+        if any(tilt["signal"] for tilt in tilts.values()):  # the camera turns out of the image plane
+            self.rescue_motion, self.rescue_shapes = "perspective", tilts
+            taken = 3
+        else:
+            self.rescue_motion, self.rescue_shapes = rescue_motion(np.array([row[0] for row in rows]))
+            taken = 1
+            if self.rescue_motion != "translation":
+                return found
         revised = []
         for part, call in zip(found, self._alternatives):
             homographies, inliers, ok = part.homographies.copy(), part.inliers.copy(), part.ok.copy()
-            for p, index, (_, translation) in call:
-                if translation is not None:
-                    homographies[p], inliers[p], ok[p] = translation[0], _inliers(translation[1]), True
-                    self.correlations[index] = translation[1]
+            for p, index, alternative in call:
+                registration = alternative[taken]
+                if registration is not None:
+                    homographies[p], inliers[p], ok[p] = registration[0], _inliers(registration[1]), True
+                    self.correlations[index] = registration[1]
             revised.append(PairRegistrations(homographies, part.matches, inliers, ok))
         return revised
 
@@ -316,8 +334,11 @@ class LevelCheck:
                 alternative = None
                 if affine[1] > -1 and translation[1] > -1:  # both ECCs registered: for settle()
                     passes = translation[0] is h or holds(*translation)
+                    perspective = refine_binned_homography(*whole, affine[0], factor)
                     alternative = (_shape(affine[0], initial[p], (a.shape[1] * factor - 1) / 2),
-                                   translation if passes else None)
+                                   translation if passes else None,
+                                   _keystone(perspective[0], affine[0], a.shape[1] * factor, a.shape[0] * factor),
+                                   perspective if perspective[1] > -1 and holds(*perspective) else None)
                 return as_rescue(h, cc, alternative)
             if any(vetoed):  # a registration the frames without their blobs disagree with: theirs
                 h, cc, _ = registered_without()
