@@ -41,7 +41,11 @@ binning is the photon budget's ``check_binning``, :class:`~photonpano.budget.Bud
    after level 1 its vertical scale ramped by +-2.7 px at the frame's corners), but the
    level's rescues can. Where they scale one axis alone and do not turn (:func:`rescue_motion`),
    every rescue that both ECCs registered takes its translation (the checkerboard
-   0.540 -> 0.075 px; ``docs/accuracy.md``, "Rescues decided together").
+   0.540 -> 0.075 px; ``docs/accuracy.md``, "Rescues decided together"). Before that:
+   where the keystones that homography ECCs refining the rescues add
+   (:func:`~photonpano.imaging.refine_binned_homography`) carry a signal of
+   :data:`KEYSTONE_PX` or more, the camera turns out of the image plane (a tripod pan,
+   whose affine chain lost 24-44 px), and every rescue takes its refinement.
 
 A level's figures (correlation per pair, pairs checked out and rescued) travel in its
 :attr:`~photonpano.records.LocateResult.check` to ``run.json``'s ``registration_check``.
@@ -57,12 +61,17 @@ from numpy.typing import NDArray
 
 from .. import geometry
 from ..executor import Executor, SerialExecutor
-from ..imaging import (binned_frame, refine_binned_homography, register_binned, register_binned_motions,
-                       warped_correlation)
+from ..imaging import (
+    binned_frame,
+    refine_binned_homography,
+    register_binned,
+    register_binned_motions,
+    warped_correlation,
+)
 from ..movers import brightest_blob
 from ..records import MergedFrames, PairRegistrations
 
-__all__ = ["PairCheck", "LevelCheck", "rescue_motion", "SETTLE_MIN_RESCUES", "SIGNAL_LAG1", "SIGNAL_T"]
+__all__ = ["PairCheck", "LevelCheck", "rescue_motion", "SETTLE_MIN_RESCUES", "SIGNAL_LAG1", "SIGNAL_T", "KEYSTONE_PX"]
 
 
 SETTLE_MIN_RESCUES = 10
@@ -107,7 +116,7 @@ def _shape(affine: NDArray[np.float64], initial: NDArray[np.float64], radius: fl
 
 def _keystone(homography: NDArray[np.float64], affine: NDArray[np.float64], width: int, height: int
               ) -> tuple[float, float]:
-    """The perspective ``homography`` adds to ``affine``: its ``p7 (w/2)^2`` and ``p8 (h/2)^2`` about the centre, pixels."""
+    """The perspective ``homography`` adds to ``affine``: ``p7 (w/2)^2``, ``p8 (h/2)^2`` about the centre, pixels."""
     d = geometry.about_centre(homography @ np.linalg.inv(affine), width, height)
     d = d / d[2, 2]
     return float(d[2, 0] * ((width - 1) / 2) ** 2), float(d[2, 1] * ((height - 1) / 2) ** 2)
@@ -213,8 +222,8 @@ class LevelCheck:
         self.checked = self.rejected = self.rescued = 0
         self.correlations: list[float] = []
         self._binned: dict[tuple[bytes, bytes], tuple[NDArray[np.float32], NDArray[np.bool_], NDArray[np.bool_]]] = {}
-        # per call, each rescue both ECCs registered: (pair in the call, index in correlations,
-        # (affine shape, translation registration that passes the check or None))
+        # per call, each rescue both ECCs registered: (pair in the call, index in correlations, (affine shape,
+        # translation, keystone of the homography refinement, refinement; each registration None unless it passes))
         self._alternatives: list[list[tuple[int, int, Any]]] = []
         self.rescue_motion: str | None = None
         self.rescue_shapes: dict[str, dict[str, float | bool]] | None = None
@@ -222,7 +231,11 @@ class LevelCheck:
     def settle(self, found: list[PairRegistrations]) -> list[PairRegistrations]:
         """Decide the level's rescues together, once every pair is registered (step 4 of the module).
 
-        With at least :data:`SETTLE_MIN_RESCUES` rescues that both ECCs registered, whose
+        With at least :data:`SETTLE_MIN_RESCUES` rescues that both ECCs registered: where
+        the keystones their homography refinements add carry a signal (lag-1
+        autocorrelation >= :data:`SIGNAL_LAG1` or mean :data:`SIGNAL_T` standard errors
+        from zero) with a median of :data:`KEYSTONE_PX` or more, every rescue takes its
+        refinement where that passes the check (``"perspective"``); else, where their
         affine corrections scale one axis alone and do not turn (:func:`rescue_motion`),
         every such rescue takes its translation where that passes the check too.
 
@@ -231,7 +244,8 @@ class LevelCheck:
                 the (P) registrations of that call's pairs).
 
         Returns:
-            The same list, the rescues revised where the level's decision is ``"translation"``.
+            The same list, the rescues revised where the level's decision is ``"perspective"``
+            or ``"translation"``.
         """
         rows = [alternative for call in self._alternatives for _, _, alternative in call]
         if len(rows) < SETTLE_MIN_RESCUES:
@@ -374,8 +388,10 @@ class LevelCheck:
             ``{"binning", "checked", "rejected_by_check", "rescued",
             "median_correlation", "min_correlation", "rescue_motion", "rescue_shapes"}``
             (correlations of the pairs' final homographies on binned frames; -1 where ECC
-            failed; None without pairs), and :meth:`settle`'s decision and
-            :func:`rescue_motion`'s figures (None where the rescues were too few to decide).
+            failed; None without pairs), and :meth:`settle`'s decision (``"perspective"``,
+            ``"translation"`` or ``"per pair"``) and its figures: the keystones' ``{"horizontal",
+            "vertical"}`` (each also with ``median_px``) for ``"perspective"``, else
+            :func:`rescue_motion`'s (None where the rescues were too few to decide).
         """
         cc = np.asarray(self.correlations, np.float64)
         return {"binning": self.policy.factor, "checked": self.checked, "rejected_by_check": self.rejected,
