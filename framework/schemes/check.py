@@ -42,10 +42,9 @@ binning is the photon budget's ``check_binning``, :class:`~photonpano.budget.Bud
    level's rescues can. Where they scale one axis alone and do not turn (:func:`rescue_motion`),
    every rescue that both ECCs registered takes its translation (the checkerboard
    0.540 -> 0.075 px; ``docs/accuracy.md``, "Rescues decided together"). Before that:
-   where the keystones that homography ECCs refining the rescues add
-   (:func:`~photonpano.imaging.refine_binned_homography`) carry a signal of
-   :data:`KEYSTONE_PX` or more, the camera turns out of the image plane (a tripod pan,
-   whose affine chain lost 24-44 px), and every rescue takes its refinement.
+   where homography ECCs refining the rescues (:func:`~photonpano.imaging.refine_binned_homography`)
+   add a steady keystone whose median reaches :data:`KEYSTONE_PX`, the camera turns out
+   of the image plane (a tripod pan: affine rescues lost 24-44 px), and rescues take them.
 
 A level's figures (correlation per pair, pairs checked out and rescued) travel in its
 :attr:`~photonpano.records.LocateResult.check` to ``run.json``'s ``registration_check``.
