@@ -113,27 +113,29 @@ def _dct_matrix(n: int) -> NDArray[np.float32]:
     return m.astype(np.float32)
 
 
-def dct_wiener(noisy: NDArray[np.float32], variance: NDArray[np.float32], deblur: float = DEBLUR,
-               hard_threshold: float = HARD_THRESHOLD) -> NDArray[np.float32]:
+def dct_wiener(noisy: NDArray[np.float32], variance: NDArray[np.float32],
+               deblur: float | tuple[float, float] = DEBLUR, hard_threshold: float = HARD_THRESHOLD
+               ) -> NDArray[np.float32]:
     """Two-step sliding-DCT estimate of a blurred, noisy image (see the module docstring).
 
     Args:
         noisy: (H, W) float32 image (here detection probabilities), H, W >= 1.
         variance: (H, W) float32 noise variance per pixel (> 0; large where unobserved).
-        deblur: per-axis weight ``a`` in [0, 0.25) of the ``[a, 1 - 2a, a]`` blur to invert
-            (0: denoise only).
+        deblur: weight ``a`` in [0, 0.25) of the ``[a, 1 - 2a, a]`` blur to invert along
+            each axis, or ``(horizontal, vertical)`` weights (0: denoise only).
         hard_threshold: the pilot's threshold in noise standard deviations.
 
     Returns:
         (H, W) float32 estimate of the sharp image.
 
     Raises:
-        ValueError: if the shapes differ or ``deblur`` is outside [0, 0.25).
+        ValueError: if the shapes differ or a ``deblur`` weight is outside [0, 0.25).
     """
     noisy, variance = np.asarray(noisy, np.float32), np.asarray(variance, np.float32)
     if noisy.shape != variance.shape or noisy.ndim != 2:
         raise ValueError(f"dct_wiener: noisy {noisy.shape} and variance {variance.shape} must be one (H, W) shape")
-    if not 0 <= deblur < 0.25:
+    across, down = (deblur, deblur) if np.isscalar(deblur) else deblur
+    if not (0 <= across < 0.25 and 0 <= down < 0.25):
         raise ValueError(f"dct_wiener: deblur must be in [0, 0.25), got {deblur}")
     h, w = noisy.shape
     # an image smaller than a block is mirrored to one (its edge repeated where that is not enough)
@@ -145,9 +147,9 @@ def dct_wiener(noisy: NDArray[np.float32], variance: NDArray[np.float32], deblur
         y = np.pad(y, ((0, BLOCK - min(y.shape[0], BLOCK)), (0, BLOCK - min(y.shape[1], BLOCK))), mode="edge")
         v = np.pad(v, ((0, y.shape[0] - v.shape[0]), (0, y.shape[1] - v.shape[1])), mode="edge")
     c = _dct_matrix(BLOCK)
-    k = np.arange(BLOCK)
-    axis = (1 - 2 * deblur + 2 * deblur * np.cos(np.pi * k / BLOCK)).astype(np.float32)
-    gain = np.outer(axis, axis)
+    cosine = np.cos(np.pi * np.arange(BLOCK) / BLOCK)
+    # coefficients are indexed [..., horizontal frequency, vertical frequency] (_forward)
+    gain = np.outer(1 - 2 * across + 2 * across * cosine, 1 - 2 * down + 2 * down * cosine).astype(np.float32)
     strips = [slice(first, last + BLOCK - 1)  # the image rows of each strip of block rows
               for first, last in _strips(y.shape[0] - BLOCK + 1, y.shape[1] - BLOCK + 1)]
     # step 1: hard-thresholded pilot
@@ -238,7 +240,7 @@ def _inverse_add(coeffs: NDArray[np.float32], weights: NDArray[np.float32], c: N
 
 
 def restore_sums(sums: NDArray[np.float32], frames: NDArray[np.float32], scale: float, wide_px: float,
-                 sharpness: float, deblur: float = DEBLUR) -> NDArray[np.float32]:
+                 sharpness: float, deblur: float | tuple[float, float] = DEBLUR) -> NDArray[np.float32]:
     """Drizzle's sums with the fine detection probability denoised and deblurred.
 
     Args:
