@@ -3,7 +3,7 @@
 import cv2
 import numpy as np
 import pytest
-from photonpano.compose import canvas_homographies, compose
+from photonpano.compose import Canvas, canvas_homographies, compose
 from photonpano.metrics import psnr, scene_on_canvas
 from photonpano.plugins.compositors._restore import dct_wiener
 from photonpano.plugins.compositors.drizzle import Drizzle, DrizzleConfig
@@ -157,3 +157,57 @@ def test_dct_wiener_is_the_block_by_block_definition():
     for deblur in (0.0, 0.2):
         np.testing.assert_allclose(dct_wiener(noisy, variance, deblur),
                                    _dct_wiener_block_by_block(noisy.astype(np.float64), variance, deblur), atol=2e-5)
+
+
+def test_dct_wiener_inverts_a_blur_along_the_axis_it_is_told():
+    """A texture blurred across only: the horizontal weight restores it, the vertical one does not.
+
+    Measured: (0.2, 0) 35.5 dB, (0, 0.2) 17.7 dB, 0.2 on both axes 14.6 dB, none 22.8 dB.
+    """
+    rng = np.random.default_rng(0)
+    sharp = (0.25 + 0.5 * rng.random((64, 96))).astype(np.float32)
+    blurred = cv2.filter2D(sharp, -1, np.array([[0.2, 0.6, 0.2]], np.float32), borderType=cv2.BORDER_REFLECT)
+    noisy = (blurred + rng.normal(0, 0.003, sharp.shape)).astype(np.float32)
+    variance = np.full(sharp.shape, 0.003 ** 2, np.float32)
+    db = {weights: _db(dct_wiener(noisy, variance, weights), sharp) for weights in ((0.2, 0.0), (0.0, 0.2), 0.0)}
+    assert db[0.2, 0.0] > db[0.0] + 8 and db[0.2, 0.0] > db[0.0, 0.2] + 8, db
+    with pytest.raises(ValueError, match="deblur"):
+        dct_wiener(noisy, variance, (0.1, 0.25))
+
+
+def test_the_blur_weights_follow_the_phases_the_drops_landed_at():
+    """Drops at every phase: the measured weight; all at a pixel centre: none; the weight set in the spec: as set."""
+    frames = np.ones(400, np.int64)
+    moving = np.repeat(np.eye(3)[None], 400, axis=0)
+    moving[:, :2, 2] = np.random.default_rng(1).uniform(0, 20, (400, 2))
+    for homographies, expected in ((moving, 1 / 6), (np.repeat(np.eye(3)[None], 400, axis=0), 0.0)):
+        drizzle = DrizzleConfig().build()
+        drizzle.prepare(Canvas(40, 60, homographies), None)
+        drizzle.feed(np.zeros((400, 8, 16), np.uint16), frames, homographies)
+        np.testing.assert_allclose(drizzle.blur_weights(), (expected, expected), atol=0.01)
+    fixed = DrizzleConfig(deblur=0.1).build()
+    fixed.prepare(Canvas(40, 60, homographies), None)
+    fixed.feed(np.zeros((400, 8, 16), np.uint16), frames, homographies)
+    assert fixed.blur_weights() == (0.1, 0.1)
+
+
+def test_a_camera_that_does_not_move_loses_nothing_to_the_restoration():
+    """A static camera: drizzle >= ``flux-canvas`` (its canvas pixels are the frame pixels).
+
+    Inverting a moving camera's blur cost 13-15 dB on the suite's photographs (the
+    dandelions at flux 0.5, 20 000 frames: 34.2 dB against 47.9 for ``flux-canvas``).
+    Measured here: adapted +3.0 dB over ``flux-canvas``, the moving camera's weight -10.0 dB.
+    """
+    source = SimulateConfig(frames=2000, height=48, width=96, scene_width=480, flux=0.5, speed_px_per_frame=0.0,
+                            vibration_px=0.0).build()
+    to_canvas, shape = canvas_homographies(source.ground_truth, source.width, source.height, 1.0)
+    made = {name: compose(source, to_canvas, config.build(), canvas_shape=shape)
+            for name, config in {"adapted": DrizzleConfig(), "moving": DrizzleConfig(deblur=1 / 6),
+                                 "bilinear": FluxCanvasConfig()}.items()}
+    scene = scene_on_canvas(source, to_canvas[0] @ np.linalg.inv(source.ground_truth[0]), shape)
+    both = np.isfinite(scene) & np.all([np.isfinite(p.flux) for p in made.values()], axis=0)
+    mask = cv2.erode(both.astype(np.uint8), np.ones((7, 7), np.uint8)).astype(bool)
+    db = {name: psnr(p.flux, scene, mask) - psnr(made["bilinear"].flux, scene, mask) for name, p in made.items()}
+    print({k: round(v, 2) for k, v in db.items()})
+    assert db["adapted"] >= -0.05, db
+    assert db["moving"] < db["adapted"] - 3, db
