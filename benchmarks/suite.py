@@ -81,6 +81,10 @@ STRESS = {
     "small-sensor": {"height": 128, "width": 256},
     "bright-zigzag": {"flux": 3.0, "path": "zigzag"},
     "slow-wander-0.05": {"path": "shake", "flux": 0.05, "speed_px_per_frame": 0.005, "shake_px": 4.0},
+    "static": {"speed_px_per_frame": 0.0, "vibration_px": 0.0},
+    "tall-sensor": {"height": 400, "width": 200},
+    "fast-roll": {"rotation_deg": 8.0, "rotation_hz": 5.0},
+    "big-zoom": {"zoom": 0.15, "zoom_hz": 1.0},
 }
 """Regimes no default was chosen on (``--stress``): name -> simulate settings over the base."""
 

@@ -84,7 +84,9 @@ class DrizzleConfig(CompositorConfig):
     scene; 0: denoise only). None: by ``scale``, 1/6 at ``scale: 1`` and 0.2 from
     ``scale: 2`` on, where the sensor's blur is on the canvas's scale too
     (``._restore.deblur_for_scale``: +0.16 dB on average at ``scale: 2`` on an
-    undersampled capture)."""
+    undersampled capture), and along each axis less where the drops landed near the
+    canvas pixels' centres rather than at every sub-pixel phase (a camera that does not
+    move: ``Drizzle.blur_weights``). A value set here is inverted as set."""
     wide_px: Annotated[float, Field(gt=0, le=8)] = 2.0
     """Half-width in frame pixels of the tent that makes the wide estimate of
     ``noise_adaptive``."""
