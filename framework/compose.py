@@ -25,7 +25,7 @@ from .views import panorama_views
 from .watchdog import watched
 
 __all__ = ["FOLD_RUNS", "Panorama", "Canvas", "canvas_homographies", "compose", "BilinearCompositor",
-           "assemble_panorama", "panorama_views"]
+           "assemble_panorama", "panorama_views", "dither_note", "DITHER_SHARE"]
 
 FOLD_RUNS = 8
 """Contiguous runs of chunks :func:`compose` splits a capture into, whatever the executor
@@ -61,6 +61,58 @@ def canvas_homographies(homographies: NDArray[np.float64], width: int, height: i
         raise StageError("panorama", "canvas", f"canvas of {cw}x{ch} pixels is too large: "
                          "the motion estimate diverged")
     return out, (ch, cw)
+
+
+DITHER_SHARE = 0.02
+"""Share of an even spread that a sub-pixel cell must hold for :func:`dither_note` to count it covered."""
+
+
+def dither_note(homographies: NDArray[np.float64], width: int, height: int, scale: float,
+                most_frames: int = 20_000) -> str | None:
+    """Where a super-resolved canvas got its frames at too few sub-pixel positions, the line saying so.
+
+    A canvas of ``scale`` s > 1 gains detail over ``scale: 1`` only where the frames'
+    pixel centres land at every s-th of a frame pixel (drizzle; Fruchter and Hook, PASP
+    114, 2002): the motion must dither them. Each frame pixel is cut into
+    ``ceil(s) x ceil(s)`` cells; at each of a 4 x 4 grid of pixel centres, the cells its
+    frames landed in are counted, and a cell counts as covered where it holds at least
+    :data:`DITHER_SHARE` of an even spread. A camera that does not move covers one: the
+    drizzle's finer pixels then repeat the frame pixels (a static camera over the
+    dandelions at scale 2: drizzle 29.9 dB, ``flux-canvas``'s bilinear upsampling 42.9 dB
+    against the scene; docs/accuracy.md).
+
+    Args:
+        homographies: (T, 3, 3) float64 frame-to-canvas homographies (canvas pixels, the
+            scale included; pixel centres at integers).
+        width: frame width in pixels.
+        height: frame height in pixels.
+        scale: canvas pixels per frame pixel.
+        most_frames: at most this many frames are read, evenly spaced.
+
+    Returns:
+        One line for ``run.json``'s notes, or None where ``scale`` <= 1 or every cell is covered.
+    """
+    cells = int(np.ceil(scale - 1e-9))
+    if cells < 2 or not len(homographies):
+        return None
+    chosen = homographies[np.unique(np.linspace(0, len(homographies) - 1, most_frames).astype(np.int64))]
+    xs, ys = np.meshgrid(np.round(np.linspace(0, width - 1, 4)), np.round(np.linspace(0, height - 1, 4)))
+    on_canvas = geometry.apply(chosen, np.stack([xs.ravel(), ys.ravel()], axis=1))  # (T', 16, 2)
+    seen = np.isfinite(on_canvas).all(axis=-1)  # (T', 16)
+    if not seen.any():
+        return None
+    cell = np.floor(np.mod(np.where(seen[..., None], on_canvas, 0) / scale, 1.0) * cells).clip(0, cells - 1)
+    # per grid point: how its frames spread over the cells (a frame's other pixels are other scene points)
+    index = np.arange(16) * cells ** 2 + (cell[..., 1] * cells + cell[..., 0]).astype(np.int64)
+    counts = np.bincount(index[seen], minlength=16 * cells ** 2).reshape(16, cells ** 2)
+    share = DITHER_SHARE * seen.sum(axis=0, keepdims=True).T / cells ** 2
+    covered = float(np.mean(counts >= np.maximum(share, 1)))
+    if covered >= 1.0:
+        return None
+    return (f"super-resolution (scale {scale:g}): the frames' pixel centres landed in {covered:.0%} of the "
+            f"sub-pixel cells a canvas of this scale needs (the camera barely moved), so the canvas holds no "
+            "finer detail than at scale 1 and drizzle's finer pixels repeat the frame pixels; scale: 1, or "
+            "compositor flux-canvas for a smooth upsampling")
 
 
 def compose(source: PhotonSource, homographies: NDArray[np.float64], compositor: Compositor, *,

@@ -292,6 +292,7 @@ def reconstruct(spec: PipelineSpec, source: PhotonSource, *, on_level: Callable[
         ``homographies`` map frames to canvas pixels) and wall times in seconds.
     """
     from .budget.binnings import full_resolution_hint
+    from .compose import dither_note
     from .executor import make_executor
     from .outputs import Checkpoint
     from .quality import assess, panorama_agreement
@@ -375,6 +376,9 @@ def reconstruct(spec: PipelineSpec, source: PhotonSource, *, on_level: Callable[
         hint = full_resolution_hint(spec, stages.source, budget.mosaic_binning, plan.photons_per_pixel_per_group)
         if status == "degraded" and hint is not None:
             notes.append(hint)
+        dither = dither_note(pano.homographies, source.width, source.height, spec.scale)
+        if dither is not None:
+            notes.append(dither)
         if movers is not None and movers["engaged"]:
             notes.append(f"moving objects: the robust template of level {movers['level']} left out a region of "
                          f"{movers['largest_region']:.1%} of the canvas; pixels disagreeing with the panorama "
