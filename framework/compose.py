@@ -98,7 +98,7 @@ def dither_note(homographies: NDArray[np.float64], width: int, height: int, scal
     chosen = homographies[np.unique(np.linspace(0, len(homographies) - 1, most_frames).astype(np.int64))]
     xs, ys = np.meshgrid(np.round(np.linspace(0, width - 1, 4)), np.round(np.linspace(0, height - 1, 4)))
     on_canvas = geometry.apply(chosen, np.stack([xs.ravel(), ys.ravel()], axis=1))  # (T', 16, 2)
-    seen = np.isfinite(on_canvas).all(axis=-1)  # (T', 16)
+    seen = np.asarray(np.isfinite(on_canvas).all(axis=-1))  # (T', 16)
     if not seen.any():
         return None
     cell = np.floor(np.mod(np.where(seen[..., None], on_canvas, 0) / scale, 1.0) * cells).clip(0, cells - 1)

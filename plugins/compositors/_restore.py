@@ -134,7 +134,7 @@ def dct_wiener(noisy: NDArray[np.float32], variance: NDArray[np.float32],
     noisy, variance = np.asarray(noisy, np.float32), np.asarray(variance, np.float32)
     if noisy.shape != variance.shape or noisy.ndim != 2:
         raise ValueError(f"dct_wiener: noisy {noisy.shape} and variance {variance.shape} must be one (H, W) shape")
-    across, down = (deblur, deblur) if np.isscalar(deblur) else deblur
+    across, down = (float(deblur), float(deblur)) if isinstance(deblur, (int, float)) else map(float, deblur)
     if not (0 <= across < 0.25 and 0 <= down < 0.25):
         raise ValueError(f"dct_wiener: deblur must be in [0, 0.25), got {deblur}")
     h, w = noisy.shape
