@@ -263,15 +263,15 @@ class Drizzle(Compositor):
         the neighbouring pixel (a blur of weight half that). Where the drops land at every
         phase alike, as a moving camera's do, the spill averages ``s / 4``: the blur that
         ``deblur`` was measured with, the drops' and that of the sensor's sampling of the
-        scene at every phase too. Each axis's weight is ``deblur`` times its mean spill
-        over :data:`SPILL_KNEE` ``s / 4``, at most 1. A camera that does not move drops
-        every frame at one phase, near 0 it barely blurs, and inverting a moving camera's
-        blur there cost 14 dB (20 000 frames of a static camera over the evaluation
-        suite's dandelions at flux 0.5, drops 0.05 px from the pixel centres: 34.2 dB,
-        49.6 dB adapted, ``flux-canvas`` 47.9 dB; docs/accuracy.md). A spill above
-        ``s / 4`` (a vibration whose turns fall between pixel centres) is not inverted further: on the
-        undersampled capture of ``tests/plugins/test_restore.py`` the vertical weight 0.22
-        instead of 0.2 lost 0.15 dB.
+        scene at every phase too. Each axis's weight is ``deblur`` times the ratio of its
+        mean spill to :data:`SPILL_KNEE` times ``s / 4``, capped at 1. A camera that does
+        not move drops every frame at one phase, near 0 it barely blurs, and inverting a
+        moving camera's blur there cost 14 dB (20 000 frames of a static camera over the
+        evaluation suite's dandelions at flux 0.5, drops 0.05 px from the pixel centres:
+        34.2 dB, 49.5 dB adapted, ``flux-canvas`` 47.9 dB; docs/accuracy.md). A spill
+        above ``s / 4`` (phases dwelling near the pixels' edges) is not inverted further:
+        on the undersampled capture of ``tests/plugins/test_restore.py`` the vertical
+        weight 0.22 instead of 0.2 lost 0.15 dB.
 
         Returns:
             ``(horizontal, vertical)`` weights in ``[0, deblur]``; ``(deblur, deblur)``
@@ -319,8 +319,8 @@ class Drizzle(Compositor):
 SPILL_KNEE = 0.8
 """Share of a moving camera's mean spill (``s / 4``) from which the restoration inverts the
 whole ``deblur`` (:meth:`Drizzle.blur_weights`). The suite's pans dither the rows by a 5 px
-vibration that lingers at pixel centres at its turns: their vertical spill is 0.91 of
-``s / 4``, and scaling ``deblur`` by that cost 0.08 dB (chelsea's base capture)."""
+vibration alone, which dwells on some phases more than others: their vertical spill is 0.91
+of ``s / 4``, and scaling ``deblur`` by that cost 0.08 dB (chelsea's base capture)."""
 
 SPILL_GRID = 4
 """Frame pixel centres per axis (a grid over the frame) at which :func:`_spill` reads the drops' phases."""
