@@ -221,13 +221,21 @@ class Stages:
 
     def compose(self, homographies: NDArray[np.float64], executor: Executor,
                 progress: Callable[[int], None] | None = None) -> Panorama:
-        """The panorama of every binary frame by the spec's compositor (:func:`photonpano.compose.compose`)."""
-        from .compose import compose
+        """The panorama of every binary frame by the spec's compositor (:func:`photonpano.compose.compose`).
+
+        A super-resolved canvas whose frames the motion did not dither adds
+        :func:`~photonpano.compose.dither_note` to :attr:`notes`.
+        """
+        from .compose import compose, dither_note
 
         build = _told_of_flicker(partial(self.spec.source.panorama_compositor, self.spec.compositor.build),
                                  self.budget.plan.flicker)
-        return compose(self.source, homographies, build(), subbatch_px=self.spec.panorama_subbatch_px,
+        pano = compose(self.source, homographies, build(), subbatch_px=self.spec.panorama_subbatch_px,
                        progress=progress, executor=executor)
+        dither = dither_note(pano.homographies, self.source.width, self.source.height, self.spec.scale)
+        if dither is not None:
+            self.notes.append(dither)
+        return pano
 
     def level_statistics(self, result: LevelResult) -> dict[str, Any]:
         """One level's ``run.json`` row.
@@ -292,7 +300,6 @@ def reconstruct(spec: PipelineSpec, source: PhotonSource, *, on_level: Callable[
         ``homographies`` map frames to canvas pixels) and wall times in seconds.
     """
     from .budget.binnings import full_resolution_hint
-    from .compose import dither_note
     from .executor import make_executor
     from .outputs import Checkpoint
     from .quality import assess, panorama_agreement
@@ -376,9 +383,6 @@ def reconstruct(spec: PipelineSpec, source: PhotonSource, *, on_level: Callable[
         hint = full_resolution_hint(spec, stages.source, budget.mosaic_binning, plan.photons_per_pixel_per_group)
         if status == "degraded" and hint is not None:
             notes.append(hint)
-        dither = dither_note(pano.homographies, source.width, source.height, spec.scale)
-        if dither is not None:
-            notes.append(dither)
         if movers is not None and movers["engaged"]:
             notes.append(f"moving objects: the robust template of level {movers['level']} left out a region of "
                          f"{movers['largest_region']:.1%} of the canvas; pixels disagreeing with the panorama "
