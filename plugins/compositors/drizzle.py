@@ -149,8 +149,7 @@ class Drizzle(Compositor):
         if kernel not in ("point", "square", "gaussian"):
             raise ValueError(f"Drizzle: kernel must be 'point', 'square' or 'gaussian', got {kernel!r}")
         self.restoration, self.deblur, self.adapt_deblur = restoration, deblur, adapt_deblur
-        # binary frames behind the drops, and their share of a drop spilt into the next column and row, summed
-        self._spill = np.zeros(3)
+        self._phases = _DropPhases()
 
         self.scale, self.kernel, self.pixfrac, self.wide_px = scale, kernel, pixfrac, wide_px
         self.detail_gain = detail_gain
@@ -193,7 +192,7 @@ class Drizzle(Compositor):
         args = (counts, np.asarray(n_frames, np.int64), np.ascontiguousarray(homographies, np.float64),
                 np.ascontiguousarray(weights, np.float32), acc)
         if self.kernel == "square" and len(homographies):
-            self._spill += _spill(homographies, args[1], counts.shape[1:], self._side())
+            self._phases.add(homographies, args[1], counts.shape[1:], self._side())
         self._splat(*args) if self.kernel == "point" else self._splat(*args, float(self.pixfrac))
 
     def frame_breaks(self, n_frames: int, frame_step: int = 1) -> NDArray[np.int64] | None:
@@ -229,7 +228,7 @@ class Drizzle(Compositor):
         if not isinstance(other, Drizzle):
             raise TypeError(f"Drizzle.join: expected a fork of this compositor, got {type(other).__name__}")
         join_exposures(self._accs, other._accs, np.ndarray.__iadd__)
-        self._spill += other._spill
+        self._phases.join(other._phases)
 
     def _exposures(self) -> NDArray[np.float32]:
         """(K', Hc, Wc, 2) float32 sums and frames of the virtual exposures fed so far."""
@@ -258,31 +257,30 @@ class Drizzle(Compositor):
     def blur_weights(self) -> tuple[float, float]:
         """The ``(horizontal, vertical)`` weights ``a`` of the ``[a, 1 - 2a, a]`` blur the restoration inverts.
 
-        A square drop of side ``s <= 1`` canvas pixels whose centre lands ``d`` pixels
-        from a canvas pixel's centre spills ``max(0, |d| + s/2 - 1/2) / s`` of itself into
-        the neighbouring pixel (a blur of weight half that). Where the drops land at every
-        phase alike, as a moving camera's do, the spill averages ``s / 4``: the blur that
-        ``deblur`` was measured with, the drops' and that of the sensor's sampling of the
-        scene at every phase too. Each axis's weight is ``deblur`` times the ratio of its
-        mean spill to :data:`SPILL_KNEE` times ``s / 4``, capped at 1. A camera that does
-        not move drops every frame at one phase, near 0 it barely blurs, and inverting a
-        moving camera's blur there cost 14 dB (20 000 frames of a static camera over the
-        evaluation suite's dandelions at flux 0.5, drops 0.05 px from the pixel centres:
-        34.2 dB, 49.5 dB adapted, ``flux-canvas`` 47.9 dB; docs/accuracy.md). A spill
-        above ``s / 4`` (phases dwelling near the pixels' edges) is not inverted further:
-        on the undersampled capture of ``tests/plugins/test_restore.py`` the vertical
-        weight 0.22 instead of 0.2 lost 0.15 dB.
+        ``deblur`` was measured on moving cameras, whose drops land at every sub-pixel
+        phase alike. A camera that does not move drops every frame at one phase, and there
+        the blur is the drops' own: a square drop of side ``s <= 1`` canvas pixels whose
+        centre lands ``d`` pixels from a canvas pixel's centre spills ``max(0, |d| + s/2 -
+        1/2) / s`` of itself into the neighbouring pixel, which at every phase alike
+        averages ``s / 4``. Per axis, the weight is ``deblur`` times ``w + (1 - w) r``: ``r``
+        the drops' mean spill over ``s / 4`` (at most 1), ``w`` the span of the frames'
+        positions along the axis in canvas pixels (at most 1; the median over a grid of
+        frame pixels, :class:`_DropPhases`). Inverting a moving camera's blur on a camera
+        that does not move cost 14 dB (20 000 frames over the evaluation suite's
+        dandelions at flux 0.5, drops 0.05 px from the pixel centres: 34.2 dB, adapted
+        49.9 dB, ``flux-canvas`` 47.9 dB); the span keeps a camera that moves a pixel or
+        more at ``deblur`` whatever its phases (the city under a 0.6 px vibration: the spill
+        alone 0.4 dB under ``deblur``; docs/accuracy.md).
 
         Returns:
             ``(horizontal, vertical)`` weights in ``[0, deblur]``; ``(deblur, deblur)``
             without ``adapt_deblur``, for other kernels, drops larger than a canvas pixel,
             or before any frame.
         """
-        side = self._side()
-        frames = self._spill[2]
-        if not self.adapt_deblur or self.kernel != "square" or side > 1 + 1e-6 or frames <= 0:
+        side = self.pixfrac * self.scale
+        if not self.adapt_deblur or self.kernel != "square" or side > 1 + 1e-6 or self._phases.frames <= 0:
             return self.deblur, self.deblur
-        across, down = self.deblur * np.clip(self._spill[:2] / frames / (SPILL_KNEE * side / 4), 0.0, 1.0)
+        across, down = self.deblur * self._phases.blur_share(side)
         return float(across), float(down)
 
     def finish(self, rejected: NDArray[np.bool_] | None = None) -> Panorama:
@@ -316,44 +314,62 @@ class Drizzle(Compositor):
         return Panorama(flux=flux, frames=frames, homographies=self._canvas.homographies, moving=moving)
 
 
-SPILL_KNEE = 0.8
-"""Share of a moving camera's mean spill (``s / 4``) from which the restoration inverts the
-whole ``deblur`` (:meth:`Drizzle.blur_weights`). The suite's pans dither the rows by a 5 px
-vibration alone, which dwells on some phases more than others: their vertical spill is 0.91
-of ``s / 4``, and scaling ``deblur`` by that cost 0.08 dB (chelsea's base capture)."""
-
 SPILL_GRID = 4
-"""Frame pixel centres per axis (a grid over the frame) at which :func:`_spill` reads the drops' phases."""
+"""Frame pixel centres per axis (a grid over the frame) at which :class:`_DropPhases` reads the drops."""
 
 
-def _spill(homographies: NDArray[np.float64], n_frames: NDArray[np.int64], frame_shape: tuple[int, ...],
-           side: float) -> NDArray[np.float64]:
-    """Binary frames behind a sub-batch and their drops' spill into the next canvas column and row, summed.
+class _DropPhases:
+    """Where a drizzle's drops landed, for :meth:`Drizzle.blur_weights`: their spill and the frames' span.
 
-    Args:
-        homographies: (B, 3, 3) float64 frame-to-canvas homographies (pixel centres at integers).
-        n_frames: (B,) int64 binary frames behind each count image.
-        frame_shape: ``(H, W)`` of the frames.
-        side: the square drops' side in canvas pixels.
-
-    Returns:
-        (3,) float64: ``sum n f_x``, ``sum n f_y``, ``sum n``, where ``f`` is the share of a
-        drop of ``side`` that falls outside the canvas pixel its centre lands in, per axis
-        (:meth:`Drizzle.blur_weights`), averaged over a :data:`SPILL_GRID` square grid of the
-        frame's pixel centres.
+    Read at a :data:`SPILL_GRID` square grid of frame pixel centres: per axis, the
+    binary frames behind the drops and the share of each drop spilt into the next canvas
+    pixel, summed, and each grid point's lowest and highest canvas position.
     """
-    height, width = frame_shape
-    xs, ys = np.meshgrid(np.round(np.linspace(0, width - 1, SPILL_GRID)),
-                         np.round(np.linspace(0, height - 1, SPILL_GRID)))
-    points = np.stack([xs.ravel(), ys.ravel(), np.ones(xs.size)])  # (3, N)
-    mapped = homographies @ points  # (B, 3, N)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        canvas = mapped[:, :2] / mapped[:, 2:]
-    phase = np.abs(canvas - np.round(canvas))  # (B, 2, N) distance from the nearest pixel centre
-    spill = np.clip(phase + side / 2 - 0.5, 0.0, None) / side
-    spill = np.where(np.isfinite(spill), spill, 0.0).mean(axis=2)  # (B, 2)
-    weights = np.asarray(n_frames, np.float64)
-    return np.array([weights @ spill[:, 0], weights @ spill[:, 1], weights.sum()])
+
+    def __init__(self) -> None:
+        """No drops yet."""
+        self.frames = 0.0
+        self.spill = np.zeros(2)
+        self.low = np.full((2, SPILL_GRID ** 2), np.inf)
+        self.high = np.full((2, SPILL_GRID ** 2), -np.inf)
+
+    def add(self, homographies: NDArray[np.float64], n_frames: NDArray[np.int64], frame_shape: tuple[int, ...],
+            side: float) -> None:
+        """Add a sub-batch.
+
+        Args:
+            homographies: (B, 3, 3) float64 finite frame-to-canvas homographies (pixel centres at integers).
+            n_frames: (B,) int64 binary frames behind each count image.
+            frame_shape: ``(H, W)`` of the frames.
+            side: the square drops' side in canvas pixels.
+        """
+        height, width = frame_shape
+        xs, ys = np.meshgrid(np.round(np.linspace(0, width - 1, SPILL_GRID)),
+                             np.round(np.linspace(0, height - 1, SPILL_GRID)))
+        mapped = homographies @ np.stack([xs.ravel(), ys.ravel(), np.ones(xs.size)])  # (B, 3, N)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            canvas = mapped[:, :2] / mapped[:, 2:]  # (B, 2, N)
+        seen = np.isfinite(canvas)
+        spill = np.clip(np.abs(canvas - np.round(canvas)) + side / 2 - 0.5, 0.0, None) / side
+        weights = np.asarray(n_frames, np.float64)
+        self.frames += float(weights.sum())
+        self.spill += weights @ np.where(seen, spill, 0.0).mean(axis=2)
+        self.low = np.minimum(self.low, np.where(seen, canvas, np.inf).min(axis=0))
+        self.high = np.maximum(self.high, np.where(seen, canvas, -np.inf).max(axis=0))
+
+    def join(self, other: _DropPhases) -> None:
+        """Add another's drops (a fork's)."""
+        self.frames += other.frames
+        self.spill += other.spill
+        self.low, self.high = np.minimum(self.low, other.low), np.maximum(self.high, other.high)
+
+    def blur_share(self, side: float) -> NDArray[np.float64]:
+        """(2,) float64 per axis ``w + (1 - w) r`` in [0, 1] (:meth:`Drizzle.blur_weights`)."""
+        spilt = np.clip(self.spill / max(self.frames, 1e-300) / (side / 4), 0.0, 1.0)
+        with np.errstate(invalid="ignore"):
+            span = np.nan_to_num(np.median(self.high - self.low, axis=1), posinf=1.0, neginf=0.0)
+        moved = np.clip(span, 0.0, 1.0)
+        return moved + (1 - moved) * spilt
 
 
 @hookimpl
