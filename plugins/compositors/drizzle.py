@@ -268,7 +268,7 @@ class Drizzle(Compositor):
         frame pixels, :class:`_DropPhases`). Inverting a moving camera's blur on a camera
         that does not move cost 14 dB (20 000 frames over the evaluation suite's
         dandelions at flux 0.5, drops 0.05 px from the pixel centres: 34.2 dB, adapted
-        49.9 dB, ``flux-canvas`` 47.9 dB); the span keeps a camera that moves a pixel or
+        49.7 dB, ``flux-canvas`` 47.9 dB); the span keeps a camera that moves a pixel or
         more at ``deblur`` whatever its phases (the city under a 0.6 px vibration: the spill
         alone 0.4 dB under ``deblur``; docs/accuracy.md).
 

@@ -176,15 +176,22 @@ def test_dct_wiener_inverts_a_blur_along_the_axis_it_is_told():
 
 
 def test_the_blur_weights_follow_the_phases_the_drops_landed_at():
-    """Drops at every phase: the measured weight; all at a pixel centre: none; the weight set in the spec: as set."""
+    """Drops at every phase: the measured weight; all at a pixel centre: none, unless the frames span pixels.
+
+    A weight set in the spec is inverted as set.
+    """
     frames = np.ones(400, np.int64)
     moving = np.repeat(np.eye(3)[None], 400, axis=0)
     moving[:, :2, 2] = np.random.default_rng(1).uniform(0, 20, (400, 2))
-    for homographies, expected in ((moving, 1 / 6), (np.repeat(np.eye(3)[None], 400, axis=0), 0.0)):
+    whole_pixels = np.repeat(np.eye(3)[None], 400, axis=0)
+    whole_pixels[::2, 0, 2] = 3.0  # every drop at a pixel centre, but the frames 3 px apart across
+    cases = ((moving, (1 / 6, 1 / 6)), (np.repeat(np.eye(3)[None], 400, axis=0), (0.0, 0.0)),
+             (whole_pixels, (1 / 6, 0.0)))
+    for homographies, expected in cases:
         drizzle = DrizzleConfig().build()
         drizzle.prepare(Canvas(40, 60, homographies), None)
         drizzle.feed(np.zeros((400, 8, 16), np.uint16), frames, homographies)
-        np.testing.assert_allclose(drizzle.blur_weights(), (expected, expected), atol=0.01)
+        np.testing.assert_allclose(drizzle.blur_weights(), expected, atol=0.01)
     fixed = DrizzleConfig(deblur=0.1).build()
     fixed.prepare(Canvas(40, 60, homographies), None)
     fixed.feed(np.zeros((400, 8, 16), np.uint16), frames, homographies)
