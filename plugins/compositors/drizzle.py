@@ -277,7 +277,7 @@ class Drizzle(Compositor):
             without ``adapt_deblur``, for other kernels, drops larger than a canvas pixel,
             or before any frame.
         """
-        side = self.pixfrac * self.scale
+        side = self._side()
         if not self.adapt_deblur or self.kernel != "square" or side > 1 + 1e-6 or self._phases.frames <= 0:
             return self.deblur, self.deblur
         across, down = self.deblur * self._phases.blur_share(side)
@@ -305,7 +305,7 @@ class Drizzle(Compositor):
             from ._adaptive import blend_sums, drop_sharpness
             from ._restore import restore_sums
 
-            sharpness = drop_sharpness(self.kernel, self.pixfrac * self.scale)
+            sharpness = drop_sharpness(self.kernel, self._side())
             if self.restoration == "wiener":
                 sums = restore_sums(sums, frames, self.scale, self.wide_px, sharpness, self.blur_weights())
             else:
