@@ -96,15 +96,15 @@ def dither_note(homographies: NDArray[np.float64], width: int, height: int, scal
     if cells < 2 or not len(homographies):
         return None
     chosen = homographies[np.unique(np.linspace(0, len(homographies) - 1, most_frames).astype(np.int64))]
-    xs, ys = np.meshgrid(np.round(np.linspace(0, width - 1, 4)), np.round(np.linspace(0, height - 1, 4)))
-    on_canvas = geometry.apply(chosen, np.stack([xs.ravel(), ys.ravel()], axis=1))  # (T', 16, 2)
-    seen = np.asarray(np.isfinite(on_canvas).all(axis=-1))  # (T', 16)
+    points = geometry.pixel_grid(width, height, 4)
+    on_canvas = geometry.apply(chosen, points)  # (T', K, 2)
+    seen = np.asarray(np.isfinite(on_canvas).all(axis=-1))  # (T', K)
     if not seen.any():
         return None
     cell = np.floor(np.mod(np.where(seen[..., None], on_canvas, 0) / scale, 1.0) * cells).clip(0, cells - 1)
     # per grid point: how its frames spread over the cells (a frame's other pixels are other scene points)
-    index = np.arange(16) * cells ** 2 + (cell[..., 1] * cells + cell[..., 0]).astype(np.int64)
-    counts = np.bincount(index[seen], minlength=16 * cells ** 2).reshape(16, cells ** 2)
+    index = np.arange(len(points)) * cells ** 2 + (cell[..., 1] * cells + cell[..., 0]).astype(np.int64)
+    counts = np.bincount(index[seen], minlength=len(points) * cells ** 2).reshape(len(points), cells ** 2)
     share = DITHER_SHARE * seen.sum(axis=0, keepdims=True).T / cells ** 2
     covered = float(np.mean(counts >= np.maximum(share, 1)))
     if covered >= 1.0:

@@ -19,6 +19,7 @@ __all__ = [
     "about_centre",
     "from_centre",
     "corners",
+    "pixel_grid",
     "apply",
     "scale_matrix",
     "translation",
@@ -129,6 +130,22 @@ def corners(width: int, height: int, *, edges: bool = False) -> NDArray[np.float
     """
     lo, hx, hy = (-0.5, width - 0.5, height - 0.5) if edges else (0.0, width - 1.0, height - 1.0)
     return np.array([[lo, lo], [hx, lo], [hx, hy], [lo, hy]], dtype=np.float64)
+
+
+def pixel_grid(width: int, height: int, per_axis: int) -> NDArray[np.float64]:
+    """Return ``per_axis`` x ``per_axis`` pixel centres spread evenly over a frame, corners included.
+
+    Args:
+        width: frame width in pixels.
+        height: frame height in pixels.
+        per_axis: points per axis (>= 1).
+
+    Returns:
+        (per_axis ** 2, 2) float64 ``(x, y)`` whole pixel centres (the even spread rounded),
+        row by row from the top-left.
+    """
+    xs, ys = np.meshgrid(np.round(np.linspace(0, width - 1, per_axis)), np.round(np.linspace(0, height - 1, per_axis)))
+    return np.stack([xs.ravel(), ys.ravel()], axis=1)
 
 
 def apply(homographies: NDArray[np.float64], points: NDArray[np.float64]) -> NDArray[np.float64]:

@@ -37,7 +37,7 @@ from typing import Annotated, Literal
 
 import numpy as np
 from numpy.typing import NDArray
-from photonpano import hookimpl
+from photonpano import geometry, hookimpl
 from photonpano.compose import Canvas, Panorama
 from photonpano.robust_merge import (
     DEFAULT_EXPOSURES,
@@ -330,8 +330,8 @@ class _DropPhases:
         """No drops yet."""
         self.frames = 0.0
         self.spill = np.zeros(2)
-        self.low = np.full((2, SPILL_GRID ** 2), np.inf)
-        self.high = np.full((2, SPILL_GRID ** 2), -np.inf)
+        self.low = np.full((SPILL_GRID ** 2, 2), np.inf)
+        self.high = np.full((SPILL_GRID ** 2, 2), -np.inf)
 
     def add(self, homographies: NDArray[np.float64], n_frames: NDArray[np.int64], frame_shape: tuple[int, ...],
             side: float) -> None:
@@ -344,16 +344,13 @@ class _DropPhases:
             side: the square drops' side in canvas pixels.
         """
         height, width = frame_shape
-        xs, ys = np.meshgrid(np.round(np.linspace(0, width - 1, SPILL_GRID)),
-                             np.round(np.linspace(0, height - 1, SPILL_GRID)))
-        mapped = homographies @ np.stack([xs.ravel(), ys.ravel(), np.ones(xs.size)])  # (B, 3, N)
         with np.errstate(divide="ignore", invalid="ignore"):
-            canvas = mapped[:, :2] / mapped[:, 2:]  # (B, 2, N)
+            canvas = geometry.apply(homographies, geometry.pixel_grid(width, height, SPILL_GRID))  # (B, N, 2)
         seen = np.isfinite(canvas)
         spill = np.clip(np.abs(canvas - np.round(canvas)) + side / 2 - 0.5, 0.0, None) / side
         weights = np.asarray(n_frames, np.float64)
         self.frames += float(weights.sum())
-        self.spill += weights @ np.where(seen, spill, 0.0).mean(axis=2)
+        self.spill += weights @ np.where(seen, spill, 0.0).mean(axis=1)
         self.low = np.minimum(self.low, np.where(seen, canvas, np.inf).min(axis=0))
         self.high = np.maximum(self.high, np.where(seen, canvas, -np.inf).max(axis=0))
 
@@ -367,7 +364,7 @@ class _DropPhases:
         """(2,) float64 per axis ``w + (1 - w) r`` in [0, 1] (:meth:`Drizzle.blur_weights`)."""
         spilt = np.clip(self.spill / max(self.frames, 1e-300) / (side / 4), 0.0, 1.0)
         with np.errstate(invalid="ignore"):
-            span = np.nan_to_num(np.median(self.high - self.low, axis=1), posinf=1.0, neginf=0.0)
+            span = np.nan_to_num(np.median(self.high - self.low, axis=0), posinf=1.0, neginf=0.0)
         moved = np.clip(span, 0.0, 1.0)
         return moved + (1 - moved) * spilt
 
