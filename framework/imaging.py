@@ -288,16 +288,43 @@ def register_binned_motions(a: tuple[NDArray, NDArray], b: tuple[NDArray, NDArra
         # moved(x) ~ a(x - d): the correction maps moved's pixels to a's by x - d
         starts = [np.array([[1, 0, -dx], [0, 1, -dy]], np.float32)] + [np.eye(2, 3, dtype=np.float32)] * from_initial
         for warp in starts:
-            try:
-                cc, refined = cv2.findTransformECCWithMask(moved, a[0], inside.astype(np.uint8),
-                                                           a[1].astype(np.uint8), warp, motion, criteria, 1)
-            except cv2.error:
-                continue
-            if cc > best[1]:
-                correction = np.vstack([refined.astype(np.float64), [0, 0, 1]])
-                found = geometry.normalize(in_binned_pixels(correction @ base, factor, back=True))
-                best = found_by[name] = (found, float(cc), int((inside & a[1]).sum()))
+            found = _ecc_correction(a, moved, inside, base, warp, motion, criteria, factor)
+            if found is not None and found[1] > best[1]:
+                best = found_by[name] = found
     return found_by
+
+
+def _ecc_correction(a: tuple[NDArray, NDArray], moved: NDArray[np.float32], inside: NDArray[np.bool_],
+                    base: NDArray[np.float64], warp: NDArray[np.float32], motion: int, criteria: tuple,
+                    factor: int) -> tuple[NDArray[np.float64], float, int] | None:
+    """One OpenCV ECC of binned frame b warped by ``base`` (``moved``, valid ``inside``) to frame a.
+
+    Args:
+        a: :func:`binned_frame` of frame a (the template of the correction).
+        moved: (h, w) float32 binned frame b warped by ``base``.
+        inside: (h, w) bool its valid pixels.
+        base: (3, 3) float64 the warp ``moved`` was made with, in binned pixels.
+        warp: (2, 3) or (3, 3) float32 starting correction (3 x 3 for ``MOTION_HOMOGRAPHY``).
+        motion: OpenCV's ``MOTION_*`` model.
+        criteria: OpenCV's termination criteria.
+        factor: the frames' binning.
+
+    Returns:
+        ``(homography, correlation, overlap)``: (3, 3) float64 ``correction @ base`` mapping
+        b's full-resolution pixels to a's, the final correlation and the binned pixels
+        compared; None where ECC failed.
+    """
+    import cv2
+
+    try:
+        cc, refined = cv2.findTransformECCWithMask(moved, a[0], inside.astype(np.uint8), a[1].astype(np.uint8), warp,
+                                                   motion, criteria, 1)
+    except cv2.error:
+        return None
+    correction = np.eye(3)
+    correction[:len(refined)] = refined
+    found = geometry.normalize(in_binned_pixels(correction @ base, factor, back=True))
+    return found, float(cc), int((inside & a[1]).sum())
 
 
 def refine_binned_homography(a: tuple[NDArray, NDArray], b: tuple[NDArray, NDArray], homography: NDArray[np.float64],
@@ -319,10 +346,6 @@ def refine_binned_homography(a: tuple[NDArray, NDArray], b: tuple[NDArray, NDArr
     base = in_binned_pixels(homography, factor)
     moved, inside = _warp(b[0], b[1], base)
     criteria = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, iterations, 1e-5)
-    try:
-        cc, refined = cv2.findTransformECCWithMask(moved, a[0], inside.astype(np.uint8), a[1].astype(np.uint8),
-                                                   np.eye(3, dtype=np.float32), cv2.MOTION_HOMOGRAPHY, criteria, 1)
-    except cv2.error:
-        return homography, -1.0, 0
-    found = geometry.normalize(in_binned_pixels(refined.astype(np.float64) @ base, factor, back=True))
-    return found, float(cc), int((inside & a[1]).sum())
+    found = _ecc_correction(a, moved, inside, base, np.eye(3, dtype=np.float32), cv2.MOTION_HOMOGRAPHY, criteria,
+                            factor)
+    return (homography, -1.0, 0) if found is None else found
