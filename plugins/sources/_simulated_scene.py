@@ -63,6 +63,10 @@ def camera_path(config: SimulateConfig, scene_shape: tuple[int, int]) -> NDArray
     t = np.arange(n, dtype=np.float64)
     s = t / fps
     x = config.speed_px_per_frame * (t - (n - 1) / 2)
+    if config.speed_swing:  # speed v (1 - swing cos(2 pi (t - middle) / P)): at its slowest in the middle
+        period = config.swing_period_frames
+        x -= (config.speed_px_per_frame * config.speed_swing * period / (2 * np.pi)
+              * np.sin(2 * np.pi * (t - (n - 1) / 2) / period))
     y = np.zeros(n)
     if config.path == "zigzag":
         phase = (t / config.sweep_period_frames) % 1.0

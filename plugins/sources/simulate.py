@@ -72,6 +72,11 @@ class SimulateConfig(ColourSourceConfig):
     smooth random shake (sum of seeded random sinusoids)."""
     speed_px_per_frame: float = 0.02
     """Horizontal pan speed in scene pixels per binary frame."""
+    speed_swing: Annotated[float, Field(ge=0, le=1)] = 0.0
+    """Stop-and-go: the pan's speed swings between ``1 - speed_swing`` and ``1 + speed_swing``
+    times ``speed_px_per_frame``, slowest at the middle frame (1: the camera halts there)."""
+    swing_period_frames: Annotated[int, Field(gt=0)] = 10_000
+    """speed_swing: frames per swing of the speed (one halt per period at ``speed_swing`` 1)."""
     sweep_px: Annotated[float, Field(ge=0)] = 40.0
     """zigzag: peak vertical excursion in scene pixels."""
     sweep_period_frames: Annotated[int, Field(gt=0)] = 20_000
@@ -169,7 +174,6 @@ class SimulateConfig(ColourSourceConfig):
     colour_panorama: bool = False
     """Also write ``panorama_rgb.npy`` / ``.tif`` / ``.png`` (needs ``cfa``), as the
     SwissSPAD sources do."""
-
 
     def build(self) -> SimulatedCapture:
         """Simulate the capture (takes about 0.5 ms per binary frame)."""
