@@ -85,6 +85,9 @@ STRESS = {
     "tall-sensor": {"height": 400, "width": 200},
     "fast-roll": {"rotation_deg": 8.0, "rotation_hz": 5.0},
     "big-zoom": {"zoom": 0.15, "zoom_hz": 1.0},
+    "stop-and-go": {"speed_swing": 1.0, "swing_period_frames": 5000},
+    "stop-and-go-fast": {"speed_px_per_frame": 0.06, "speed_swing": 1.0, "swing_period_frames": 6000,
+                         "frames": 12_000, "scene_width": 2048},
 }
 """Regimes no default was chosen on (``--stress``): name -> simulate settings over the base."""
 

@@ -24,7 +24,7 @@ from ..posegraph import chain_keyframes, corner_disagreement, pairs_at_offsets, 
 from ..records import LocateResult, MergedFrames, PairRegistrations
 from ..watchdog import watched
 from .base import LevelScheme, LevelTask
-from .check import LevelCheck, PairCheck
+from .check import KEYSTONE_PX, SETTLE_MIN_RESCUES, LevelCheck, PairCheck, _signal
 
 __all__ = ["PairwiseScheme", "locate_keyframes"]
 
@@ -198,6 +198,8 @@ def locate_keyframes(locator: Locator, merge: Callable[[NDArray[np.int64]], Merg
     founds = [found for _, _, found in calls]
     if check is not None and calls:  # the level's rescues decided together
         founds = [sane(f) for f in check.settle(founds)]
+        if check.rescue_motion != "perspective":
+            founds = without_unsteady_perspective(founds, width, height)
     chain_parts = [f.take(slice(0, n)) for (_, n, _), f in zip(calls, founds)]
     extra_parts = [(i[n:], f.take(slice(n, None))) for (i, n, _), f in zip(calls, founds) if len(i) > n]
     chain_index = pairs_at_offsets(g, (1,))
@@ -239,6 +241,42 @@ def locate_keyframes(locator: Locator, merge: Callable[[NDArray[np.int64]], Merg
             solved = keyframes
     return solved, pair_index, pairs
 
+
+
+def without_unsteady_perspective(found: list[PairRegistrations], width: int, height: int
+                                 ) -> list[PairRegistrations]:
+    """The level's registrations as affine maps, unless their perspective is steady.
+
+    DRAFT.
+    """
+    import os
+    import sys
+
+    ok = np.concatenate([part.ok for part in found])
+    registrations = np.concatenate([part.homographies for part in found])[ok]
+    if len(registrations) < SETTLE_MIN_RESCUES:
+        return found
+    centred = geometry.about_centre(registrations, width, height)
+    centred = centred / centred[:, 2:, 2:]
+    half = np.array([(width - 1) / 2, (height - 1) / 2])
+    keystones = centred[:, 2, :2] * half ** 2  # (P, 2) p7 (w/2)^2, p8 (h/2)^2, pixels at the corner
+    signals = [{**_signal(k), "median_px": float(np.median(np.abs(k)))} for k in keystones.T]
+    if os.environ.get("PP_DEBUG"):
+        print("KEYSTONE", len(registrations), signals, file=sys.stderr)
+    if any(s["signal"] and s["median_px"] >= KEYSTONE_PX for s in signals):
+        return found
+    grid = geometry.pixel_grid(width, height, 4)
+    design = np.column_stack([grid, np.ones(len(grid))])  # (16, 3)
+    solve = np.linalg.pinv(design)  # (3, 16)
+    flattened = []
+    for part in found:
+        mapped = geometry.apply(part.homographies, grid)  # (P, 16, 2)
+        affine = np.zeros_like(part.homographies)
+        affine[:, :2, :] = np.einsum("ij,pjk->pki", solve, mapped)
+        affine[:, 2, 2] = 1
+        flattened.append(PairRegistrations(np.where(part.ok[:, None, None], affine, part.homographies),
+                                           part.matches, part.inliers, part.ok))
+    return flattened
 
 
 class PairwiseScheme(LevelScheme):

@@ -238,9 +238,7 @@ class SimulatedCapture(PhotonSource):
         level: np.float32 | NDArray[np.float32] = np.float32(1)  # the flickering lamp's mean level over the capture
         if config.flicker_hz > 0:
             level = 1 + lamp_mask(scene.shape, config.flicker_region) * np.float32(self.lamp.mean() - 1)
-            self.scene_flux = (config.flux * (scene * level) / self.exposure_s).astype(np.float32)
-        else:
-            self.scene_flux = (config.flux * scene / self.exposure_s).astype(np.float32)
+        self.scene_flux = (config.flux * (scene * level) / self.exposure_s).astype(np.float32)
         self.scene_pitch = float(pitch)
         self.corrector, self.scene_flux_rgb = None, None
         if rgb is not None:
@@ -274,10 +272,8 @@ class SimulatedCapture(PhotonSource):
             raise SourceError(f"source (simulate): cube_path {config.cube_path} exists; refusing to overwrite it")
         # the cube file is written under a temporary name and renamed when complete
         with atomic_path(config.cube_path) if config.cube_path is not None else nullcontext() as tmp:
-            if tmp is not None:
-                self.cube: NDArray[np.uint8] = np.lib.format.open_memmap(tmp, mode="w+", dtype=np.uint8, shape=shape)
-            else:
-                self.cube = np.empty(shape, dtype=np.uint8)
+            self.cube: NDArray[np.uint8] = (np.empty(shape, dtype=np.uint8) if tmp is None else
+                                            np.lib.format.open_memmap(tmp, mode="w+", dtype=np.uint8, shape=shape))
             self._render(scene, to_scene)
 
     def _render(self, scene: NDArray[np.float32], to_scene: NDArray[np.float64]) -> None:

@@ -202,3 +202,24 @@ def test_a_camera_panning_on_a_tripod_turns_and_sees_the_ends_of_the_scene_in_pe
     np.testing.assert_allclose(geometry.apply(b[10_000], corners), geometry.apply(a[10_000], corners), atol=0.01)
     with pytest.raises(ValidationError, match="pan_model"):
         SimulateConfig(**settings, pan_model="dolly")
+
+
+def test_a_stop_and_go_pan_halts_at_the_middle_frame_and_peaks_at_twice_the_speed():
+    """speed_swing 1: the frame centre's speed swings between 0 and twice speed_px_per_frame, once per period."""
+    from photonpano import geometry
+    from photonpano.plugins.sources._simulated_scene import camera_path
+
+    settings = dict(frames=20_001, width=496, height=254, scene_width=1440, vibration_px=0.0)
+    shape = (960, 1440)
+    steady = camera_path(SimulateConfig(**settings), shape)
+    swinging = camera_path(SimulateConfig(**settings, speed_swing=1.0, swing_period_frames=5000), shape)
+    centre = np.array([[(496 - 1) / 2, (254 - 1) / 2]])
+    speed = np.diff(geometry.apply(swinging, centre)[:, 0, 0])
+    np.testing.assert_allclose([speed.min(), speed.max()], [0.0, 0.04], atol=1e-6)
+    assert abs(speed[9_999]) < 1e-6 and abs(speed[4_999]) < 1e-6  # halts at the middle frame, and a period before
+    assert abs(speed[7_499] - 0.04) < 1e-6  # fastest half a period from a halt
+    # the swing only moves the frames along the pan: both paths meet at the middle frame
+    np.testing.assert_allclose(swinging[10_000], steady[10_000], atol=1e-9)
+    np.testing.assert_array_equal(camera_path(SimulateConfig(**settings, swing_period_frames=5000), shape), steady)
+    with pytest.raises(ValidationError, match="speed_swing"):
+        SimulateConfig(**settings, speed_swing=1.5)
