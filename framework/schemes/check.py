@@ -183,8 +183,7 @@ class PairCheck:
         """Set the check's binning and limits."""
         self.factor = max(1, int(binning))
         self.mover_guard, self.guard_margin, self.rescue_margin = mover_guard, guard_margin, rescue_margin
-        self.min_correlation = min_correlation
-        self.min_overlap = min_overlap
+        self.min_correlation, self.min_overlap = min_correlation, min_overlap
 
     def start_level(self, executor: Executor) -> LevelCheck:
         """The check of one level: its binned frames and figures, run on ``executor``'s threads.
@@ -199,8 +198,7 @@ def _binned_with_blob(flux: NDArray[np.float32], mask: NDArray[np.bool_], factor
                       ) -> tuple[NDArray[np.float32], NDArray[np.bool_], NDArray[np.bool_]]:
     """A merged frame's binned image, valid pixels and bright blob.
 
-    The blob is :func:`~photonpano.movers.brightest_blob`'s, or none without ``find_blob``
-    (the mover guard is off).
+    The blob is :func:`~photonpano.movers.brightest_blob`'s, or none without ``find_blob`` (no mover guard).
     """
     image, valid = binned_frame(flux, mask, factor)
     return image, valid, brightest_blob(image, valid) if find_blob else np.zeros_like(valid)
@@ -226,6 +224,7 @@ class LevelCheck:
         self._alternatives: list[list[tuple[int, int, Any]]] = []
         self.rescue_motion: str | None = None
         self.rescue_shapes: dict[str, dict[str, float | bool]] | None = None
+        self.pair_perspective: dict[str, Any] | None = None  # set by pairwise.drop_unsteady_perspective
 
     def settle(self, found: list[PairRegistrations]) -> list[PairRegistrations]:
         """Decide the level's rescues together, once every pair is registered (step 4 of the module).
@@ -390,10 +389,12 @@ class LevelCheck:
             failed; None without pairs), and :meth:`settle`'s decision (``"perspective"``,
             ``"translation"`` or ``"per pair"``) and its figures: the keystones' ``{"horizontal",
             "vertical"}`` (each also with ``median_px``) for ``"perspective"``, else
-            :func:`rescue_motion`'s (None where the rescues were too few to decide).
+            :func:`rescue_motion`'s (None where the rescues were too few to decide); and
+            ``"pair_perspective"``, :func:`~photonpano.schemes.pairwise.drop_unsteady_perspective`'s.
         """
         cc = np.asarray(self.correlations, np.float64)
         return {"binning": self.policy.factor, "checked": self.checked, "rejected_by_check": self.rejected,
                 "rescued": self.rescued, "median_correlation": float(np.median(cc)) if len(cc) else None,
                 "min_correlation": float(cc.min()) if len(cc) else None,
-                "rescue_motion": self.rescue_motion, "rescue_shapes": self.rescue_shapes}
+                "rescue_motion": self.rescue_motion, "rescue_shapes": self.rescue_shapes,
+                "pair_perspective": self.pair_perspective}

@@ -4,14 +4,16 @@ The paper's locate step (Sec. 4): consecutive merged frames are registered and c
 longer-offset pairs that the chain predicts to overlap are registered too and all pairs
 are solved jointly (:mod:`photonpano.posegraph`), so that a wrong consecutive link is
 outvoted. Merged frames stream through a ring (:func:`locate_keyframes`), so memory does
-not grow with the capture.
+not grow with the capture. With the pair check, the level's pairs keep the perspective
+their locator gave some of them only where it changes steadily, as a turning camera's
+(:func:`drop_unsteady_perspective`).
 """
 
 from __future__ import annotations
 
 import time
 from concurrent.futures import ThreadPoolExecutor
-from typing import Callable, Iterator
+from typing import Any, Callable, Iterator
 
 import numpy as np
 from numpy.typing import NDArray
@@ -26,7 +28,7 @@ from ..watchdog import watched
 from .base import LevelScheme, LevelTask
 from .check import KEYSTONE_PX, SETTLE_MIN_RESCUES, LevelCheck, PairCheck, _signal
 
-__all__ = ["PairwiseScheme", "locate_keyframes"]
+__all__ = ["PairwiseScheme", "locate_keyframes", "drop_unsteady_perspective"]
 
 
 class _MergedRing:
@@ -198,8 +200,8 @@ def locate_keyframes(locator: Locator, merge: Callable[[NDArray[np.int64]], Merg
     founds = [found for _, _, found in calls]
     if check is not None and calls:  # the level's rescues decided together
         founds = [sane(f) for f in check.settle(founds)]
-        if check.rescue_motion != "perspective":
-            founds = without_unsteady_perspective(founds, width, height)
+        if check.rescue_motion != "perspective":  # the rescues' steady keystone decides for all pairs
+            founds, check.pair_perspective = drop_unsteady_perspective(founds, width, height)
     chain_parts = [f.take(slice(0, n)) for (_, n, _), f in zip(calls, founds)]
     extra_parts = [(i[n:], f.take(slice(n, None))) for (i, n, _), f in zip(calls, founds) if len(i) > n]
     chain_index = pairs_at_offsets(g, (1,))
@@ -243,40 +245,60 @@ def locate_keyframes(locator: Locator, merge: Callable[[NDArray[np.int64]], Merg
 
 
 
-def without_unsteady_perspective(found: list[PairRegistrations], width: int, height: int
-                                 ) -> list[PairRegistrations]:
-    """The level's registrations as affine maps, unless their perspective is steady.
+def drop_unsteady_perspective(found: list[PairRegistrations], width: int, height: int
+                              ) -> tuple[list[PairRegistrations], dict[str, Any] | None]:
+    """A level's pair registrations as affine maps, unless their perspective changes steadily.
 
-    DRAFT.
+    A locator that chooses each pair's model (``opencv-sift``'s ``motion: auto``, the
+    lowest GRIC) gives some pairs a homography whose perspective (``p7, p8``) is noise
+    where the camera does not turn. Chained along the capture that noise walks: a keystone
+    and scale that wander by a pixel at the frame's corners, which the mosaic levels'
+    template then holds (a 0.06 px/frame pan that halts every 6 000 frames over the
+    handwriting: 0.254 px, ``ok`` with a median sigma of 0.077). A camera that turns (a
+    tripod pan) adds a keystone of one sign, steady along the capture, and needs it at
+    level 1 (the mosaic levels cannot undo the 24-44 px an affine level 1 leaves there).
+    So, as :meth:`~photonpano.schemes.check.LevelCheck.settle` decides the rescues'
+    perspective, the registered pairs' keystones ``p7 ((w - 1)/2)^2`` and ``p8 ((h - 1)/2)^2``
+    (pixels at the corner, about the frame centre) are read together: where neither
+    carries a signal (``check._signal``: lag-1 autocorrelation or the mean's t) with a
+    median of :data:`~photonpano.schemes.check.KEYSTONE_PX` or more, every registered pair
+    takes the affine map closest to its homography (least squares at a 4 x 4 grid of frame
+    pixels), and the first mosaic level registers what perspective there is.
+
+    Args:
+        found: the level's registrations, per locator call (after the check's settle).
+        width: merged frame width in pixels.
+        height: merged frame height in pixels.
+
+    Returns:
+        ``(found, figures)``: the registrations (the same objects where the perspective is
+        kept) and ``{"kept", "pairs", "horizontal", "vertical"}`` (each keystone's
+        ``{"lag1", "t", "signal", "median_px"}``); None for fewer than
+        :data:`~photonpano.schemes.check.SETTLE_MIN_RESCUES` registered pairs.
     """
-    import os
-    import sys
-
     ok = np.concatenate([part.ok for part in found])
-    registrations = np.concatenate([part.homographies for part in found])[ok]
-    if len(registrations) < SETTLE_MIN_RESCUES:
-        return found
-    centred = geometry.about_centre(registrations, width, height)
-    centred = centred / centred[:, 2:, 2:]
-    half = np.array([(width - 1) / 2, (height - 1) / 2])
-    keystones = centred[:, 2, :2] * half ** 2  # (P, 2) p7 (w/2)^2, p8 (h/2)^2, pixels at the corner
-    signals = [{**_signal(k), "median_px": float(np.median(np.abs(k)))} for k in keystones.T]
-    if os.environ.get("PP_DEBUG"):
-        print("KEYSTONE", len(registrations), signals, file=sys.stderr)
-    if any(s["signal"] and s["median_px"] >= KEYSTONE_PX for s in signals):
-        return found
+    registered = np.concatenate([part.homographies for part in found])[ok]
+    if len(registered) < SETTLE_MIN_RESCUES:
+        return found, None
+    centred = geometry.about_centre(registered, width, height)
+    corner = np.array([(width - 1) / 2, (height - 1) / 2]) ** 2
+    keystones = centred[:, 2, :2] / centred[:, 2:, 2] * corner  # (P, 2) pixels at the corner
+    figures: dict[str, Any] = {name: {**_signal(keystones[:, k]), "median_px": round(float(np.median(
+        np.abs(keystones[:, k]))), 3)} for k, name in enumerate(("horizontal", "vertical"))}
+    kept = any(tilt["signal"] and tilt["median_px"] >= KEYSTONE_PX for tilt in figures.values())
+    figures = {"kept": kept, "pairs": len(registered), **figures}
+    if kept:
+        return found, figures
     grid = geometry.pixel_grid(width, height, 4)
-    design = np.column_stack([grid, np.ones(len(grid))])  # (16, 3)
-    solve = np.linalg.pinv(design)  # (3, 16)
+    fit = np.linalg.pinv(np.column_stack([grid, np.ones(len(grid))]))  # (3, 16): least squares onto x, y, 1
     flattened = []
     for part in found:
-        mapped = geometry.apply(part.homographies, grid)  # (P, 16, 2)
         affine = np.zeros_like(part.homographies)
-        affine[:, :2, :] = np.einsum("ij,pjk->pki", solve, mapped)
+        affine[:, :2] = np.einsum("ij,pjk->pki", fit, geometry.apply(part.homographies, grid))
         affine[:, 2, 2] = 1
         flattened.append(PairRegistrations(np.where(part.ok[:, None, None], affine, part.homographies),
                                            part.matches, part.inliers, part.ok))
-    return flattened
+    return flattened, figures
 
 
 class PairwiseScheme(LevelScheme):

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from numpy.typing import NDArray
 from photonpano.budget.probe import CaptureProbe, choose_group_size, plan_group_size, probe_capture
 from photonpano.stages import Locator, MergedFrames, PairRegistrations
 
@@ -269,6 +270,55 @@ def test_a_level_whose_rescues_tilt_steadily_keeps_their_perspective():
     assert figures["rescue_shapes"]["horizontal"]["median_px"] >= 1.0
     kept = np.concatenate([found.homographies for found in settled])
     assert geometry.mean_corner_distance(kept, np.stack(truths), w, h).max() < 0.5
+
+
+def _keystoned(keystone_px: NDArray[np.float64], w: int, h: int, seed: int) -> NDArray[np.float64]:
+    """Pair registrations shifted by about (10, 2) px with keystones ``p7`` of ``keystone_px`` at the corner."""
+    from photonpano import geometry
+
+    rng = np.random.default_rng(seed)
+    found = np.tile(np.eye(3), (len(keystone_px), 1, 1))
+    found[:, 0, 2], found[:, 1, 2] = rng.normal(10.0, 1.0, len(found)), rng.normal(2.0, 1.0, len(found))
+    found[:, 2, 0] = keystone_px / ((w - 1) / 2) ** 2
+    return geometry.from_centre(found, w, h)
+
+
+def test_a_level_s_pairs_keep_their_perspective_only_where_it_changes_steadily():
+    """drop_unsteady_perspective: a keystone of noise goes, a steady one of over 1 px (a tripod pan) stays.
+
+    Noise of 0.3 px at the corners, as a locator choosing each pair's model leaves where the
+    camera does not turn: every registered pair becomes the affine map nearest its
+    homography over the frame, failed pairs stay as they were. Keystones of 2-4 px of one
+    sign: the same registrations come back.
+    """
+    from photonpano import geometry
+    from photonpano.schemes.check import SETTLE_MIN_RESCUES
+    from photonpano.schemes.pairwise import drop_unsteady_perspective
+
+    w, h = 248, 127
+    rng = np.random.default_rng(3)
+    noisy = _keystoned(rng.normal(0.0, 0.3, 60), w, h, 0)
+    ok = np.arange(60) % 10 != 0
+    calls = [PairRegistrations(noisy[k:k + 20], np.zeros(20, np.int64), np.full(20, 40), ok[k:k + 20])
+             for k in (0, 20, 40)]
+    flattened, figures = drop_unsteady_perspective(calls, w, h)
+    assert figures is not None and not figures["kept"] and figures["pairs"] == 54, figures
+    assert figures["horizontal"]["median_px"] > 0.1 and not figures["horizontal"]["signal"]
+    after = np.concatenate([found.homographies for found in flattened])
+    assert np.abs(after[ok, 2, :2]).max() == 0 and np.array_equal(after[~ok], noisy[~ok])
+    grid = geometry.pixel_grid(w, h, 4)  # each affine is the least-squares fit to its homography there
+    design = np.column_stack([grid, np.ones(len(grid))])
+    np.testing.assert_allclose(after[1, :2], np.linalg.lstsq(design, geometry.apply(noisy[1], grid))[0].T, atol=1e-9)
+    assert geometry.mean_corner_distance(after[ok], noisy[ok], w, h).max() < 1.0
+
+    steady = _keystoned(np.linspace(2.0, 4.0, 60), w, h, 1)
+    calls = [PairRegistrations(steady, np.zeros(60, np.int64), np.full(60, 40), np.ones(60, bool))]
+    kept, figures = drop_unsteady_perspective(calls, w, h)
+    assert figures is not None and figures["kept"] and figures["horizontal"]["median_px"] >= 1.0, figures
+    assert kept[0] is calls[0]
+    few = [PairRegistrations(noisy[:SETTLE_MIN_RESCUES - 1], np.zeros(SETTLE_MIN_RESCUES - 1, np.int64),
+                             np.full(SETTLE_MIN_RESCUES - 1, 40), np.ones(SETTLE_MIN_RESCUES - 1, bool))]
+    assert drop_unsteady_perspective(few, w, h) == (few, None)
 
 
 def test_check_flags_pure_noise():
