@@ -4,9 +4,8 @@ The paper's locate step (Sec. 4): consecutive merged frames are registered and c
 longer-offset pairs that the chain predicts to overlap are registered too and all pairs
 are solved jointly (:mod:`photonpano.posegraph`), so that a wrong consecutive link is
 outvoted. Merged frames stream through a ring (:func:`locate_keyframes`), so memory does
-not grow with the capture. With the pair check, the level's pairs keep the perspective
-their locator gave some of them only where it changes steadily, as a turning camera's
-(:func:`drop_unsteady_perspective`).
+not grow with the capture. With the pair check, the few perspectives a locator gives by
+chance are dropped (:func:`drop_unsteady_perspective`).
 """
 
 from __future__ import annotations
@@ -28,7 +27,7 @@ from ..watchdog import watched
 from .base import LevelScheme, LevelTask
 from .check import KEYSTONE_PX, SETTLE_MIN_RESCUES, LevelCheck, PairCheck, _signal
 
-__all__ = ["PairwiseScheme", "locate_keyframes", "drop_unsteady_perspective"]
+__all__ = ["PairwiseScheme", "locate_keyframes", "drop_unsteady_perspective", "CHANCE_PERSPECTIVE_SHARE"]
 
 
 class _MergedRing:
@@ -200,7 +199,7 @@ def locate_keyframes(locator: Locator, merge: Callable[[NDArray[np.int64]], Merg
     founds = [found for _, _, found in calls]
     if check is not None and calls:  # the level's rescues decided together
         founds = [sane(f) for f in check.settle(founds)]
-        if check.rescue_motion != "perspective":  # the rescues' steady keystone decides for all pairs
+        if check.rescue_motion != "perspective":  # (a level whose rescues turn keeps every perspective)
             founds, check.pair_perspective = drop_unsteady_perspective(founds, width, height)
     chain_parts = [f.take(slice(0, n)) for (_, n, _), f in zip(calls, founds)]
     extra_parts = [(i[n:], f.take(slice(n, None))) for (i, n, _), f in zip(calls, founds) if len(i) > n]
@@ -244,26 +243,34 @@ def locate_keyframes(locator: Locator, merge: Callable[[NDArray[np.int64]], Merg
     return solved, pair_index, pairs
 
 
+CHANCE_PERSPECTIVE_SHARE = 0.25
+"""Share of a level's registered pairs below which the perspectives its locator gave are taken
+for chance (:func:`drop_unsteady_perspective`): 0.9-4.6 % on the fast pans that halt where they
+bent the trajectory, 15 % on dandelions shaken by a turning camera (its perspective at level 1
+neither helps nor hurts), 53 % on the city shaken so, 84 % on a tripod pan."""
+
 
 def drop_unsteady_perspective(found: list[PairRegistrations], width: int, height: int
                               ) -> tuple[list[PairRegistrations], dict[str, Any] | None]:
-    """A level's pair registrations as affine maps, unless their perspective changes steadily.
+    """A level's pair registrations as affine maps where the few perspectives among them are chance.
 
     A locator that chooses each pair's model (``opencv-sift``'s ``motion: auto``, the
-    lowest GRIC) gives some pairs a homography whose perspective (``p7, p8``) is noise
-    where the camera does not turn. Chained along the capture that noise walks: a keystone
-    and scale that wander by a pixel at the frame's corners, which the mosaic levels'
-    template then holds (a 0.06 px/frame pan that halts every 6 000 frames over the
-    handwriting: 0.254 px, ``ok`` with a median sigma of 0.077). A camera that turns (a
-    tripod pan) adds a keystone of one sign, steady along the capture, and needs it at
-    level 1 (the mosaic levels cannot undo the 24-44 px an affine level 1 leaves there).
-    So, as :meth:`~photonpano.schemes.check.LevelCheck.settle` decides the rescues'
-    perspective, the registered pairs' keystones ``p7 ((w - 1)/2)^2`` and ``p8 ((h - 1)/2)^2``
-    (pixels at the corner, about the frame centre) are read together: where neither
-    carries a signal (``check._signal``: lag-1 autocorrelation or the mean's t) with a
-    median of :data:`~photonpano.schemes.check.KEYSTONE_PX` or more, every registered pair
-    takes the affine map closest to its homography (least squares at a 4 x 4 grid of frame
-    pixels), and the first mosaic level registers what perspective there is.
+    lowest GRIC) now and then gives a pair a homography whose perspective (``p7, p8``) is
+    noise. Chained along the capture, a handful of them bend it: a keystone and scale that
+    wander by a pixel at the frame's corners, which the mosaic levels' template then holds
+    (a 0.06 px/frame pan that halts every 6 000 frames over the handwriting: 5 of 549
+    pairs, 0.254 px, ``ok`` with a median sigma of 0.077; made affine, 0.067 px). A camera
+    that turns gives most pairs a perspective (a shaking turn, a tripod pan), and a tripod
+    pan needs it at level 1 (the mosaic levels cannot undo the 24-44 px an affine level 1
+    leaves there). So where fewer than :data:`CHANCE_PERSPECTIVE_SHARE` of the registered
+    pairs have a perspective, and those do not add a steady keystone (at least
+    :data:`~photonpano.schemes.check.SETTLE_MIN_RESCUES` of them, whose keystone ``p7
+    ((w - 1)/2)^2`` or ``p8 ((h - 1)/2)^2`` about the frame centre carries a signal,
+    ``check._signal``, with a median of :data:`~photonpano.schemes.check.KEYSTONE_PX` or
+    more pixels at the corner, as :meth:`~photonpano.schemes.check.LevelCheck.settle` asks
+    of the rescues), each registered pair takes the affine map closest to its homography
+    (least squares at a 4 x 4 grid of frame pixels); the first mosaic level registers what
+    perspective there is.
 
     Args:
         found: the level's registrations, per locator call (after the check's settle).
@@ -272,9 +279,10 @@ def drop_unsteady_perspective(found: list[PairRegistrations], width: int, height
 
     Returns:
         ``(found, figures)``: the registrations (the same objects where the perspective is
-        kept) and ``{"kept", "pairs", "horizontal", "vertical"}`` (each keystone's
-        ``{"lag1", "t", "signal", "median_px"}``); None for fewer than
-        :data:`~photonpano.schemes.check.SETTLE_MIN_RESCUES` registered pairs.
+        kept) and ``{"kept", "pairs", "with_perspective", "horizontal", "vertical"}`` (the
+        keystones' ``{"lag1", "t", "signal", "median_px"}`` over the pairs with a
+        perspective, None for fewer than ``SETTLE_MIN_RESCUES``); None for fewer than
+        ``SETTLE_MIN_RESCUES`` registered pairs.
     """
     ok = np.concatenate([part.ok for part in found])
     registered = np.concatenate([part.homographies for part in found])[ok]
@@ -283,11 +291,14 @@ def drop_unsteady_perspective(found: list[PairRegistrations], width: int, height
     centred = geometry.about_centre(registered, width, height)
     corner = np.array([(width - 1) / 2, (height - 1) / 2]) ** 2
     keystones = centred[:, 2, :2] / centred[:, 2:, 2] * corner  # (P, 2) pixels at the corner
-    figures: dict[str, Any] = {name: {**_signal(keystones[:, k]), "median_px": round(float(np.median(
-        np.abs(keystones[:, k]))), 3)} for k, name in enumerate(("horizontal", "vertical"))}
-    kept = any(tilt["signal"] and tilt["median_px"] >= KEYSTONE_PX for tilt in figures.values())
-    figures = {"kept": kept, "pairs": len(registered), **figures}
-    if kept:
+    keystones = keystones[np.abs(keystones).max(axis=1) > 0]  # the pairs given a perspective
+    tilts: dict[str, Any] = {name: {**_signal(keystones[:, k]), "median_px": round(float(np.median(
+        np.abs(keystones[:, k]))), 3)} if len(keystones) >= SETTLE_MIN_RESCUES else None
+        for k, name in enumerate(("horizontal", "vertical"))}
+    kept = (len(keystones) >= CHANCE_PERSPECTIVE_SHARE * len(registered)
+            or any(tilt is not None and tilt["signal"] and tilt["median_px"] >= KEYSTONE_PX for tilt in tilts.values()))
+    figures = {"kept": kept, "pairs": len(registered), "with_perspective": len(keystones), **tilts}
+    if kept or not len(keystones):
         return found, figures
     grid = geometry.pixel_grid(width, height, 4)
     fit = np.linalg.pinv(np.column_stack([grid, np.ones(len(grid))]))  # (3, 16): least squares onto x, y, 1

@@ -283,13 +283,14 @@ def _keystoned(keystone_px: NDArray[np.float64], w: int, h: int, seed: int) -> N
     return geometry.from_centre(found, w, h)
 
 
-def test_a_level_s_pairs_keep_their_perspective_only_where_it_changes_steadily():
-    """drop_unsteady_perspective: a keystone of noise goes, a steady one of over 1 px (a tripod pan) stays.
+def test_a_level_s_pairs_drop_the_few_perspectives_their_locator_gave_by_chance():
+    """drop_unsteady_perspective: a few noisy keystones go; most pairs with one, or a steady one, stay.
 
-    Noise of 0.3 px at the corners, as a locator choosing each pair's model leaves where the
-    camera does not turn: every registered pair becomes the affine map nearest its
-    homography over the frame, failed pairs stay as they were. Keystones of 2-4 px of one
-    sign: the same registrations come back.
+    6 of 60 pairs with a keystone of 0.3 px of noise (a locator choosing each pair's model
+    where the camera does not turn): every registered pair becomes the affine map nearest
+    its homography over the frame, failed pairs stay as they were. 20 of 60 (a turning
+    camera's share), or all 60 with 2-4 px of one sign (a tripod pan): the same
+    registrations come back.
     """
     from photonpano import geometry
     from photonpano.schemes.check import SETTLE_MIN_RESCUES
@@ -297,13 +298,14 @@ def test_a_level_s_pairs_keep_their_perspective_only_where_it_changes_steadily()
 
     w, h = 248, 127
     rng = np.random.default_rng(3)
-    noisy = _keystoned(rng.normal(0.0, 0.3, 60), w, h, 0)
-    ok = np.arange(60) % 10 != 0
+    chance = np.where(np.arange(60) % 10 == 1, rng.normal(0.0, 0.3, 60), 0.0)
+    noisy = _keystoned(chance, w, h, 0)
+    ok = np.arange(60) % 20 != 0
     calls = [PairRegistrations(noisy[k:k + 20], np.zeros(20, np.int64), np.full(20, 40), ok[k:k + 20])
              for k in (0, 20, 40)]
     flattened, figures = drop_unsteady_perspective(calls, w, h)
-    assert figures is not None and not figures["kept"] and figures["pairs"] == 54, figures
-    assert figures["horizontal"]["median_px"] > 0.1 and not figures["horizontal"]["signal"]
+    assert figures is not None and not figures["kept"], figures
+    assert figures["pairs"] == 57 and figures["with_perspective"] == 6 and figures["horizontal"] is None
     after = np.concatenate([found.homographies for found in flattened])
     assert np.abs(after[ok, 2, :2]).max() == 0 and np.array_equal(after[~ok], noisy[~ok])
     grid = geometry.pixel_grid(w, h, 4)  # each affine is the least-squares fit to its homography there
@@ -311,11 +313,14 @@ def test_a_level_s_pairs_keep_their_perspective_only_where_it_changes_steadily()
     np.testing.assert_allclose(after[1, :2], np.linalg.lstsq(design, geometry.apply(noisy[1], grid))[0].T, atol=1e-9)
     assert geometry.mean_corner_distance(after[ok], noisy[ok], w, h).max() < 1.0
 
-    steady = _keystoned(np.linspace(2.0, 4.0, 60), w, h, 1)
-    calls = [PairRegistrations(steady, np.zeros(60, np.int64), np.full(60, 40), np.ones(60, bool))]
-    kept, figures = drop_unsteady_perspective(calls, w, h)
-    assert figures is not None and figures["kept"] and figures["horizontal"]["median_px"] >= 1.0, figures
-    assert kept[0] is calls[0]
+    turning = _keystoned(np.where(np.arange(60) % 3 == 0, rng.normal(0.0, 0.3, 60), 0.0), w, h, 1)
+    steady = _keystoned(np.linspace(2.0, 4.0, 60), w, h, 2)
+    for kind in (turning, steady):
+        calls = [PairRegistrations(kind, np.zeros(60, np.int64), np.full(60, 40), np.ones(60, bool))]
+        kept, figures = drop_unsteady_perspective(calls, w, h)
+        assert figures is not None and figures["kept"], figures
+        assert kept[0] is calls[0]
+    assert figures["horizontal"]["signal"] and figures["horizontal"]["median_px"] >= 1.0
     few = [PairRegistrations(noisy[:SETTLE_MIN_RESCUES - 1], np.zeros(SETTLE_MIN_RESCUES - 1, np.int64),
                              np.full(SETTLE_MIN_RESCUES - 1, 40), np.ones(SETTLE_MIN_RESCUES - 1, bool))]
     assert drop_unsteady_perspective(few, w, h) == (few, None)
