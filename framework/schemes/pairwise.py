@@ -268,9 +268,9 @@ def drop_unsteady_perspective(found: list[PairRegistrations], width: int, height
     ((w - 1)/2)^2`` or ``p8 ((h - 1)/2)^2`` about the frame centre carries a signal,
     ``check._signal``, with a median of :data:`~photonpano.schemes.check.KEYSTONE_PX` or
     more pixels at the corner, as :meth:`~photonpano.schemes.check.LevelCheck.settle` asks
-    of the rescues), each registered pair takes the affine map closest to its homography
-    (least squares at a 4 x 4 grid of frame pixels); the first mosaic level registers what
-    perspective there is.
+    of the rescues), each registered pair with a perspective takes the affine map closest
+    to its homography (least squares at a 4 x 4 grid of frame pixels); the first mosaic
+    level registers what perspective there is.
 
     Args:
         found: the level's registrations, per locator call (after the check's settle).
@@ -307,7 +307,8 @@ def drop_unsteady_perspective(found: list[PairRegistrations], width: int, height
         affine = np.zeros_like(part.homographies)
         affine[:, :2] = np.einsum("ij,pjk->pki", fit, geometry.apply(part.homographies, grid))
         affine[:, 2, 2] = 1
-        flattened.append(PairRegistrations(np.where(part.ok[:, None, None], affine, part.homographies),
+        given = part.ok & (np.abs(part.homographies[:, 2, :2]).max(axis=1) > 0)
+        flattened.append(PairRegistrations(np.where(given[:, None, None], affine, part.homographies),
                                            part.matches, part.inliers, part.ok))
     return flattened, figures
 
