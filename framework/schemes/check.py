@@ -69,6 +69,7 @@ from ..imaging import (
 )
 from ..movers import brightest_blob
 from ..records import MergedFrames, PairRegistrations
+from .keystone import KEYSTONE_PX, SIGNAL_LAG1, SIGNAL_T, keystones, shape_signal, steady_keystone
 
 __all__ = ["PairCheck", "LevelCheck", "rescue_motion", "SETTLE_MIN_RESCUES", "SIGNAL_LAG1", "SIGNAL_T", "KEYSTONE_PX"]
 
@@ -76,24 +77,6 @@ __all__ = ["PairCheck", "LevelCheck", "rescue_motion", "SETTLE_MIN_RESCUES", "SI
 SETTLE_MIN_RESCUES = 10
 """Rescues (with both ECC registrations) a level needs before they are decided together;
 with fewer, each keeps its own better registration."""
-SIGNAL_LAG1 = 0.6
-"""Lag-1 autocorrelation from which a shape parameter of the level's rescues, in the order
-they were registered, counts as a signal: a change that is smooth along the capture
-correlates from pair to pair, the noise of independent registrations does not (at 0.6 the
-smooth part holds more than half the variance)."""
-SIGNAL_T = 3.0
-"""Standard errors from zero at which a shape parameter's mean over the level's rescues
-counts as a signal (a steady change)."""
-
-
-KEYSTONE_PX = 1.0
-"""Median keystone (pixels at the frame's corner) a level's homography refinements of its
-rescues must add to their affine registrations, besides a signal (:data:`SIGNAL_LAG1`,
-:data:`SIGNAL_T`), for the level to keep them (:meth:`LevelCheck.settle`). A camera on a
-tripod turning 50 degrees at f = 420 px: 2.9-4.4 px; a zigzag over the dark Hubble photo,
-where a steady bias of the refinements reaches 4.6 standard errors: 0.14 px."""
-
-
 def _inliers(cc: float) -> int:
     """A rescue's pose-graph weight from its binned correlation: ``max(8, 100 cc^2)``."""
     return max(8, int(round(100 * cc ** 2)))
@@ -113,27 +96,11 @@ def _shape(affine: NDArray[np.float64], initial: NDArray[np.float64], radius: fl
                               (m[0, 1] + m[1, 0]) / 2])
 
 
-def _keystone(homography: NDArray[np.float64], affine: NDArray[np.float64], width: int, height: int
-              ) -> tuple[float, float]:
-    """The perspective ``homography`` adds to ``affine``: ``p7 (w/2)^2``, ``p8 (h/2)^2`` about the centre, pixels."""
-    d = geometry.about_centre(homography @ np.linalg.inv(affine), width, height)
-    d = d / d[2, 2]
-    return float(d[2, 0] * ((width - 1) / 2) ** 2), float(d[2, 1] * ((height - 1) / 2) ** 2)
-
-
-def _signal(values: NDArray[np.float64]) -> dict[str, float | bool]:
-    """A shape parameter over a level's rescues: lag-1 autocorrelation, t of its mean, and whether either counts."""
-    centred = values - values.mean()
-    lag1 = float((centred[1:] * centred[:-1]).sum() / max(float((centred ** 2).sum()), 1e-300))
-    t = float(values.mean() / max(float(values.std(ddof=1)) / np.sqrt(len(values)), 1e-300))
-    return {"lag1": round(lag1, 3), "t": round(t, 2), "signal": lag1 >= SIGNAL_LAG1 or abs(t) >= SIGNAL_T}
-
-
 def rescue_motion(shapes: NDArray[np.float64]) -> tuple[str, dict[str, dict[str, float | bool]]]:
     """Whether a level's rescues keep their affine corrections or take translations.
 
     A camera's zoom scales both axes alike. A level whose rescues scale one axis alone
-    (zoom and anisotropy each carry a signal, ``_signal``: lag-1 autocorrelation >=
+    (zoom and anisotropy each carry a signal, ``shape_signal``: lag-1 autocorrelation >=
     :data:`SIGNAL_LAG1` or a mean :data:`SIGNAL_T` standard errors from zero) and do not
     turn (the rotation carries none) is taking up a direction its frames do not pin:
     every rescue then takes its translation. On the checkerboard panned at flux 0.5 the
@@ -158,7 +125,7 @@ def rescue_motion(shapes: NDArray[np.float64]) -> tuple[str, dict[str, dict[str,
         better registration), and ``{"rotation", "zoom", "anisotropy"}`` each ``{"lag1",
         "t", "signal"}``.
     """
-    figures = {name: _signal(shapes[:, k]) for k, name in enumerate(("rotation", "zoom", "anisotropy"))}
+    figures = {name: shape_signal(shapes[:, k]) for k, name in enumerate(("rotation", "zoom", "anisotropy"))}
     one_axis = figures["zoom"]["signal"] and figures["anisotropy"]["signal"] and not figures["rotation"]["signal"]
     return ("translation" if one_axis else "per pair"), figures
 
@@ -248,10 +215,9 @@ class LevelCheck:
         rows = [alternative for call in self._alternatives for _, _, alternative in call]
         if len(rows) < SETTLE_MIN_RESCUES:
             return found
-        keystones = np.array([row[2] for row in rows if row[3] is not None]).reshape(-1, 2)
-        tilts = {name: {**_signal(keystones[:, k]), "median_px": round(float(np.median(np.abs(keystones[:, k]))), 3)}
-                 for k, name in enumerate(("horizontal", "vertical"))} if len(keystones) >= SETTLE_MIN_RESCUES else {}
-        if any(tilt["signal"] and tilt["median_px"] >= KEYSTONE_PX for tilt in tilts.values()):  # the camera turns
+        tilted = np.array([row[2] for row in rows if row[3] is not None]).reshape(-1, 2)
+        tilts, turns = steady_keystone(tilted) if len(tilted) >= SETTLE_MIN_RESCUES else ({}, False)
+        if turns:
             self.rescue_motion, self.rescue_shapes = "perspective", tilts
             taken = 3
         else:
@@ -357,7 +323,7 @@ class LevelCheck:
                     perspective = refine_binned_homography(*whole, affine[0], factor)
                     alternative = (_shape(affine[0], initial[p], (a.shape[1] * factor - 1) / 2),
                                    translation if passes else None,
-                                   _keystone(perspective[0], affine[0], a.shape[1] * factor, a.shape[0] * factor),
+                                   keystones(perspective[0], affine[0], a.shape[1] * factor, a.shape[0] * factor),
                                    perspective if perspective[1] > -1 and holds(*perspective) else None)
                 return as_rescue(h, cc, alternative)
             if any(vetoed):  # a registration the frames without their blobs disagree with: theirs

@@ -25,7 +25,8 @@ from ..posegraph import chain_keyframes, corner_disagreement, pairs_at_offsets, 
 from ..records import LocateResult, MergedFrames, PairRegistrations
 from ..watchdog import watched
 from .base import LevelScheme, LevelTask
-from .check import KEYSTONE_PX, SETTLE_MIN_RESCUES, LevelCheck, PairCheck, _signal
+from .check import SETTLE_MIN_RESCUES, LevelCheck, PairCheck
+from .keystone import keystones, steady_keystone
 
 __all__ = ["PairwiseScheme", "locate_keyframes", "drop_unsteady_perspective", "CHANCE_PERSPECTIVE_SHARE"]
 
@@ -264,13 +265,13 @@ def drop_unsteady_perspective(found: list[PairRegistrations], width: int, height
     pan needs it at level 1 (the mosaic levels cannot undo the 24-44 px an affine level 1
     leaves there). So where fewer than :data:`CHANCE_PERSPECTIVE_SHARE` of the registered
     pairs have a perspective, and those do not add a steady keystone (at least
-    :data:`~photonpano.schemes.check.SETTLE_MIN_RESCUES` of them, whose keystone ``p7
-    ((w - 1)/2)^2`` or ``p8 ((h - 1)/2)^2`` about the frame centre carries a signal,
-    ``check._signal``, with a median of :data:`~photonpano.schemes.check.KEYSTONE_PX` or
-    more pixels at the corner, as :meth:`~photonpano.schemes.check.LevelCheck.settle` asks
-    of the rescues), each registered pair with a perspective takes the affine map closest
-    to its homography (least squares at a 4 x 4 grid of frame pixels); the first mosaic
-    level registers what perspective there is.
+    :data:`~photonpano.schemes.check.SETTLE_MIN_RESCUES` of them, whose keystones carry a
+    signal with a median of :data:`~photonpano.schemes.keystone.KEYSTONE_PX` or more pixels
+    at the corner, :func:`~photonpano.schemes.keystone.steady_keystone`, as
+    :meth:`~photonpano.schemes.check.LevelCheck.settle` asks of the rescues), each
+    registered pair with a perspective takes the affine map closest to its homography
+    (least squares at a 4 x 4 grid of frame pixels); the first mosaic level registers what
+    perspective there is.
 
     Args:
         found: the level's registrations, per locator call (after the check's settle).
@@ -288,17 +289,15 @@ def drop_unsteady_perspective(found: list[PairRegistrations], width: int, height
     registered = np.concatenate([part.homographies for part in found])[ok]
     if len(registered) < SETTLE_MIN_RESCUES:
         return found, None
-    centred = geometry.about_centre(registered, width, height)
-    corner = np.array([(width - 1) / 2, (height - 1) / 2]) ** 2
-    keystones = centred[:, 2, :2] / centred[:, 2:, 2] * corner  # (P, 2) pixels at the corner
-    keystones = keystones[np.abs(keystones).max(axis=1) > 0]  # the pairs given a perspective
-    tilts: dict[str, Any] = {name: {**_signal(keystones[:, k]), "median_px": round(float(np.median(
-        np.abs(keystones[:, k]))), 3)} if len(keystones) >= SETTLE_MIN_RESCUES else None
-        for k, name in enumerate(("horizontal", "vertical"))}
-    kept = (len(keystones) >= CHANCE_PERSPECTIVE_SHARE * len(registered)
-            or any(tilt is not None and tilt["signal"] and tilt["median_px"] >= KEYSTONE_PX for tilt in tilts.values()))
-    figures = {"kept": kept, "pairs": len(registered), "with_perspective": len(keystones), **tilts}
-    if kept or not len(keystones):
+    tilted = keystones(registered, np.eye(3), width, height)  # (P, 2) pixels at the corner
+    tilted = tilted[np.abs(tilted).max(axis=1) > 0]  # the pairs given a perspective
+    tilts: dict[str, Any] = {"horizontal": None, "vertical": None}
+    steady = False
+    if len(tilted) >= SETTLE_MIN_RESCUES:
+        tilts, steady = steady_keystone(tilted)
+    kept = len(tilted) >= CHANCE_PERSPECTIVE_SHARE * len(registered) or steady
+    figures = {"kept": kept, "pairs": len(registered), "with_perspective": len(tilted), **tilts}
+    if kept or not len(tilted):
         return found, figures
     grid = geometry.pixel_grid(width, height, 4)
     fit = np.linalg.pinv(np.column_stack([grid, np.ones(len(grid))]))  # (3, 16): least squares onto x, y, 1
