@@ -28,9 +28,8 @@ Each link is registered both ways and to convergence (:func:`register_links`,
 the mosaic locator's speed-tuned rule, a link kept part of the current estimate's error, and
 one way only, the low-texture clock's links carried a bias that follows the warped frame.
 
-What the chains agree on is also taken out of the trajectory (:func:`correct_shape_drift`,
-``mosaic.correct_shape_drift``, on by default): a tripod pan's keystone ramp, the scale drift
-of a fast pan. The shape term is then what they still disagree on.
+What the chains agree on is also taken out of the trajectory (:func:`correct_shape_drift`, on by
+default): a tripod pan's keystone ramp, a fast pan's scale drift. The shape term is what is left.
 """
 
 from __future__ import annotations
@@ -57,8 +56,7 @@ SIGNIFICANCE = 2.0
 """Standard errors of the chains' mean (their spread over the square root of their number) taken off its size."""
 
 DRIFT_STEPS = 5
-"""Most steps of :func:`correct_shape_drift` (each first order in the error; three reach the
-chains' solution on the tripod pans of its docstring)."""
+"""Most steps of :func:`correct_shape_drift` (each first order; three reach the chains' solution on tripod pans)."""
 
 DRIFT_SIGNIFICANCE = 3.0
 """Standard errors a parameter of the chains' mean error must stand at for :func:`correct_shape_drift` to
@@ -282,7 +280,7 @@ def _size(params: NDArray[np.float64], width: int, height: int) -> NDArray[np.fl
 
 def chain_shape_error(registrations: NDArray[np.float64], ok: NDArray[np.bool_], links: NDArray[np.int64],
                       references: NDArray[np.int64], homographies: NDArray[np.float64], width: int,
-                      height: int) -> NDArray[np.float64] | None:
+                      height: int) -> tuple[NDArray[np.float64], NDArray[np.float64]] | None:
     """Each frame's shape error, from the held-out chains' disagreements with the final trajectory.
 
     A link registers group ``b``'s merged frame to group ``a``'s; its disagreement with the
@@ -294,7 +292,8 @@ def chain_shape_error(registrations: NDArray[np.float64], ok: NDArray[np.bool_],
     :func:`~photonpano.metrics.trajectory_error` does) is subtracted. The chains' mean is
     the estimate and their spread over the square root of their number its standard error;
     :data:`SIGNIFICANCE` standard errors are taken off its size in quadrature (a trajectory
-    whose chains agree with it within their noise gets no shape error).
+    whose chains agree with it within their noise gets no shape error). That standard error,
+    the shape error the chains cannot resolve, is returned too (for the uncertainty's shape term).
 
     Args:
         registrations: (P, 3, 3) float64 each link's registration (group b's pixels to a's).
@@ -306,9 +305,9 @@ def chain_shape_error(registrations: NDArray[np.float64], ok: NDArray[np.bool_],
         height: frame height in pixels.
 
     Returns:
-        (T,) float64 shape error per frame in pixels (mean corner distance; constant beyond
-        the chains' ends), or None where fewer than two chains have every link registered
-        (a chain with a failed link is left out).
+        ``(shape, standard_error)``: (T,) float64 each, per frame in pixels (mean corner
+        distance; constant beyond the chains' ends), or None where fewer than two chains have
+        every link registered (a chain with a failed link is left out).
     """
     found = _chain_errors(registrations, ok, links, references, _along_links(homographies, links, references),
                           width, height)
@@ -320,7 +319,8 @@ def chain_shape_error(registrations: NDArray[np.float64], ok: NDArray[np.bool_],
     mean = stacked.mean(axis=0)
     spread = np.sqrt(np.mean([_size(e - mean, width, height) ** 2 for e in stacked], axis=0) / (len(stacked) - 1))
     shape = np.sqrt(np.maximum(_size(mean, width, height) ** 2 - SIGNIFICANCE ** 2 * spread ** 2, 0.0))
-    return np.interp(np.arange(len(homographies), dtype=np.float64), frames, shape)
+    every = np.arange(len(homographies), dtype=np.float64)
+    return np.interp(every, frames, shape), np.interp(every, frames, spread)
 
 
 def correct_shape_drift(registrations: NDArray[np.float64], ok: NDArray[np.bool_], links: NDArray[np.int64],

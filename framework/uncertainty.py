@@ -35,7 +35,13 @@ predicts a 1-sigma error for every binary frame from these terms, added in quadr
   the final trajectory summed along each chain, less twice the standard error the chains'
   spread gives), at face value (a 50-degree tripod pan over the city, 0.31 px: median
   sigma 0.087 -> 0.23 px, its frames within 2 sigma 28 -> 72 %; a facade crossed by a
-  disc, 0.14 px: 52 -> 84 % within 2 sigma);
+  disc, 0.14 px: 52 -> 84 % within 2 sigma), and, in quadrature, what the chains cannot
+  resolve: their standard error, in proportion to the frame extents travelled from the
+  middle frame up to :data:`UNRESOLVED_SHAPE_EXTENTS` (a frame that overlaps the middle
+  one shares the template with it; one a whole frame away is tied to it only through the
+  frames in between). Fast pans had their shape error under-predicted: at 0.12 px/frame
+  over 31 photographs, 67 -> 83 % of the ``ok`` captures' frames within 2 sigma, the
+  evaluation suite's 96.2 -> 97.6 %;
 - *level change*: how far the mosaic levels moved each frame, from the first mosaic
   level's trajectory to the last's, times :data:`LEVEL_CHANGE_TO_SIGMA` (with the default
   three levels, the move of level 3), measured both in the panorama's frame and after the
@@ -64,38 +70,9 @@ The constants were set on the evaluation suite (``benchmarks/suite.py``: 48 capt
 its 16 photographs, paths, light levels and nuisances) and checked on eight photographs
 outside it (docs/accuracy.md): the share of frames of ``ok`` captures whose actual error
 is within twice their predicted sigma, each capture's median sigma over its RMSE, and
-which captures end ``degraded``. History: 1.4 / 2.5 (local, drift per extent from the
-median local sigma); a chain term when the mosaic levels went to full resolution
-(1.3 / 2.0 / 1.0); refitted when ``cubic-lk`` began to smooth the shape of the
-corrections (1.05 / 3.5 / 1.6, a knife-edge fit: the RMSE fell a median 27 % while the
-held-out residuals did not); then the level-change term, which made the drift term from
-the median local sigma unnecessary (0.9 / 0.5 / 1.2), then 0.8 / 0.5 / 1.2 for ECC on the
-stabilised detections; since the levels interpolate the trajectory itself with a
-cross-validated stiffness of its shape, they remove most of level 1's chain drift
-(evaluation suite: RMSE geometric mean -38 %, the held-out residuals barely changed), and
-the chain term went from 0.5 to 0.2, and to 0.1 when the level change was also taken
-after the global alignment (the suite's dark outdoor scene at 0.43 px had 68 % of its
-frames within twice a sigma that was 0.1-0.15 px over its middle half: its error there
-is a shape error that every frame shares relative to the middle frame; with the aligned
-change 0.8 / 0.1 / 1.2 leave 98.1 % of the `ok` captures' frames within 2 sigma, 0.1
-point above the band, every other rule holding; only the office interior, 0.12 px, has
-fewer than 80 % of its frames within 2 sigma), so the local factor went to 0.75 (97.9 %
-recomputed from that run's per-frame dumps, and 97.9 % in the suite re-run with it,
-median sigma 0.38-2.64 times the RMSE, every rule holding). Since the mosaic levels correct
-their registrations for the template's own error (:mod:`photonpano.schemes.template_bias`)
-the trajectories are more precise than their held-out residuals say (99.6 % of the `ok`
-captures' frames within twice the sigma, the city under a 100 Hz lamp 3.06 times its
-RMSE): recomputed from the suite's per-frame dumps, every rule holds for a local factor of
-0.2-0.4 and a chain term of 0-0.05 with the level-change factor at 1.1-1.2 (below 1.1 the
-facade's fast pan, 1.1 px, says `ok`), and 0.3 / 0.05 / 1.2 leave 97.0 % of the `ok`
-captures' frames within 2 sigma, median sigma 0.60-2.73 times the RMSE. Since level 1's groups
-cover the whole capture (``midpoint``), the suite's fast pan over gravel (0.196 px, `ok`)
-showed its shape drift, which no held-out pair sees, with a median sigma of 0.046 px (10 %
-of its frames within 2 sigma; 47 % on another seed before that change): recomputed from that
-run's dumps, every rule holds for a chain term of 0.2-0.3 (local 0.3, level change 1.2) and
-none below, and 0.2 leaves 97.0 % of the `ok` captures' frames within 2 sigma, median sigma
-0.36-2.80 times the RMSE; where the runs' noise leaves a choice, the larger sigma is the
-safer error. Frames whose trajectory rests on
+which captures end ``degraded``; where the runs' noise leaves a choice, the larger sigma
+is the safer error. How each constant came about: docs/accuracy.md, "How the predicted
+sigma was calibrated". Frames whose trajectory rests on
 registrations that failed (bridged from neighbours) or on no registration at all (before
 the first or after the last group's reference frame by more than half a group) are marked
 *unverified*.
@@ -119,7 +96,8 @@ from .metrics import trajectory_error
 from .records import LevelResult
 
 __all__ = ["FrameUncertainty", "frame_uncertainty", "held_out_residuals", "frame_extents_travelled", "level_change",
-           "RESIDUAL_TO_SIGMA", "CHAIN_DRIFT_PER_FRAME_EXTENT", "LEVEL_CHANGE_TO_SIGMA", "NEIGHBOURS", "LIMIT_PX"]
+           "RESIDUAL_TO_SIGMA", "CHAIN_DRIFT_PER_FRAME_EXTENT", "LEVEL_CHANGE_TO_SIGMA", "UNRESOLVED_SHAPE_EXTENTS",
+           "NEIGHBOURS", "LIMIT_PX"]
 
 RESIDUAL_TO_SIGMA = 0.3
 """Local term of the predicted per-frame sigma over the local RMS of held-out pair
@@ -134,6 +112,10 @@ LEVEL_CHANGE_TO_SIGMA = 1.2
 """Level-change term of the predicted sigma over each frame's mean corner distance
 between the last level's trajectory and the first mosaic level's (calibrated on the
 evaluation suite)."""
+
+UNRESOLVED_SHAPE_EXTENTS = 1.0
+"""Frame extents travelled from the middle frame over which the shape term takes in the whole
+standard error of the held-out chains' mean (in proportion before; see the module)."""
 
 NEIGHBOURS = 8
 """Residuals on each side of a pair that enter its local RMS."""
@@ -235,8 +217,8 @@ def frame_uncertainty(result: LevelResult, width: int, height: int, chain_residu
     known = np.isfinite(sigma_pairs)
     if known.any():
         local = np.interp(np.arange(n, dtype=np.float64), middle[known], sigma_pairs[known])
-        drift = (CHAIN_DRIFT_PER_FRAME_EXTENT * (chain_residual_px or 0.0)
-                 * frame_extents_travelled(result.homographies, width, height))
+        travelled = frame_extents_travelled(result.homographies, width, height)
+        drift = CHAIN_DRIFT_PER_FRAME_EXTENT * (chain_residual_px or 0.0) * travelled
         # how far the levels moved the frames; the shape drift's correction is not a level's step
         # (its evidence, the chains, gives the shape term)
         moved = result.homographies if result.uncorrected is None else result.uncorrected
@@ -245,7 +227,7 @@ def frame_uncertainty(result: LevelResult, width: int, height: int, chain_residu
         if level_one_span is not None:  # level 1 extrapolated beyond it; its error is what moved there
             first, last = (int(np.clip(f, 0, n - 1)) for f in level_one_span)
             change[:first], change[last + 1:] = change[first], change[last]
-        shape = _shape_term(result, width, height)
+        shape = _shape_term(result, travelled, width, height)
         sigma = np.sqrt(local ** 2 + drift ** 2 + change ** 2 + (0.0 if shape is None else shape) ** 2)
     else:
         sigma, shape = np.full(n, np.inf), None
@@ -269,13 +251,21 @@ def frame_uncertainty(result: LevelResult, width: int, height: int, chain_residu
                             0 if located.chain is None else len(located.chain.ok), shape)
 
 
-def _shape_term(result: LevelResult, width: int, height: int) -> NDArray[np.float64] | None:
-    """(T,) float64 the shape term of each frame (:mod:`photonpano.long_pairs`), or None without the chains."""
+def _shape_term(result: LevelResult, travelled: NDArray[np.float64], width: int, height: int
+                ) -> NDArray[np.float64] | None:
+    """(T,) float64 the shape term of each frame (see the module), or None without the chains.
+
+    ``travelled`` is :func:`frame_extents_travelled` of the final homographies.
+    """
     located = result.located
     if located.chain is None or located.chain_index is None:
         return None
-    return chain_shape_error(located.chain.homographies, located.chain.ok, located.chain_index,
-                             result.groups.reference, result.homographies, width, height)
+    found = chain_shape_error(located.chain.homographies, located.chain.ok, located.chain_index,
+                              result.groups.reference, result.homographies, width, height)
+    if found is None:
+        return None
+    shape, unresolved = found
+    return np.hypot(shape, unresolved * np.minimum(travelled / UNRESOLVED_SHAPE_EXTENTS, 1.0))
 
 
 def level_change(homographies: NDArray[np.float64], previous: NDArray[np.float64],
