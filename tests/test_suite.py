@@ -102,3 +102,21 @@ def test_a_fast_pan_that_halts_over_handwriting_keeps_the_frame_s_shape():
     assert "failed" not in row, row
     assert row["rmse"] <= 0.12 and row["status"] == "ok", row
     assert 1 / 3 <= row["sigma_median"] / row["rmse"] <= 3, row
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(600)
+def test_a_fast_pan_s_sigma_keeps_the_shape_error_its_chains_cannot_resolve():
+    """The suite's fast pan (0.12 px/frame) over the coffee: its frames' shape wanders, and the sigma says so.
+
+    A fast pan's frames far from the middle frame are tied to it only through the frames in
+    between; their shape error (about 0.2 px) stays under the held-out chains' noise, so the
+    shape term gave none: ``ok`` with a median sigma of 0.065, 25 % of the frames within twice
+    it. With the chains' standard error kept in proportion to the frame extents travelled
+    (:data:`~photonpano.uncertainty.UNRESOLVED_SHAPE_EXTENTS`): a median sigma of 0.24 px.
+    """
+    suite = _suite()
+    capture = suite.Capture(suite.PHOTOS / "objects_coffee.jpg", "fast-pan", suite.HARD["fast-pan"])
+    row = suite.run_capture(capture)
+    assert "failed" not in row, row
+    assert row["within_2_sigma"] >= 0.8 and 1 / 3 <= row["sigma_median"] / row["rmse"] <= 3, row
