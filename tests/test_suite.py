@@ -112,8 +112,9 @@ def test_a_fast_pan_s_sigma_keeps_the_shape_error_its_chains_cannot_resolve():
     A fast pan's frames far from the middle frame are tied to it only through the frames in
     between; their shape error (about 0.2 px) stays under the held-out chains' noise, so the
     shape term gave none: ``ok`` with a median sigma of 0.065, 25 % of the frames within twice
-    it. With the chains' standard error kept in proportion to the frame extents travelled
-    (:data:`~photonpano.uncertainty.UNRESOLVED_SHAPE_EXTENTS`): a median sigma of 0.24 px.
+    it. The frames travel 1.45 frame widths from the middle frame, so the shape term now keeps
+    the chains' standard error (:data:`~photonpano.uncertainty.UNRESOLVED_SHAPE_EXTENTS`):
+    a median sigma of 0.24 px, every frame within twice it.
     """
     suite = _suite()
     capture = suite.Capture(suite.PHOTOS / "objects_coffee.jpg", "fast-pan", suite.HARD["fast-pan"])
