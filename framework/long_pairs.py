@@ -28,8 +28,8 @@ Each link is registered both ways and to convergence (:func:`register_links`,
 the mosaic locator's speed-tuned rule, a link kept part of the current estimate's error, and
 one way only, the low-texture clock's links carried a bias that follows the warped frame.
 
-What the chains agree on is also taken out of the trajectory (:func:`correct_shape_drift`, on by
-default): a tripod pan's keystone ramp, a fast pan's scale drift. The shape term is what is left.
+What the chains agree on is also taken out of the trajectory (:func:`correct_shape_drift`, on by default);
+the shape term is what they still disagree on, and on fast pans what they cannot resolve (their noise).
 """
 
 from __future__ import annotations
