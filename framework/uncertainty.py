@@ -258,7 +258,7 @@ def _shape_term(result: LevelResult, travelled: NDArray[np.float64], width: int,
                 ) -> NDArray[np.float64] | None:
     """(T,) float64 the shape term of each frame (see the module), or None without the chains.
 
-    ``travelled`` is :func:`frame_extents_travelled` of the final homographies.
+    ``travelled`` is (T,) float64 :func:`frame_extents_travelled` of the final homographies (frame extents).
     """
     located = result.located
     if located.chain is None or located.chain_index is None:

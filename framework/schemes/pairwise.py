@@ -289,8 +289,7 @@ def drop_unsteady_perspective(found: list[PairRegistrations], width: int, height
     registered = np.concatenate([part.homographies for part in found])[ok]
     if len(registered) < SETTLE_MIN_RESCUES:
         return found, None
-    tilted = keystones(registered, np.eye(3), width, height)  # (P, 2) pixels at the corner
-    tilted = tilted[np.abs(tilted).max(axis=1) > 0]  # the pairs given a perspective
+    tilted = keystones(registered[_given_perspective(registered)], np.eye(3), width, height)  # pixels at the corner
     tilts: dict[str, Any] = {"horizontal": None, "vertical": None}
     steady = False
     if len(tilted) >= SETTLE_MIN_RESCUES:
@@ -306,10 +305,15 @@ def drop_unsteady_perspective(found: list[PairRegistrations], width: int, height
         affine = np.zeros_like(part.homographies)
         affine[:, :2] = np.einsum("ij,pjk->pki", fit, geometry.apply(part.homographies, grid))
         affine[:, 2, 2] = 1
-        given = part.ok & (np.abs(part.homographies[:, 2, :2]).max(axis=1) > 0)
+        given = part.ok & _given_perspective(part.homographies)
         flattened.append(PairRegistrations(np.where(given[:, None, None], affine, part.homographies),
                                            part.matches, part.inliers, part.ok))
     return flattened, figures
+
+
+def _given_perspective(homographies: NDArray[np.float64]) -> NDArray[np.bool_]:
+    """(P,) bool the registrations (P, 3, 3) whose locator gave them a perspective (``p7`` or ``p8`` not zero)."""
+    return np.abs(homographies[:, 2, :2]).max(axis=1) > 0
 
 
 class PairwiseScheme(LevelScheme):
