@@ -27,23 +27,21 @@ binning is the photon budget's ``check_binning``, :class:`~photonpano.budget.Bud
    estimate: nothing is vetoed (docs/real_scenes.md, "Moving objects"). A pair that
    needs rescuing (step 2) takes the registration without the blobs where that
    correlates better than the whole frames under their own by ``rescue_margin``: a
-   mover lowers the whole frames' correlation, and their correlation is too flat around
-   the truth for the veto's margin (a disc crossing the brick facade pulled a rescue
-   3.3 px off at a correlation of 0.727, against 0.724 at the truth; without its blob the
-   frames correlated 0.993, and 0.987 under the pulled registration). A static blob
-   leaves the two within the margin: on the low-texture clock, whose smooth frames
-   correlate at 0.99 over registrations pixels apart, a choice by correlation alone
-   follows the noise (the clock under a 100 Hz lamp 0.210 -> 0.306 px with no margin,
-   0.252 at 0.05; the facade crossed by the disc 0.039 and 0.034 px).
+   mover lowers the whole frames' correlation, too flat around the truth for the veto's
+   margin (a disc crossing the brick facade pulled a rescue 3.3 px off at 0.727, against
+   0.724 at the truth; without its blob 0.993, and 0.987 under the pulled registration).
+   A static blob leaves the two within the margin: the low-texture clock's frames
+   correlate at 0.99 over registrations pixels apart (under a 100 Hz lamp 0.210 -> 0.306 px
+   with no margin, 0.252 at 0.05; the facade crossed by the disc 0.039 and 0.034 px).
 4. at the level's end its rescues are **decided together** (:meth:`LevelCheck.settle`):
    one pair cannot tell whether the affine correction it chose follows the camera or a
    direction its frames do not pin (a checkerboard's rows leave the vertical scale free:
    after level 1 its vertical scale ramped by +-2.7 px at the frame's corners), but the
    level's rescues can. Where they scale one axis alone and do not turn (:func:`rescue_motion`),
-   every rescue that both ECCs registered takes its translation (the checkerboard
-   0.540 -> 0.075 px; ``docs/accuracy.md``, "Rescues decided together"). Before that:
-   where homography ECCs refining the rescues (:func:`~photonpano.imaging.refine_binned_homography`)
-   add a steady keystone whose median reaches :data:`KEYSTONE_PX`, the camera turns out
+   every rescue that both ECCs registered takes its translation (the checkerboard 0.540 ->
+   0.075 px; ``docs/accuracy.md``, "Rescues decided together"). Before that: where homography
+   ECCs refining the rescues (:func:`~photonpano.imaging.refine_binned_homography`; a sample
+   first) add a steady keystone whose median reaches :data:`KEYSTONE_PX`, the camera turns out
    of the image plane (a tripod pan: affine rescues lost 24-44 px), and rescues take them.
 
 A level's figures (correlation per pair, pairs checked out and rescued) travel in its
@@ -69,7 +67,7 @@ from ..imaging import (
 )
 from ..movers import brightest_blob
 from ..records import MergedFrames, PairRegistrations
-from .keystone import KEYSTONE_PX, SIGNAL_LAG1, SIGNAL_T, keystones, shape_signal, steady_keystone
+from .keystone import KEYSTONE_PX, SIGNAL_LAG1, SIGNAL_T, keystones, rescue_motion, steady_keystone
 
 __all__ = ["PairCheck", "LevelCheck", "rescue_motion", "SETTLE_MIN_RESCUES", "SIGNAL_LAG1", "SIGNAL_T", "KEYSTONE_PX"]
 
@@ -77,6 +75,15 @@ __all__ = ["PairCheck", "LevelCheck", "rescue_motion", "SETTLE_MIN_RESCUES", "SI
 SETTLE_MIN_RESCUES = 10
 """Rescues (with both ECC registrations) a level needs before they are decided together;
 with fewer, each keeps its own better registration."""
+REFINE_SAMPLE = 4
+"""One in this many rescues is refined first, to see whether the level can turn (:meth:`LevelCheck._refinements`)."""
+REFINE_SAMPLE_MIN = 50
+"""Passing sampled refinements needed to rule a turn out (fewer: every rescue is refined)."""
+KEYSTONE_RULED_OUT_PX = 0.7
+"""Median keystone (pixels at the frame's corner) of the sampled refinements under which the
+level's cannot reach :data:`KEYSTONE_PX`: the others are not refined (docs/performance.md)."""
+
+
 def _inliers(cc: float) -> int:
     """A rescue's pose-graph weight from its binned correlation: ``max(8, 100 cc^2)``."""
     return max(8, int(round(100 * cc ** 2)))
@@ -94,40 +101,6 @@ def _shape(affine: NDArray[np.float64], initial: NDArray[np.float64], radius: fl
     m = d[:2, :2] / d[2, 2]
     return radius * np.array([(m[1, 0] - m[0, 1]) / 2, (m[0, 0] + m[1, 1]) / 2 - 1, (m[1, 1] - m[0, 0]) / 2,
                               (m[0, 1] + m[1, 0]) / 2])
-
-
-def rescue_motion(shapes: NDArray[np.float64]) -> tuple[str, dict[str, dict[str, float | bool]]]:
-    """Whether a level's rescues keep their affine corrections or take translations.
-
-    A camera's zoom scales both axes alike. A level whose rescues scale one axis alone
-    (zoom and anisotropy each carry a signal, ``shape_signal``: lag-1 autocorrelation >=
-    :data:`SIGNAL_LAG1` or a mean :data:`SIGNAL_T` standard errors from zero) and do not
-    turn (the rotation carries none) is taking up a direction its frames do not pin:
-    every rescue then takes its translation. On the checkerboard panned at flux 0.5 the
-    zoom's t is -9.8, the anisotropy's -10.0, the rotation's -1.5 (lag-1 0.46): 0.540 ->
-    0.075 px, and under a 100 Hz lamp 0.605 -> 0.038 px.
-
-    Anything else keeps each rescue's better registration. No signal is no evidence
-    that the camera does not turn: a turning capture whose rescues' rotation is lost in
-    their noise needs the affine corrections (in an experiment that decided such levels
-    for translations, turning microaneurysms went from 0.31 to 2.66 px); and a level that
-    turns keeps its rescues' one-axis scale with the turn (the checkerboard turning by up
-    to 10 degrees: 0.51 px, 5.6 with translations). ``docs/accuracy.md``, "Rescues decided
-    together".
-
-    Args:
-        shapes: (R, 4) float64 each rescue's rotation, zoom, anisotropy and shear
-            (``_shape``, pixels at the frame's half width), in the order the pairs
-            were registered; R >= 2.
-
-    Returns:
-        ``(motion, figures)``: ``"translation"`` or ``"per pair"`` (each rescue keeps its
-        better registration), and ``{"rotation", "zoom", "anisotropy"}`` each ``{"lag1",
-        "t", "signal"}``.
-    """
-    figures = {name: shape_signal(shapes[:, k]) for k, name in enumerate(("rotation", "zoom", "anisotropy"))}
-    one_axis = figures["zoom"]["signal"] and figures["anisotropy"]["signal"] and not figures["rotation"]["signal"]
-    return ("translation" if one_axis else "per pair"), figures
 
 
 class PairCheck:
@@ -187,7 +160,7 @@ class LevelCheck:
         self.correlations: list[float] = []
         self._binned: dict[tuple[bytes, bytes], tuple[NDArray[np.float32], NDArray[np.bool_], NDArray[np.bool_]]] = {}
         # per call, each rescue both ECCs registered: (pair in the call, index in correlations, (affine shape,
-        # translation, keystone of the homography refinement, refinement; each registration None unless it passes))
+        # translation or None unless it passes, the homography refinement to run: see _refinements))
         self._alternatives: list[list[tuple[int, int, Any]]] = []
         self.rescue_motion: str | None = None
         self.rescue_shapes: dict[str, dict[str, float | bool]] | None = None
@@ -215,26 +188,53 @@ class LevelCheck:
         rows = [alternative for call in self._alternatives for _, _, alternative in call]
         if len(rows) < SETTLE_MIN_RESCUES:
             return found
-        tilted = np.array([row[2] for row in rows if row[3] is not None]).reshape(-1, 2)
-        tilts, turns = steady_keystone(tilted) if len(tilted) >= SETTLE_MIN_RESCUES else ({}, False)
+        refined = self._refinements(rows)
+        tilted = np.array([tilt for tilt, refinement in refined if refinement is not None]).reshape(-1, 2)
+        tilts, turns = steady_keystone(tilted) if refined and len(tilted) >= SETTLE_MIN_RESCUES else ({}, False)
         if turns:
             self.rescue_motion, self.rescue_shapes = "perspective", tilts
-            taken = 3
+            taken = iter([refinement for _, refinement in refined])
         else:
             self.rescue_motion, self.rescue_shapes = rescue_motion(np.array([row[0] for row in rows]))
-            taken = 1
             if self.rescue_motion != "translation":
                 return found
+            taken = iter([row[1] for row in rows])
         revised = []
         for part, call in zip(found, self._alternatives):
             homographies, inliers, ok = part.homographies.copy(), part.inliers.copy(), part.ok.copy()
-            for p, index, alternative in call:
-                registration = alternative[taken]
+            for p, index, _ in call:
+                registration = next(taken)
                 if registration is not None:
                     homographies[p], inliers[p], ok[p] = registration[0], _inliers(registration[1]), True
                     self.correlations[index] = registration[1]
             revised.append(PairRegistrations(homographies, part.matches, inliers, ok))
         return revised
+
+    def _refinements(self, rows: list[Any]) -> list[tuple[NDArray[np.float64], Any]]:
+        """Each rescue's homography refinement ``(keystones, refinement)``, or [] where a sample rules a turn out.
+
+        A refinement is one homography ECC per rescue (a third of level 1's time on the
+        clock's 100 000 frames) and counts only where the level turns. Every
+        :data:`REFINE_SAMPLE`-th rescue is refined first; where at least
+        :data:`REFINE_SAMPLE_MIN` of those pass with a median keystone under
+        :data:`KEYSTONE_RULED_OUT_PX` on both axes, the others are not refined.
+
+        Args:
+            rows: the level's rescue alternatives ``(shape, translation, refine)``, in registration order.
+
+        Returns:
+            One ``(keystones, refinement)`` per row, in order: (2,) float64 pixels at the
+            frame's corner, and the refinement's ``(homography, correlation, overlap)``
+            where it passes the check, else None; or [] (no turn).
+        """
+        sample = range(0, len(rows), REFINE_SAMPLE)
+        done = dict(zip(sample, self.executor.map(lambda i: rows[i][2](), sample)))
+        tilted = np.array([tilt for tilt, refinement in done.values() if refinement is not None]).reshape(-1, 2)
+        if len(tilted) >= REFINE_SAMPLE_MIN and np.median(np.abs(tilted), axis=0).max() < KEYSTONE_RULED_OUT_PX:
+            return []
+        rest = [i for i in range(len(rows)) if i not in done]
+        done.update(zip(rest, self.executor.map(lambda i: rows[i][2](), rest)))
+        return [done[i] for i in range(len(rows))]
 
     def __call__(self, merged: MergedFrames, pairs: NDArray[np.int64], initial: NDArray[np.float64],
                  found: PairRegistrations) -> PairRegistrations:
@@ -320,11 +320,15 @@ class LevelCheck:
                 alternative = None
                 if affine[1] > -1 and translation[1] > -1:  # both ECCs registered: for settle()
                     passes = translation[0] is h or holds(*translation)
-                    perspective = refine_binned_homography(*whole, affine[0], factor)
+
+                    def refine() -> tuple[NDArray[np.float64], Any]:
+                        """The homography refinement's keystones and the refinement where it passes."""
+                        perspective = refine_binned_homography(*whole, affine[0], factor)
+                        return (keystones(perspective[0], affine[0], a.shape[1] * factor, a.shape[0] * factor),
+                                perspective if perspective[1] > -1 and holds(*perspective) else None)
+
                     alternative = (_shape(affine[0], initial[p], (a.shape[1] * factor - 1) / 2),
-                                   translation if passes else None,
-                                   keystones(perspective[0], affine[0], a.shape[1] * factor, a.shape[0] * factor),
-                                   perspective if perspective[1] > -1 and holds(*perspective) else None)
+                                   translation if passes else None, refine)
                 return as_rescue(h, cc, alternative)
             if any(vetoed):  # a registration the frames without their blobs disagree with: theirs
                 h, cc, _ = registered_without()

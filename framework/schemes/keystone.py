@@ -6,7 +6,7 @@ a registration's perspective is then noise. Read one registration at a time the 
 alike; read over a level's registrations, in the order they were made, a turn changes
 smoothly or steadily while noise does not. :class:`~photonpano.schemes.check.LevelCheck`
 decides its rescues' perspective so, and :func:`~photonpano.schemes.pairwise.drop_unsteady_perspective`
-its registered pairs'.
+its registered pairs'; :func:`rescue_motion` whether its rescues scale one axis without turning.
 """
 
 from __future__ import annotations
@@ -16,7 +16,7 @@ from numpy.typing import NDArray
 
 from .. import geometry
 
-__all__ = ["SIGNAL_LAG1", "SIGNAL_T", "KEYSTONE_PX", "shape_signal", "keystones", "steady_keystone"]
+__all__ = ["SIGNAL_LAG1", "SIGNAL_T", "KEYSTONE_PX", "shape_signal", "keystones", "steady_keystone", "rescue_motion"]
 
 SIGNAL_LAG1 = 0.6
 """Lag-1 autocorrelation from which a shape parameter of the level's rescues, in the order
@@ -80,3 +80,37 @@ def steady_keystone(values: NDArray[np.float64]) -> tuple[dict[str, dict[str, fl
     tilts = {name: {**shape_signal(values[:, k]), "median_px": round(float(np.median(np.abs(values[:, k]))), 3)}
              for k, name in enumerate(("horizontal", "vertical"))}
     return tilts, any(tilt["signal"] and tilt["median_px"] >= KEYSTONE_PX for tilt in tilts.values())
+
+
+def rescue_motion(shapes: NDArray[np.float64]) -> tuple[str, dict[str, dict[str, float | bool]]]:
+    """Whether a level's rescues keep their affine corrections or take translations.
+
+    A camera's zoom scales both axes alike. A level whose rescues scale one axis alone
+    (zoom and anisotropy each carry a signal, ``shape_signal``: lag-1 autocorrelation >=
+    :data:`SIGNAL_LAG1` or a mean :data:`SIGNAL_T` standard errors from zero) and do not
+    turn (the rotation carries none) is taking up a direction its frames do not pin:
+    every rescue then takes its translation. On the checkerboard panned at flux 0.5 the
+    zoom's t is -9.8, the anisotropy's -10.0, the rotation's -1.5 (lag-1 0.46): 0.540 ->
+    0.075 px, and under a 100 Hz lamp 0.605 -> 0.038 px.
+
+    Anything else keeps each rescue's better registration. No signal is no evidence
+    that the camera does not turn: a turning capture whose rescues' rotation is lost in
+    their noise needs the affine corrections (in an experiment that decided such levels
+    for translations, turning microaneurysms went from 0.31 to 2.66 px); and a level that
+    turns keeps its rescues' one-axis scale with the turn (the checkerboard turning by up
+    to 10 degrees: 0.51 px, 5.6 with translations). ``docs/accuracy.md``, "Rescues decided
+    together".
+
+    Args:
+        shapes: (R, 4) float64 each rescue's rotation, zoom, anisotropy and shear
+            (:mod:`~photonpano.schemes.check`'s ``_shape``, pixels at the frame's half
+            width), in the order the pairs were registered; R >= 2.
+
+    Returns:
+        ``(motion, figures)``: ``"translation"`` or ``"per pair"`` (each rescue keeps its
+        better registration), and ``{"rotation", "zoom", "anisotropy"}`` each ``{"lag1",
+        "t", "signal"}``.
+    """
+    figures = {name: shape_signal(shapes[:, k]) for k, name in enumerate(("rotation", "zoom", "anisotropy"))}
+    one_axis = figures["zoom"]["signal"] and figures["anisotropy"]["signal"] and not figures["rotation"]["signal"]
+    return ("translation" if one_axis else "per pair"), figures

@@ -272,6 +272,43 @@ def test_a_level_whose_rescues_tilt_steadily_keeps_their_perspective():
     assert geometry.mean_corner_distance(kept, np.stack(truths), w, h).max() < 0.5
 
 
+def test_a_level_whose_sampled_refinements_rule_a_turn_out_refines_no_other_rescue(monkeypatch):
+    """settle(): a quarter of the rescues refined by a homography shows no keystone: the others are not refined.
+
+    44 rescues of pairs shifted by (6, -3) px, no perspective, the locator failing: the
+    sample of every REFINE_SAMPLE-th rescue (11, REFINE_SAMPLE_MIN set to 10 for the test)
+    is refined, its median keystone stays under KEYSTONE_RULED_OUT_PX, and the level ends
+    as it does with every rescue refined (the same registrations and figures, not
+    ``"perspective"``).
+    """
+    from photonpano import imaging
+    from photonpano.executor import SerialExecutor
+    from photonpano.schemes import PairCheck, check
+
+    truth = np.array([[1, 0, 6.0], [0, 1, -3.0], [0, 0, 1]])
+    pairs = [_noisy_pair(truth, 2.0, seed) for seed in range(44)]
+    refined = []
+    monkeypatch.setattr(check, "REFINE_SAMPLE_MIN", 10)
+    monkeypatch.setattr(check, "refine_binned_homography",
+                        lambda *args, **kw: (refined.append(1), imaging.refine_binned_homography(*args, **kw))[1])
+
+    def settled(ruled_out_px):
+        monkeypatch.setattr(check, "KEYSTONE_RULED_OUT_PX", ruled_out_px)
+        refined.clear()
+        level = PairCheck(2).start_level(SerialExecutor())
+        calls = [level(merged, np.array([[0, 1]]), truth[None],
+                       _Fixed(np.eye(3), ok=False).register_pairs(merged, merged.frame_ids()[np.array([[0, 1]])],
+                                                                  truth[None])) for merged in pairs]
+        found = level.settle(calls)
+        return np.concatenate([f.homographies for f in found]), level.figures(), len(refined)
+
+    sampled, figures, count = settled(check.KEYSTONE_RULED_OUT_PX)
+    every, every_figures, every_count = settled(0.0)  # nothing ruled out: every rescue refined
+    assert count == 11 and every_count == 44
+    assert figures["rescue_motion"] != "perspective" and figures == every_figures
+    np.testing.assert_array_equal(sampled, every)
+
+
 def _keystoned(keystone_px: NDArray[np.float64], w: int, h: int, seed: int) -> NDArray[np.float64]:
     """Pair registrations shifted by about (10, 2) px with keystones ``p7`` of ``keystone_px`` at the corner."""
     from photonpano import geometry
