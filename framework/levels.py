@@ -33,7 +33,9 @@ def estimate_motion(source: PhotonSource, resampler: Resampler, merger: Merger, 
                     keep_merged: bool = False, on_level: Callable[[LevelResult], None] | None = None,
                     progress: Callable[[str, int], Callable[[int], None]] | None = None, start_level: int = 1,
                     initial: NDArray[np.float64] | None = None, crosscheck: bool = True,
-                    correct_shape_drift: bool = False) -> NDArray[np.float64]:
+                    correct_shape_drift: bool = False,
+                    revise: Callable[[LevelResult], Sequence[LevelScheme] | None] | None = None
+                    ) -> NDArray[np.float64]:
     """Estimate a homography for every binary frame by stratified re-sampling.
 
     One level per scheme. Each level re-samples groups, has its scheme merge them with
@@ -69,6 +71,10 @@ def estimate_motion(source: PhotonSource, resampler: Resampler, merger: Merger, 
             level's trajectory (:func:`~photonpano.long_pairs.correct_shape_drift`; the
             level's ``timings_s`` then has ``shape_drift``, its result the trajectory before
             it and the largest move, :class:`~photonpano.records.LevelResult`).
+        revise: called after ``on_level`` with each finished level; may return the schemes
+            of every level (the same length) to change those of the levels after it
+            (a scheme new to the run is prepared with their groups, and closed at the end),
+            or None to keep them.
 
     Returns:
         (T, 3, 3) float64 frame-to-panorama homographies, where panorama coordinates are
@@ -124,9 +130,17 @@ def estimate_motion(source: PhotonSource, resampler: Resampler, merger: Merger, 
                     homographies, source.width, source.height)
                 homographies = _gauge(corrected)
                 timings["shape_drift"] = time.perf_counter() - t3
+            result = LevelResult(level, scheme.name, groups, located, homographies, timings, rejected, uncorrected,
+                                 drift)
             if on_level is not None:
-                on_level(LevelResult(level, scheme.name, groups, located, homographies, timings, rejected,
-                                     uncorrected, drift))
+                on_level(result)
+            if revise is not None and (revised := revise(result)) is not None:
+                schemes = list(schemes[:level]) + list(revised[level:])
+                fresh = list({id(s): s for s in schemes[level:] if all(s is not d for d in distinct)}.values())
+                for added in fresh:
+                    added.prepare([resampled[later][0] for later in range(level + 1, len(schemes) + 1)],
+                                  group_size, executor)
+                distinct += fresh
         return homographies
     finally:
         for scheme in distinct:

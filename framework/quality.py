@@ -24,7 +24,7 @@ from .imaging import binned_frame, normalised_correlation
 from .stages import Groups, MergedFrames
 from .watchdog import watched
 
-__all__ = ["level_figures", "panorama_agreement", "assess", "THRESHOLDS"]
+__all__ = ["level_figures", "panorama_agreement", "assess", "movers_record", "THRESHOLDS"]
 
 THRESHOLDS = {"failed_fraction": 0.2, "failed_against_panorama": 0.1, "rejected_fraction": 0.1,
               "residual_px": 2.0, "agreement": 0.5, "photons_per_pixel": 2.0}
@@ -197,3 +197,17 @@ def _uncertainty_warnings(summary: dict[str, Any], listed: int = 4) -> list[str]
                      + ", ".join(f"{span(e)}: up to {worst(e)}" for e in worst_first[:listed])
                      + (f" and {len(above) - listed} more ranges" if len(above) > listed else ""))
     return lines
+
+
+def movers_record(stats: list[dict[str, Any]]) -> dict[str, Any] | None:
+    """``run.json``'s ``movers``: the level whose mosaic template decided on mover rejection, and what it found.
+
+    ``{"level", "engaged", "template_fraction", "largest_region"}`` from the first level row with a
+    ``movers`` entry (:attr:`~photonpano.records.LocateResult.movers`); None where no
+    level rejects movers (``mosaic.reject_movers: null``, or no mosaic level).
+    """
+    for row in stats:
+        if row.get("movers") is not None:
+            return {"level": row["level"], **{key: row["movers"][key] for key in
+                                              ("engaged", "template_fraction", "largest_region")}}
+    return None

@@ -48,20 +48,6 @@ def _told_of_flicker(build: Callable[[], Compositor], flicker: Any) -> Callable[
     return make
 
 
-def _movers_record(stats: list[dict[str, Any]]) -> dict[str, Any] | None:
-    """``run.json``'s ``movers``: the level whose mosaic template decided on mover rejection, and what it found.
-
-    ``{"level", "engaged", "template_fraction", "largest_region"}`` from the first level row with a
-    ``movers`` entry (:attr:`~photonpano.records.LocateResult.movers`); None where no
-    level rejects movers (``mosaic.reject_movers: null``, or no mosaic level).
-    """
-    for row in stats:
-        if row.get("movers") is not None:
-            return {"level": row["level"], **{key: row["movers"][key] for key in
-                                              ("engaged", "template_fraction", "largest_region")}}
-    return None
-
-
 class Stages:
     """The stages of a spec, built once for one opened capture; used by run, compare and the API.
 
@@ -184,7 +170,9 @@ class Stages:
         A scheme whose registration binning k is above 1 (the budget's
         ``register_binning`` for pairwise levels, ``mosaic_binning`` for mosaic ones) runs
         on the capture binned k x k (:class:`~photonpano.schemes.Binned`, one grid per k
-        and call).
+        and call). Where ``auto`` binned the mosaic levels for the capture's length alone
+        and level 1 finds a scene of little texture (:func:`~photonpano.budget.binnings.little_texture`),
+        they register at full resolution instead.
 
         Args:
             executor: where independent work runs.
@@ -195,12 +183,12 @@ class Stages:
         Returns:
             (T, 3, 3) float64 frame-to-panorama homographies (middle-frame pixels).
         """
+        from .budget.binnings import full_resolution_hint, little_texture
         from .budget.grid import RegistrationGrid
         from .levels import estimate_motion
         from .schemes import Binned
 
-        start = {} if resume is None else {
-            "start_level": resume.level + 1, "initial": resume.homographies}
+        start = {} if resume is None else {"start_level": resume.level + 1, "initial": resume.homographies}
         grids: dict[int, RegistrationGrid] = {}
         wrapped: dict[int, LevelScheme] = {}
 
@@ -212,12 +200,23 @@ class Stages:
                 grids[k] = RegistrationGrid(self.source, k)
             return wrapped.setdefault(id(scheme), Binned(scheme, grids[k]))
 
+        binned_for_length = resume is None and full_resolution_hint(
+            self.spec, self.source, self.budget.mosaic_binning, self.budget.plan.photons_per_pixel_per_group)
+
+        def revise(result: LevelResult) -> list[LevelScheme] | None:
+            """After level 1 of a scene of little texture, the mosaic levels at full resolution."""
+            if result.level != 1 or not binned_for_length or (reason := little_texture(result.located)) is None:
+                return None
+            self.mosaic_at_full_resolution(reason)
+            self.notes.append(f"{reason.removeprefix('auto: ')} (mosaic.registration_binning: auto)")
+            return [binned(scheme) for scheme in self.schemes]
+
         schemes = [binned(scheme) for scheme in self.schemes]
         return estimate_motion(self.source, self.resampler, self.merger, self.interpolator, schemes,
                                group_size=self.budget.group_size, executor=executor,
                                keep_merged=self.spec.outputs.merged_frames, on_level=on_level, progress=progress,
                                crosscheck=self.spec.uncertainty or self.spec.mosaic.correct_shape_drift,
-                               correct_shape_drift=self.spec.mosaic.correct_shape_drift, **start)
+                               correct_shape_drift=self.spec.mosaic.correct_shape_drift, revise=revise, **start)
 
     def compose(self, homographies: NDArray[np.float64], executor: Executor,
                 progress: Callable[[int], None] | None = None) -> Panorama:
@@ -287,7 +286,7 @@ def reconstruct(spec: PipelineSpec, source: PhotonSource, *, on_level: Callable[
             itself, or None; not JSON: a caller writing ``run.json`` takes it out) and
             ``flicker`` (:meth:`~photonpano.flicker.Flicker.record` of the flickering
             light found in the photon counts, or None) and ``movers`` (the mosaic levels'
-            mover rejection, :func:`_movers_record`; None where it is off) and
+            mover rejection, :func:`~photonpano.quality.movers_record`; None where it is off) and
             ``hot_pixels`` (:meth:`~photonpano.hot_pixels.HotPixels.record`, None with
             ``hot_pixels: off``) and ``hot_pixel_mask`` ((H, W) bool pixels inpainted, or
             None where none was; not JSON: a caller writing ``run.json`` takes it out).
@@ -302,7 +301,7 @@ def reconstruct(spec: PipelineSpec, source: PhotonSource, *, on_level: Callable[
     from .budget.binnings import full_resolution_hint
     from .executor import make_executor
     from .outputs import Checkpoint
-    from .quality import assess, panorama_agreement
+    from .quality import assess, movers_record, panorama_agreement
     from .uncertainty import frame_uncertainty
 
     stats: list[dict[str, Any]] = list(resume.statistics) if resume is not None else []
@@ -378,7 +377,7 @@ def reconstruct(spec: PipelineSpec, source: PhotonSource, *, on_level: Callable[
         uncertainty = found if found is not None else uncertainty_now()
         summary = uncertainty.summary(source.frame_rate_hz) if uncertainty is not None else None
         status, warnings = assess(plan, stats, agreement, summary)
-        movers = _movers_record(stats)
+        movers = movers_record(stats)
         notes = list(stages.notes)
         hint = full_resolution_hint(spec, stages.source, budget.mosaic_binning, plan.photons_per_pixel_per_group)
         if status == "degraded" and hint is not None:

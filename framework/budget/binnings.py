@@ -8,12 +8,15 @@ well-lit captures). The binned capture itself is :mod:`photonpano.budget.grid`'s
 
 from __future__ import annotations
 
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from ..stages import PhotonSource
 
-__all__ = ["auto_binning", "registration_binning", "mosaic_binning", "full_resolution_hint", "MIN_BINNED_SIDE",
-           "FULL_RESOLUTION_MOSAIC_MAX", "FULL_RESOLUTION_MOSAIC_PHOTONS"]
+if TYPE_CHECKING:
+    from ..records import LocateResult
+
+__all__ = ["auto_binning", "registration_binning", "mosaic_binning", "full_resolution_hint", "little_texture",
+           "MIN_BINNED_SIDE", "FULL_RESOLUTION_MOSAIC_MAX", "FULL_RESOLUTION_MOSAIC_PHOTONS", "LITTLE_TEXTURE_RESCUED"]
 
 MIN_BINNED_SIDE = 100
 """``registration_binning: auto`` bins only where the binned frames keep at least this many
@@ -51,7 +54,7 @@ def registration_binning(spec: Any, source: PhotonSource) -> int:
 FULL_RESOLUTION_MOSAIC_MAX = 6e9
 """``mosaic.registration_binning: auto`` merges and registers the mosaic levels at full
 resolution only while the capture holds at most this many pixel-frames (frames x height
-x width: 23 600 frames of 254x496, 22 900 of 512x512); longer captures keep the binned
+x width: 47 600 frames of 254x496, 22 900 of 512x512); longer captures keep the binned
 mosaic, which holds 100 000 frames within their time budget (docs/performance.md) and is
 within 0.09-0.19 px there on the evaluation suite."""
 
@@ -169,3 +172,37 @@ def full_resolution_hint(spec: Any, source: PhotonSource, mosaic: int,
             f"({_pixel_frames(source):.3g} pixel-frames); on a scene of little texture that binning limits the "
             "accuracy, and mosaic.registration_binning: 1 registers them at full resolution in about twice the "
             "time (100 000 frames of a clock: 0.295 -> 0.131 px)")
+
+
+LITTLE_TEXTURE_RESCUED = 0.9
+"""Fraction of level 1's pairs that its check had to register directly (the locator's
+features failed them, :class:`~photonpano.schemes.check.PairCheck`) from which a long
+capture's mosaic levels register at full resolution from the start (:func:`little_texture`)."""
+
+
+def little_texture(located: LocateResult) -> str | None:
+    """Where level 1's features failed on a scene of little texture, the line saying so; else None.
+
+    On a long capture whose mosaic levels ``auto`` binned for its length alone
+    (:func:`full_resolution_hint`), such a scene's binned mosaic levels leave frames
+    predicted above the uncertainty's limit, and :func:`~photonpano.pipeline.reconstruct`
+    runs them again at full resolution. Where level 1's check rescued at least
+    :data:`LITTLE_TEXTURE_RESCUED` of its pairs, the run (``Stages.estimate_motion``)
+    registers them at full resolution from level 2 on instead: the same trajectory, less
+    the binned levels' time (100 000 frames of the evaluation suite's clock: 49 -> 43 s;
+    docs/performance.md).
+
+    Args:
+        located: level 1's :class:`~photonpano.records.LocateResult` (its ``check`` figures
+            and ``pair_index``).
+
+    Returns:
+        One line (for the budget's ``mosaic_binning`` reason and the run's notes), or None.
+    """
+    rescued = (located.check or {}).get("rescued") or 0
+    pairs = 0 if located.pair_index is None else len(located.pair_index)
+    if pairs < 1 or rescued < LITTLE_TEXTURE_RESCUED * pairs:
+        return None
+    return (f"auto: level 1's features failed on {rescued} of its {pairs} pairs (a scene of little texture, "
+            "which the binned mosaic levels leave above the uncertainty's limit): registered at full resolution "
+            "from level 2")

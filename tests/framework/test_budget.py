@@ -579,6 +579,39 @@ def test_a_long_capture_whose_binned_mosaic_leaves_frames_over_the_limit_runs_it
     assert report["budget"]["mosaic_binning"] == 2 and levels == [1, 2] and seen == [1, 2]
 
 
+def test_a_long_capture_whose_level_one_features_failed_registers_its_mosaic_at_full_resolution_at_once(
+        monkeypatch):
+    """Level 1 rescued (nearly) every pair: the mosaic levels run at full resolution from level 2, once.
+
+    The trajectory is the one the spec's ``mosaic.registration_binning: 1`` gives, and
+    where level 1's features did not fail the one of ``mosaic.registration_binning: 2``.
+    """
+    from photonpano.budget import binnings
+    from photonpano.host import PluginHost
+    from photonpano.pipeline import reconstruct
+    from photonpano.spec import validate_spec
+
+    capture = _capture(frames=1000, height=224, width=320)  # 7.2e7 pixel-frames, binned 2x2 at level 1
+    monkeypatch.setattr(binnings, "FULL_RESOLUTION_MOSAIC_MAX", 7e7)  # a longer capture, in effect
+
+    def run(rescued_fraction, **mosaic):
+        monkeypatch.setattr(binnings, "LITTLE_TEXTURE_RESCUED", rescued_fraction)
+        spec = validate_spec({"source": "simulate", "group_size": 200, "levels": 2, "mosaic": mosaic}, PluginHost())
+        report, seen = {}, []
+        homographies, _, _, _ = reconstruct(spec, capture, report=report, on_level=lambda r: seen.append(r.level))
+        return homographies, report, seen
+
+    at_once, report, seen = run(0.0)  # every level 1 counts as one whose features failed
+    assert seen == [1, 2] and report["budget"]["mosaic_binning"] == 1
+    assert "features failed" in report["budget"]["reasons"]["mosaic_binning"]
+    assert any("features failed" in note for note in report["notes"])
+    assert not any("ran again" in note for note in report["notes"])
+    np.testing.assert_allclose(at_once, run(0.0, registration_binning=1)[0], atol=1e-9)
+    binned, report, seen = run(1.01)  # none does: binned
+    assert seen == [1, 2] and report["budget"]["mosaic_binning"] == 2
+    np.testing.assert_allclose(binned, run(1.01, registration_binning=2)[0], atol=1e-9)
+
+
 def test_an_explicit_group_size_short_of_light_gets_a_note_naming_the_budgets_choice():
     """An explicit m gathering clearly fewer photons than the budget wants is noted; enough light is not."""
     from photonpano.budget.probe import short_of_light
