@@ -321,12 +321,15 @@ def _mosaic_model(host: PluginHost) -> type[BaseModel]:
             description="Binning k of the merged frames and templates of the mosaic levels (see the top-level "
             "`registration_binning`). auto: the top-level value where that is set in the spec; else full "
             "resolution (1) where the capture holds at most 6e9 pixel-frames (frames x height x width: about "
-            "23 600 frames of 254x496) and a level-1 group gathers at least 10 photons per pixel, binned as "
+            "47 600 frames of 254x496) and a level-1 group gathers at least 10 photons per pixel, binned as "
             "level 1 otherwise (photonpano.budget.binnings.mosaic_binning). On the evaluation suite full "
             "resolution cut the trajectory RMSE of 32 of those 35 captures (city 0.060 -> 0.037 px) and raised "
             "none, for about 1.35x the CPU time. A capture binned for its length whose held-out registrations "
             "then predict frames above 1 px runs the mosaic levels again at full resolution from level 1 (100 000 "
-            "frames of the suite's clock: 0.295 -> 0.131 px in 48 s instead of 23; docs/performance.md).")], "auto"),
+            "frames of the suite's clock: 0.295 -> 0.131 px in 48 s instead of 23; docs/performance.md); where "
+            "level 1's check registered 90 % or more of its pairs directly (its features failed: a scene of "
+            "little texture) they run at full resolution from level 2 at once (the clock in 38 s, the same "
+            "trajectory; photonpano.budget.binnings.little_texture).")], "auto"),
     }
     model = create_model("MosaicSpec", __config__=ConfigDict(extra="forbid", frozen=True), **fields)
     model.__doc__ = ("The mosaic level scheme registers each merged frame against the panorama of the current "
