@@ -51,6 +51,7 @@ A level's figures (correlation per pair, pairs checked out and rescued) travel i
 from __future__ import annotations
 
 import functools
+from collections.abc import Iterable
 from typing import Any
 
 import numpy as np
@@ -87,6 +88,11 @@ level's cannot reach :data:`KEYSTONE_PX`: the others are not refined (docs/perfo
 def _inliers(cc: float) -> int:
     """A rescue's pose-graph weight from its binned correlation: ``max(8, 100 cc^2)``."""
     return max(8, int(round(100 * cc ** 2)))
+
+
+def _passing_keystones(refinements: Iterable[tuple[NDArray[np.float64], Any]]) -> NDArray[np.float64]:
+    """(R, 2) float64 the keystones (pixels at the frame's corner) of the refinements that pass the check."""
+    return np.array([tilt for tilt, refinement in refinements if refinement is not None]).reshape(-1, 2)
 
 
 def _shape(affine: NDArray[np.float64], initial: NDArray[np.float64], radius: float) -> NDArray[np.float64]:
@@ -189,8 +195,8 @@ class LevelCheck:
         if len(rows) < SETTLE_MIN_RESCUES:
             return found
         refined = self._refinements(rows)
-        tilted = np.array([tilt for tilt, refinement in refined if refinement is not None]).reshape(-1, 2)
-        tilts, turns = steady_keystone(tilted) if refined and len(tilted) >= SETTLE_MIN_RESCUES else ({}, False)
+        tilted = _passing_keystones(refined)
+        tilts, turns = steady_keystone(tilted) if len(tilted) >= SETTLE_MIN_RESCUES else ({}, False)
         if turns:
             self.rescue_motion, self.rescue_shapes = "perspective", tilts
             taken = iter([refinement for _, refinement in refined])
@@ -229,7 +235,7 @@ class LevelCheck:
         """
         sample = range(0, len(rows), REFINE_SAMPLE)
         done = dict(zip(sample, self.executor.map(lambda i: rows[i][2](), sample)))
-        tilted = np.array([tilt for tilt, refinement in done.values() if refinement is not None]).reshape(-1, 2)
+        tilted = _passing_keystones(done.values())
         if len(tilted) >= REFINE_SAMPLE_MIN and np.median(np.abs(tilted), axis=0).max() < KEYSTONE_RULED_OUT_PX:
             return []
         rest = [i for i in range(len(rows)) if i not in done]
