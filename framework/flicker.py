@@ -23,13 +23,16 @@ slower than mains flicker for hand-held and vehicle-mounted cameras.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any, Callable
 
 import numpy as np
 from numpy.typing import NDArray
 from scipy.ndimage import uniform_filter1d
 
-__all__ = ["Flicker", "detect_flicker", "MIN_HZ", "MIN_DEPTH"]
+if TYPE_CHECKING:
+    from .stages import Compositor
+
+__all__ = ["Flicker", "detect_flicker", "told_of_flicker", "MIN_HZ", "MIN_DEPTH"]
 
 MIN_HZ = 80.0
 """Lowest frequency searched, in Hz (above camera shake; below the 100/120 Hz of mains lamps)."""
@@ -207,3 +210,21 @@ def _folded_depth(counts: NDArray[np.float64], rate: float, frequency: float, ph
                       for k in range(phases)])
     brightest, darkest = np.nanmax(means, axis=0), np.nanmin(means, axis=0)
     return np.where(brightest > 0, 1.0 - darkest / np.maximum(brightest, 1e-12), 0.0)
+
+
+def told_of_flicker(build: Callable[[], Compositor], flicker: Flicker | None) -> Callable[[], Compositor]:
+    """``build``, its compositors told of the capture's flicker (:meth:`~photonpano.stages.Compositor.expect_flicker`).
+
+    Args:
+        build: builds a compositor.
+        flicker: the :class:`Flicker` found in the capture, or None (``build`` is returned as it is).
+    """
+    if flicker is None:
+        return build
+
+    def make() -> Compositor:
+        compositor = build()
+        compositor.expect_flicker(flicker.period_frames)
+        return compositor
+
+    return make

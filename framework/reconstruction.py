@@ -18,8 +18,9 @@ from numpy.typing import NDArray
 
 from .errors import StageError
 from .executor import Executor
+from .flicker import told_of_flicker
 from .records import LevelResult, Panorama
-from .stages import Compositor, PhotonSource
+from .stages import PhotonSource
 from .watchdog import watched
 
 if TYPE_CHECKING:
@@ -27,25 +28,6 @@ if TYPE_CHECKING:
     from .spec_model import PipelineSpec
 
 __all__ = ["Stages", "reconstruct"]
-
-
-def _told_of_flicker(build: Callable[[], Compositor], flicker: Any) -> Callable[[], Compositor]:
-    """``build``, its compositors told of the capture's flicker (:meth:`~photonpano.stages.Compositor.expect_flicker`).
-
-    Args:
-        build: builds a compositor.
-        flicker: the :class:`~photonpano.flicker.Flicker` found in the capture, or None
-            (``build`` is returned as it is).
-    """
-    if flicker is None:
-        return build
-
-    def make() -> Compositor:
-        compositor = build()
-        compositor.expect_flicker(flicker.period_frames)
-        return compositor
-
-    return make
 
 
 class Stages:
@@ -119,9 +101,9 @@ class Stages:
         mosaic, binning, flicker = self.spec.mosaic, self.budget.mosaic_binning, self.budget.plan.flicker
         affine = affine_locator(mosaic.locator)
         return MosaicScheme(in_merged_pixels(mosaic.locator, binning).build,
-                            _told_of_flicker(mosaic.template.build, flicker), subbatch_px=mosaic.subbatch_px,
+                            told_of_flicker(mosaic.template.build, flicker), subbatch_px=mosaic.subbatch_px,
                             reject_movers=MOVERS_SIGMAS if mosaic.reject_movers == "auto" else mosaic.reject_movers,
-                            make_robust=_told_of_flicker(robust_template(mosaic).build, flicker),
+                            make_robust=told_of_flicker(robust_template(mosaic).build, flicker),
                             detect_movers=mosaic.reject_movers == "auto", holdout=mosaic.holdout,
                             correct_bias=mosaic.correct_template_bias,
                             per_parameter_priors=mosaic.template_bias_priors == "per-parameter",
@@ -227,7 +209,7 @@ class Stages:
         """
         from .compose import compose, dither_note
 
-        build = _told_of_flicker(partial(self.spec.source.panorama_compositor, self.spec.compositor.build),
+        build = told_of_flicker(partial(self.spec.source.panorama_compositor, self.spec.compositor.build),
                                  self.budget.plan.flicker)
         pano = compose(self.source, homographies, build(), subbatch_px=self.spec.panorama_subbatch_px,
                        progress=progress, executor=executor)
@@ -270,8 +252,9 @@ def reconstruct(spec: PipelineSpec, source: PhotonSource, *, on_level: Callable[
         spec: a validated ``PipelineSpec`` (its ``source`` section is not used).
         source: the opened capture.
         on_level: called with each :class:`~photonpano.records.LevelResult` (levels 2.. twice
-            where binned mosaic levels left frames predicted above the uncertainty's limit
-            and ran again at full resolution; ``budget.binnings.full_resolution_hint``).
+            where binned mosaic levels left frames predicted above the uncertainty's limit,
+            or one registered none of its frames, and they ran again at full resolution;
+            ``budget.binnings.full_resolution_hint``).
         progress: ``progress(task, total)`` returning an ``advance(n)`` callable.
         checkpoint: called with a :class:`~photonpano.outputs.Checkpoint` after each level.
         resume: a :class:`~photonpano.outputs.Checkpoint` to continue from (None: level 1).
@@ -346,18 +329,31 @@ def reconstruct(spec: PipelineSpec, source: PhotonSource, *, on_level: Callable[
     timings: dict[str, float] = {}
     with make_executor(spec.executor, spec.workers, spec.dask_address) as executor:
         t0 = time.perf_counter()
-        homographies = stages.estimate_motion(executor, on_level=level_done, progress=progress, resume=resume)
-        found = uncertainty_now() if level_one is not None and len(stats) > 1 and full_resolution_hint(
-            spec, stages.source, stages.budget.mosaic_binning, stages.budget.plan.photons_per_pixel_per_group) else None
+        def binned_for_length() -> bool:
+            """The mosaic levels are binned for the capture's length alone (``full_resolution_hint``)."""
+            return full_resolution_hint(spec, stages.source, stages.budget.mosaic_binning,
+                                        stages.budget.plan.photons_per_pixel_per_group) is not None
+
+        failed: str | None = None  # why a binned mosaic level registered nothing
+        try:
+            homographies = stages.estimate_motion(executor, on_level=level_done, progress=progress, resume=resume)
+        except StageError as exc:
+            failed = exc.reason if exc.plugin == "mosaic" else None
+            if failed is None or level_one is None or not binned_for_length():
+                raise
+        found = uncertainty_now() if not failed and level_one is not None and len(stats) > 1 and binned_for_length() \
+            else None
         above = found.summary(source.frame_rate_hz)["above_limit"] if found is not None else []
-        if above and level_one is not None:  # the binned mosaic levels again at full resolution, from level 1
-            binned, worst = stages.budget.mosaic_binning, max(e["max_px"] or 0.0 for e in above)
-            stages.mosaic_at_full_resolution(f"auto: binned {binned}x{binned} for the capture's length, the held-out "
-                                             f"registrations predicted errors up to {worst:.2g} px: registered again "
-                                             "at full resolution")
+        if (failed or above) and level_one is not None:  # the binned mosaic levels again at full resolution
+            binned = stages.budget.mosaic_binning
+            worst = f"{max(e['max_px'] or 0.0 for e in above):.2g} px" if above else ""
+            why = failed or f"the held-out registrations predicted errors up to {worst}"
+            stages.mosaic_at_full_resolution(f"auto: binned {binned}x{binned} for the capture's length, {why}: "
+                                             "registered again at full resolution")
+            what = f"failed ({failed})" if failed else f"left frames predicted up to {worst} off"
             stages.notes.append(f"the mosaic levels, binned {binned}x{binned} to save time on this long capture, "
-                                f"left frames predicted up to {worst:.2g} px off: they ran again at full resolution "
-                                "from level 1 (mosaic.registration_binning: auto)")
+                                f"{what}: they ran again at full resolution from level 1 "
+                                "(mosaic.registration_binning: auto)")
             del stats[1:]
             first_of_scheme.clear()
             last = found = None

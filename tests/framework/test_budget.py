@@ -579,6 +579,53 @@ def test_a_long_capture_whose_binned_mosaic_leaves_frames_over_the_limit_runs_it
     assert report["budget"]["mosaic_binning"] == 2 and levels == [1, 2] and seen == [1, 2]
 
 
+def test_a_long_capture_whose_binned_mosaic_registers_nothing_runs_it_again_at_full_resolution(monkeypatch):
+    """A binned mosaic level that registered none of its frames: the levels again at full resolution, not a failure.
+
+    Where the spec binned the mosaic levels itself, or they failed at full resolution, the
+    StageError stands.
+    """
+    from photonpano.budget import binnings
+    from photonpano.errors import StageError
+    from photonpano.host import PluginHost
+    from photonpano.pipeline import reconstruct
+    from photonpano.schemes.mosaic import MosaicScheme
+    from photonpano.spec import validate_spec
+
+    capture = _capture(frames=1000, height=224, width=320)  # 7.2e7 pixel-frames, binned 2x2 at level 1
+    monkeypatch.setattr(binnings, "FULL_RESOLUTION_MOSAIC_MAX", 7e7)  # a longer capture, in effect
+    real = MosaicScheme.locate
+    failing_widths: set[int] = set()
+
+    def locate(self, task):  # registers nothing on frames of the failing widths (the binned capture's)
+        if task.source.width in failing_widths:
+            raise StageError("locator", "mosaic", f"level {task.level}: none of the 5 merged frames registered")
+        return real(self, task)
+
+    monkeypatch.setattr(MosaicScheme, "locate", locate)
+
+    def run(**mosaic):
+        spec = validate_spec({"source": "simulate", "group_size": 200, "levels": 2, "mosaic": mosaic}, PluginHost())
+        report, seen = {}, []
+        homographies, stats, _, _ = reconstruct(spec, capture, report=report, on_level=lambda r: seen.append(r.level))
+        return homographies, report, seen, [row["level"] for row in stats]
+
+    failing_widths.add(160)
+    homographies, report, seen, levels = run()
+    assert report["budget"]["mosaic_binning"] == 1 and levels == [1, 2] and seen == [1, 2]
+    assert "none of the 5 merged frames" in report["budget"]["reasons"]["mosaic_binning"]
+    assert any("failed (level 2: none of the 5" in note and "ran again at full resolution" in note
+               for note in report["notes"])
+    failing_widths.clear()
+    np.testing.assert_allclose(homographies, run(registration_binning=1)[0], atol=1e-9)
+    failing_widths.add(160)
+    with pytest.raises(StageError, match="none of the 5"):  # binned by the spec: its choice stands
+        run(registration_binning=2)
+    failing_widths.add(320)
+    with pytest.raises(StageError, match="none of the 5"):  # at full resolution too: nothing left to try
+        run()
+
+
 def test_a_long_capture_whose_level_one_features_failed_registers_its_mosaic_at_full_resolution_at_once(
         monkeypatch):
     """Level 1 rescued (nearly) every pair: the mosaic levels run at full resolution from level 2, once.
