@@ -210,7 +210,7 @@ class Stages:
         from .compose import compose, dither_note
 
         build = told_of_flicker(partial(self.spec.source.panorama_compositor, self.spec.compositor.build),
-                                 self.budget.plan.flicker)
+                                self.budget.plan.flicker)
         pano = compose(self.source, homographies, build(), subbatch_px=self.spec.panorama_subbatch_px,
                        progress=progress, executor=executor)
         dither = dither_note(pano.homographies, self.source.width, self.source.height, self.spec.scale)
@@ -328,12 +328,12 @@ def reconstruct(spec: PipelineSpec, source: PhotonSource, *, on_level: Callable[
 
     timings: dict[str, float] = {}
     with make_executor(spec.executor, spec.workers, spec.dask_address) as executor:
-        t0 = time.perf_counter()
         def binned_for_length() -> bool:
             """The mosaic levels are binned for the capture's length alone (``full_resolution_hint``)."""
             return full_resolution_hint(spec, stages.source, stages.budget.mosaic_binning,
                                         stages.budget.plan.photons_per_pixel_per_group) is not None
 
+        t0 = time.perf_counter()
         failed: str | None = None  # why a binned mosaic level registered nothing
         try:
             homographies = stages.estimate_motion(executor, on_level=level_done, progress=progress, resume=resume)
@@ -341,8 +341,9 @@ def reconstruct(spec: PipelineSpec, source: PhotonSource, *, on_level: Callable[
             failed = exc.reason if exc.plugin == "mosaic" else None
             if failed is None or level_one is None or not binned_for_length():
                 raise
-        found = uncertainty_now() if not failed and level_one is not None and len(stats) > 1 and binned_for_length() \
-            else None
+        found = None
+        if not failed and level_one is not None and len(stats) > 1 and binned_for_length():
+            found = uncertainty_now()
         above = found.summary(source.frame_rate_hz)["above_limit"] if found is not None else []
         if (failed or above) and level_one is not None:  # the binned mosaic levels again at full resolution
             binned = stages.budget.mosaic_binning
