@@ -327,12 +327,12 @@ def reconstruct(spec: PipelineSpec, source: PhotonSource, *, on_level: Callable[
                                  previous=None if first is last.homographies else first, level_one_span=level_one_span)
 
     timings: dict[str, float] = {}
-    with make_executor(spec.executor, spec.workers, spec.dask_address) as executor:
-        def binned_for_length() -> bool:
-            """The mosaic levels are binned for the capture's length alone (``full_resolution_hint``)."""
-            return full_resolution_hint(spec, stages.source, stages.budget.mosaic_binning,
-                                        stages.budget.plan.photons_per_pixel_per_group) is not None
+    def binned_for_length() -> str | None:
+        """``full_resolution_hint``'s line where the mosaic levels are binned for the capture's length alone."""
+        return full_resolution_hint(spec, stages.source, stages.budget.mosaic_binning,
+                                    stages.budget.plan.photons_per_pixel_per_group)
 
+    with make_executor(spec.executor, spec.workers, spec.dask_address) as executor:
         t0 = time.perf_counter()
         failed: str | None = None  # why a binned mosaic level registered nothing
         try:
@@ -347,11 +347,14 @@ def reconstruct(spec: PipelineSpec, source: PhotonSource, *, on_level: Callable[
         above = found.summary(source.frame_rate_hz)["above_limit"] if found is not None else []
         if (failed or above) and level_one is not None:  # the binned mosaic levels again at full resolution
             binned = stages.budget.mosaic_binning
-            worst = f"{max(e['max_px'] or 0.0 for e in above):.2g} px" if above else ""
-            why = failed or f"the held-out registrations predicted errors up to {worst}"
+            if failed:
+                why, what = failed, f"failed ({failed})"
+            else:
+                worst = f"{max(e['max_px'] or 0.0 for e in above):.2g} px"
+                why, what = (f"the held-out registrations predicted errors up to {worst}",
+                             f"left frames predicted up to {worst} off")
             stages.mosaic_at_full_resolution(f"auto: binned {binned}x{binned} for the capture's length, {why}: "
                                              "registered again at full resolution")
-            what = f"failed ({failed})" if failed else f"left frames predicted up to {worst} off"
             stages.notes.append(f"the mosaic levels, binned {binned}x{binned} to save time on this long capture, "
                                 f"{what}: they ran again at full resolution from level 1 "
                                 "(mosaic.registration_binning: auto)")
@@ -376,7 +379,7 @@ def reconstruct(spec: PipelineSpec, source: PhotonSource, *, on_level: Callable[
         status, warnings = assess(plan, stats, agreement, summary)
         movers = movers_record(stats)
         notes = list(stages.notes)
-        hint = full_resolution_hint(spec, stages.source, budget.mosaic_binning, plan.photons_per_pixel_per_group)
+        hint = binned_for_length()
         if status == "degraded" and hint is not None:
             notes.append(hint)
         if movers is not None and movers["engaged"]:
