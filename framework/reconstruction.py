@@ -74,7 +74,8 @@ class Stages:
             "frames; with group_size: auto they are, and those the locator cannot register are registered again)")
         saturated = saturation_note(budget.plan.probe)
         advice += f"; {saturated}" if saturated else ""
-        built = {"pairwise": PairwiseScheme(self.locator, tuple(spec.pair_offsets), check, advice),
+        built = {"pairwise": PairwiseScheme(self.locator, tuple(spec.pair_offsets), check, advice,
+                                            turning_camera=spec.camera_model == "auto"),
                  "mosaic": self._mosaic_scheme()}
         self.schemes = [built[name] for name in level_schemes(spec)]
         self.notes: list[str] = []

@@ -98,6 +98,7 @@ class _SpecBase(BaseModel):
         levels: int
         group_size: Literal["auto"] | int
         pair_offsets: list[int]
+        camera_model: Literal["auto", "homography"]
         registration_binning: Literal["auto"] | int
         hot_pixels: Literal["auto", "off"]
         panorama_subbatch_px: float
@@ -193,6 +194,14 @@ def spec_model(host: PluginHost) -> type[PipelineSpec]:
         "pair_offsets": (Annotated[list[Annotated[int, Field(ge=1)]], Field(
             min_length=1, description="Register merged frames g and g+k for each k; [1] is the "
             "paper's chain, more offsets are solved jointly against chaining drift.")], [1, 2, 4, 8, 16, 32, 64]),
+        "camera_model": (Literal["auto", "homography"], Field("auto", description=
+            "How a pairwise level's pose graph models the camera. auto: where the level's camera turns out of the "
+            "image plane (its registrations carry a steady keystone, as on a tripod pan), one focal length and a "
+            "rotation per keyframe (a camera turning about its centre, H = K R K^-1, as OpenCV's stitching "
+            "module's ray bundle adjustment), kept where it agrees with the pairs within 1.5x of the free "
+            "solution (photonpano.turning_camera; run.json `registration_check.turning_camera`); tripod pans: "
+            "the outdoor camera 0.650 -> 0.322 px, Hubble 1.47 -> 0.43, coffee 0.371 -> 0.219. homography: every "
+            "keyframe its own homography (the paper's).")),
         "registration_binning": (Annotated[Union[Literal["auto"], Annotated[int, Field(ge=1, le=8)]],  # noqa: UP007
                                         Field(description=
             "Level 1 (and any pairwise level) estimates motion on merged frames binned k x k (the photons of k x "

@@ -171,6 +171,17 @@ class LevelCheck:
         self.rescue_motion: str | None = None
         self.rescue_shapes: dict[str, dict[str, float | bool]] | None = None
         self.pair_perspective: dict[str, Any] | None = None  # set by pairwise.drop_unsteady_perspective
+        self.turning_camera: dict[str, Any] | None = None  # set by turning_camera.turning_keyframes
+
+    @property
+    def turns(self) -> bool:
+        """Whether the level's camera turns out of the image plane, as on a tripod.
+
+        So its rescues decided (``"perspective"``, :meth:`settle`), or its registered pairs'
+        keystones are steady (:func:`~photonpano.schemes.pairwise.drop_unsteady_perspective`'s
+        ``steady``).
+        """
+        return self.rescue_motion == "perspective" or bool((self.pair_perspective or {}).get("steady"))
 
     def settle(self, found: list[PairRegistrations]) -> list[PairRegistrations]:
         """Decide the level's rescues together, once every pair is registered (step 4 of the module).
@@ -366,11 +377,13 @@ class LevelCheck:
             ``"translation"`` or ``"per pair"``) and its figures: the keystones' ``{"horizontal",
             "vertical"}`` (each also with ``median_px``) for ``"perspective"``, else
             :func:`rescue_motion`'s (None where the rescues were too few to decide); and
-            ``"pair_perspective"``, :func:`~photonpano.schemes.pairwise.drop_unsteady_perspective`'s.
+            ``"pair_perspective"``, :func:`~photonpano.schemes.pairwise.drop_unsteady_perspective`'s;
+            ``"turning_camera"``, :func:`~photonpano.turning_camera.turning_keyframes`'s where the
+            level :attr:`turns`, else None.
         """
         cc = np.asarray(self.correlations, np.float64)
         return {"binning": self.policy.factor, "checked": self.checked, "rejected_by_check": self.rejected,
                 "rescued": self.rescued, "median_correlation": float(np.median(cc)) if len(cc) else None,
                 "min_correlation": float(cc.min()) if len(cc) else None,
                 "rescue_motion": self.rescue_motion, "rescue_shapes": self.rescue_shapes,
-                "pair_perspective": self.pair_perspective}
+                "pair_perspective": self.pair_perspective, "turning_camera": self.turning_camera}

@@ -23,6 +23,7 @@ from ..guards import plausible
 from ..locator import Locator, LocatorContext
 from ..posegraph import chain_keyframes, corner_disagreement, pairs_at_offsets, refine_keyframes
 from ..records import LocateResult, MergedFrames, PairRegistrations
+from ..turning_camera import turning_keyframes
 from ..watchdog import watched
 from .base import LevelScheme, LevelTask
 from .check import SETTLE_MIN_RESCUES, LevelCheck, PairCheck
@@ -106,8 +107,8 @@ def _merged_windows(merge: Callable[[NDArray[np.int64]], MergedFrames], windows:
 def locate_keyframes(locator: Locator, merge: Callable[[NDArray[np.int64]], MergedFrames],
                      current: NDArray[np.float64], pair_offsets: tuple[int, ...], width: int, height: int, *,
                      window: int = 32, min_overlap: float = 0.5, outlier_px: float = 1.0, merge_ahead: bool = False,
-                     check: LevelCheck | None = None, context: LocatorContext | None = None
-                     ) -> tuple[NDArray[np.float64], NDArray[np.int64], PairRegistrations]:
+                     check: LevelCheck | None = None, context: LocatorContext | None = None,
+                     turning_camera: bool = True) -> tuple[NDArray[np.float64], NDArray[np.int64], PairRegistrations]:
     """Register merged frames pairwise and solve for the homographies of their reference frames.
 
     1. Consecutive pairs are registered and chained (:func:`chain_keyframes`), failed
@@ -119,6 +120,10 @@ def locate_keyframes(locator: Locator, merge: Callable[[NDArray[np.int64]], Merg
        ``max(outlier_px, 4 x median disagreement)`` are rejected and the graph is
        solved again. A wrong consecutive link is thereby outvoted by the longer pairs
        spanning it.
+    4. With ``turning_camera`` and a ``check`` that finds the level's camera turning
+       (:attr:`~photonpano.schemes.check.LevelCheck.turns`), the graph is solved again as a
+       camera turning about its centre (:func:`~photonpano.turning_camera.turning_keyframes`),
+       kept where it agrees with the pairs nearly as well.
 
     Merged frames stream: ``merge`` is called on consecutive windows of ``window``
     groups and steps 1 and 2 run as they arrive (one ``register_pairs`` call per
@@ -143,6 +148,7 @@ def locate_keyframes(locator: Locator, merge: Callable[[NDArray[np.int64]], Merg
         context: how the locator's calls may run (its executor; None: serially).
         check: checks (and rescues) every locator call's registrations, then settles the
             level's rescues together (:class:`~photonpano.schemes.check.LevelCheck`), or None.
+        turning_camera: step 4 (the spec's ``camera_model: auto``).
 
     Returns:
         ``(keyframes, pair_index, pairs)``: (G, 3, 3) float64 homographies, (P, 2)
@@ -241,6 +247,8 @@ def locate_keyframes(locator: Locator, merge: Callable[[NDArray[np.int64]], Merg
 
         if not np.isfinite(disagreement(solved)) or disagreement(solved) > disagreement(keyframes):
             solved = keyframes
+        if turning_camera and check is not None and check.turns:
+            solved, check.turning_camera = turning_keyframes(solved, pair_index, graph, trusted, width, height)
     return solved, pair_index, pairs
 
 
@@ -280,7 +288,7 @@ def drop_unsteady_perspective(found: list[PairRegistrations], width: int, height
 
     Returns:
         ``(found, figures)``: the registrations (the same objects where the perspective is
-        kept) and ``{"kept", "pairs", "with_perspective", "horizontal", "vertical"}`` (the
+        kept) and ``{"kept", "steady", "pairs", "with_perspective", "horizontal", "vertical"}`` (the
         keystones' ``{"lag1", "t", "signal", "median_px"}`` over the pairs with a
         perspective, None for fewer than ``SETTLE_MIN_RESCUES``); None for fewer than
         ``SETTLE_MIN_RESCUES`` registered pairs.
@@ -295,7 +303,7 @@ def drop_unsteady_perspective(found: list[PairRegistrations], width: int, height
     if len(tilted) >= SETTLE_MIN_RESCUES:
         tilts, steady = steady_keystone(tilted)
     kept = len(tilted) >= CHANCE_PERSPECTIVE_SHARE * len(registered) or steady
-    figures = {"kept": kept, "pairs": len(registered), "with_perspective": len(tilted), **tilts}
+    figures = {"kept": kept, "steady": steady, "pairs": len(registered), "with_perspective": len(tilted), **tilts}
     if kept or not len(tilted):
         return found, figures
     grid = geometry.pixel_grid(width, height, 4)
@@ -328,14 +336,17 @@ class PairwiseScheme(LevelScheme):
             result's :attr:`~photonpano.records.LocateResult.check`.
         advice: appended to the error of a level at which no pair registered (what the
             user can change, e.g. that an explicit group size left the check off).
+        turning_camera: solve a level whose camera turns as a camera turning about its
+            centre (:func:`locate_keyframes`' step 4; the spec's ``camera_model: auto``).
     """
 
     name = "pairwise"
 
     def __init__(self, locator: Locator, pair_offsets: tuple[int, ...] = (1,), check: PairCheck | None = None,
-                 advice: str = "") -> None:
+                 advice: str = "", *, turning_camera: bool = True) -> None:
         """Create the scheme around a built locator."""
         self.locator = locator
+        self.turning_camera = turning_camera
         self.pair_offsets = tuple(pair_offsets)
         self.check = check
         self.advice = advice
@@ -362,7 +373,7 @@ class PairwiseScheme(LevelScheme):
             keyframes, pair_index, pairs = locate_keyframes(
                 self.locator, merge, task.current, self.pair_offsets, task.source.width, task.source.height,
                 merge_ahead=task.executor.in_process and task.executor.workers > 1, check=check,
-                context=LocatorContext(executor=task.executor))
+                context=LocatorContext(executor=task.executor), turning_camera=self.turning_camera)
         except StageError as err:
             raise StageError("locator", type(self.locator).__name__,
                              f"level {task.level}: {err.reason}{self.advice}") from None

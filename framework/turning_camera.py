@@ -1,0 +1,216 @@
+"""The pose graph of a camera turning about its centre: one focal length and a rotation per keyframe.
+
+A camera on a tripod (or held still while it pans) turns about its optical centre, and
+two of its frames are then related by ``K R_a^T R_b K^-1`` (Hartley and Zisserman,
+*Multiple View Geometry*, 2nd ed., Sec. 8.4.2; Szeliski, *Image Alignment and Stitching*,
+2006, Sec. 2.1; OpenCV's stitching module estimates the same model,
+``cv::detail::BundleAdjusterRay``). Where the eight-parameter pose graph
+(:func:`photonpano.posegraph.refine_keyframes`) gives each keyframe its own keystone and
+scale, a chain of pairs that measure the turn's perspective poorly (scenes of little
+texture, rescued on binned frames) bends the trajectory by pixels over a wide pan; the
+turning camera has three parameters per keyframe and one focal length for the whole
+level, so the perspective follows from the turn. :func:`fit_turning_camera` solves it;
+:func:`photonpano.schemes.pairwise.locate_keyframes` keeps it for a level that turns where
+it agrees with the pairs nearly as well as the free solution.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.optimize
+import scipy.sparse
+from numpy.typing import NDArray
+from scipy.spatial.transform import Rotation
+
+from . import geometry
+from .posegraph import corner_disagreement
+from .records import PairRegistrations
+
+__all__ = ["TurningFit", "fit_turning_camera", "turning_keyframes", "focal_from_keyframes", "FOCAL_SEARCH_PX",
+           "TURNING_DISAGREEMENT_RATIO"]
+
+FOCAL_SEARCH_PX = (0.2, 50.0)
+"""Focal lengths :func:`focal_from_keyframes` searches, in frame widths (geometric grid)."""
+
+
+TURNING_DISAGREEMENT_RATIO = 1.5
+"""Most a turning camera's median corner disagreement with a level's registered pairs may exceed the
+eight-parameter solution's, as a factor, for :func:`turning_keyframes` to keep it. Tripod pans (the
+suite's recipe with ``source.pan_model: rotation``, 29 photographs): 0.99-1.44; where the turn's
+model does not hold the fit (a checkerboard and a phantom whose level 1 is all rescues): 2.9 and 4.2."""
+
+
+@dataclass(frozen=True)
+class TurningFit:
+    """A level's keyframes as a camera turning about its centre.
+
+    Attributes:
+        keyframes: (G, 3, 3) float64 frame-to-panorama homographies, each
+            ``initial[0] @ T_c K R_0^T R_g K^-1 T_c^-1`` (``T_c`` the translation to the
+            frame centre, ``K = diag(f, f, 1)``, ``R_0`` the first keyframe's rotation,
+            the identity).
+        focal_px: the focal length ``f`` in frame pixels.
+        start_focal_px: the focal length the solve started from (:func:`focal_from_keyframes`).
+        converged: whether the least-squares solve met its tolerance (not its evaluation limit).
+    """
+
+    keyframes: NDArray[np.float64]
+    focal_px: float
+    start_focal_px: float
+    converged: bool
+
+
+def focal_from_keyframes(centred: NDArray[np.float64], width: int) -> float:
+    """The focal length that makes homographies about the frame centre closest to rotations.
+
+    For ``H = K R K^-1`` up to scale, ``K^-1 H K / det^(1/3)`` is a rotation; the focal
+    length is searched on a geometric grid (:data:`FOCAL_SEARCH_PX` frame widths, 300
+    steps) for the least ``sum ||A^T A - I||^2`` over the keyframes (Szeliski 2006,
+    Sec. 4.3, estimates it from pairs in closed form; a search over all keyframes at once
+    does not depend on any single pair's perspective).
+
+    Args:
+        centred: (G, 3, 3) float64 homographies about the frame centre
+            (:func:`photonpano.geometry.about_centre`), each relative to the first keyframe.
+        width: frame width in pixels.
+
+    Returns:
+        The focal length in frame pixels.
+    """
+    candidates = np.geomspace(FOCAL_SEARCH_PX[0] * width, FOCAL_SEARCH_PX[1] * width, 300)
+    k = np.zeros((len(candidates), 1, 3, 3))
+    k[:, 0, 0, 0] = k[:, 0, 1, 1] = candidates
+    k[:, 0, 2, 2] = 1
+    k_inv = np.linalg.inv(k)
+    a = k_inv @ centred[None] @ k  # (F, G, 3, 3)
+    a = a / np.cbrt(np.linalg.det(a))[..., None, None]
+    error = ((np.swapaxes(a, -1, -2) @ a - np.eye(3)) ** 2).sum(axis=(1, 2, 3))
+    return float(candidates[int(np.argmin(error))])
+
+
+def fit_turning_camera(initial: NDArray[np.float64], pair_index: NDArray[np.int64], pairs: PairRegistrations,
+                       width: int, height: int, *, max_evaluations: int = 200) -> TurningFit:
+    """Solve a level's pose graph for a camera turning about its centre.
+
+    The same problem as :func:`photonpano.posegraph.refine_keyframes` (a 3x3 grid of
+    frame b's points should map to the same place through the pair's homography and
+    through the keyframes, residuals in frame a's pixels weighted by the square root of
+    the pair's inliers over their median, soft-L1 loss with a 1 px scale) on fewer
+    unknowns: each keyframe g > 0 is a rotation ``R_g`` (a rotation vector) of one
+    pinhole camera whose principal point is the frame centre, and the focal length ``f``
+    is shared (solved as ``log f``). The first keyframe is held at ``initial[0]``
+    (gauge). Rotations start from the initial keyframes (the nearest rotation to
+    ``K^-1 H K``, Markley's method in :meth:`scipy.spatial.transform.Rotation.from_matrix`)
+    and the focal length from :func:`focal_from_keyframes`; the solve is
+    :func:`scipy.optimize.least_squares` (``trf``) on the pairs' sparse Jacobian.
+
+    Args:
+        initial: (G, 3, 3) float64 keyframe homographies (frame to panorama), e.g. the
+            eight-parameter pose graph's solution; G >= 2.
+        pair_index: (P, 2) int64 keyframe indices ``(a, b)`` of each pair.
+        pairs: the P pair registrations (homography b to a); failed pairs are ignored.
+            The graph must connect every keyframe (bridge failed consecutive pairs).
+        width: frame width in pixels.
+        height: frame height in pixels.
+        max_evaluations: residual evaluations at most.
+
+    Returns:
+        The fit (:class:`TurningFit`).
+
+    Raises:
+        ValueError: for fewer than two keyframes or no registered pair.
+    """
+    g = len(initial)
+    use = pairs.ok & (pair_index[:, 0] != pair_index[:, 1])
+    if g < 2 or not use.any():
+        raise ValueError(f"fit_turning_camera: needs two keyframes and a registered pair, got {g} and {int(use.sum())}")
+    a, b = pair_index[use, 0], pair_index[use, 1]
+    centred = geometry.about_centre(np.linalg.inv(initial[0]) @ initial, width, height)
+    centred = centred / centred[:, 2:3, 2:3]
+    start_focal = focal_from_keyframes(centred, width)
+    k = np.diag([start_focal, start_focal, 1.0])
+    rotations = np.linalg.inv(k) @ centred @ k
+    rotations /= np.cbrt(np.linalg.det(rotations))[:, None, None]
+    vectors = Rotation.from_matrix(rotations).as_rotvec()
+    grid = geometry.pixel_grid(width, height, 3) - np.array([(width - 1) / 2, (height - 1) / 2])  # about the centre
+    measured = geometry.apply(geometry.about_centre(pairs.homographies[use], width, height), grid)  # (E, 9, 2)
+    weight = np.sqrt(np.maximum(pairs.inliers[use], 1) / max(float(np.median(pairs.inliers[use])), 1.0))
+
+    def keyframe_rotations(x: NDArray[np.float64]) -> tuple[NDArray[np.float64], float]:
+        """(G, 3, 3) rotations (the first the identity) and the focal length of unknowns ``x``."""
+        vectors_g = np.concatenate([np.zeros((1, 3)), x[:-1].reshape(g - 1, 3)])
+        return Rotation.from_rotvec(vectors_g).as_matrix(), float(np.exp(x[-1]))
+
+    def residuals(x: NDArray[np.float64]) -> NDArray[np.float64]:
+        """(E * 18,) weighted ``M x - K R_a^T R_b K^-1 x`` in frame a's pixels."""
+        rot, focal = keyframe_rotations(x)
+        kf = np.diag([focal, focal, 1.0])
+        relative = kf @ np.swapaxes(rot[a], 1, 2) @ rot[b] @ np.diag([1 / focal, 1 / focal, 1.0])
+        return ((measured - geometry.apply(relative, grid)) * weight[:, None, None]).ravel()
+
+    # Each pair's 18 residuals depend on its two keyframes' rotations and on the focal length.
+    rows = np.arange(18 * len(a))
+    pair_of_row = rows // 18
+    columns, entries = [np.full(len(rows), 3 * (g - 1))], [rows]
+    for node in (a, b):
+        free = node[pair_of_row] > 0
+        for axis in range(3):
+            columns.append(3 * (node[pair_of_row][free] - 1) + axis)
+            entries.append(rows[free])
+    row_index, column_index = np.concatenate(entries), np.concatenate(columns)
+    sparsity = scipy.sparse.csr_matrix((np.ones(len(row_index), np.int8), (row_index, column_index)),
+                                       shape=(len(rows), 3 * (g - 1) + 1))
+    start = np.concatenate([vectors[1:].ravel(), [np.log(start_focal)]])
+    solution = scipy.optimize.least_squares(residuals, start, jac_sparsity=sparsity, loss="soft_l1", f_scale=1.0,
+                                            x_scale="jac", method="trf", max_nfev=max_evaluations)
+    rot, focal = keyframe_rotations(solution.x)
+    kf = np.diag([focal, focal, 1.0])
+    turned = geometry.from_centre(kf @ rot @ np.diag([1 / focal, 1 / focal, 1.0]), width, height)
+    return TurningFit(geometry.normalize(initial[0] @ turned), focal, start_focal, bool(solution.status > 0))
+
+
+def turning_keyframes(solved: NDArray[np.float64], pair_index: NDArray[np.int64], graph: PairRegistrations,
+                      trusted: NDArray[np.bool_], width: int, height: int
+                      ) -> tuple[NDArray[np.float64], dict[str, float | bool]]:
+    """A level's keyframes as a turning camera, where that agrees with its pairs nearly as well as ``solved``.
+
+    The G - 1 consecutive pairs come first in ``graph``; those it does not count
+    registered (failed, or rejected as outliers) are bridged by ``solved``'s own steps
+    with a token weight of one inlier, as the eight-parameter solve bridges them, so that
+    the graph connects every keyframe. The fit (:func:`fit_turning_camera`) is kept where
+    it converged and the median corner disagreement (:func:`~photonpano.posegraph.corner_disagreement`,
+    pixels) of its pair maps with the ``trusted`` registrations is at most
+    :data:`TURNING_DISAGREEMENT_RATIO` times ``solved``'s.
+
+    Args:
+        solved: (G, 3, 3) float64 the eight-parameter pose graph's keyframes.
+        pair_index: (P, 2) int64 keyframe indices ``(a, b)``, the G - 1 consecutive pairs first.
+        graph: the P registrations the pose graph was solved on (``ok`` as it used them).
+        trusted: (P,) bool the registrations measured and not rejected (the disagreement's pairs).
+        width: frame width in pixels.
+        height: frame height in pixels.
+
+    Returns:
+        ``(keyframes, figures)``: the fit's keyframes where kept, else ``solved``; and
+        ``{"kept", "focal_px", "start_focal_px", "converged", "disagreement_px",
+        "free_disagreement_px"}`` (``run.json``'s ``registration_check.turning_camera``).
+    """
+    steps = len(solved) - 1
+    bridge = ~graph.ok[:steps]
+    homographies, inliers, ok = graph.homographies.copy(), graph.inliers.astype(np.float64), graph.ok.copy()
+    homographies[:steps][bridge] = (np.linalg.inv(solved[:-1]) @ solved[1:])[bridge]
+    inliers[:steps][bridge], ok[:steps] = 1.0, True
+    fit = fit_turning_camera(solved, pair_index, PairRegistrations(homographies, graph.matches, inliers, ok),
+                             width, height)
+
+    def disagreement(keyframes: NDArray[np.float64]) -> float:
+        relative = np.linalg.inv(keyframes[pair_index[trusted, 0]]) @ keyframes[pair_index[trusted, 1]]
+        return float(np.median(corner_disagreement(graph.homographies[trusted], relative, width, height)))
+
+    turned, free = disagreement(fit.keyframes), disagreement(solved)
+    kept = fit.converged and bool(np.isfinite(turned)) and turned <= TURNING_DISAGREEMENT_RATIO * free
+    figures = {"kept": kept, "focal_px": round(fit.focal_px, 2), "start_focal_px": round(fit.start_focal_px, 2),
+               "converged": fit.converged, "disagreement_px": round(turned, 4), "free_disagreement_px": round(free, 4)}
+    return (fit.keyframes if kept else solved), figures
