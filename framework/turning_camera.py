@@ -199,9 +199,9 @@ def turning_keyframes(solved: NDArray[np.float64], pair_index: NDArray[np.int64]
     """
     steps = len(solved) - 1
     bridge = ~graph.ok[:steps]
-    homographies, inliers, ok = graph.homographies.copy(), graph.inliers.astype(np.float64), graph.ok.copy()
+    homographies, inliers, ok = graph.homographies.copy(), graph.inliers.copy(), graph.ok.copy()
     homographies[:steps][bridge] = (np.linalg.inv(solved[:-1]) @ solved[1:])[bridge]
-    inliers[:steps][bridge], ok[:steps] = 1.0, True
+    inliers[:steps][bridge], ok[:steps] = 1, True
     fit = fit_turning_camera(solved, pair_index, PairRegistrations(homographies, graph.matches, inliers, ok),
                              width, height)
 
