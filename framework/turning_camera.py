@@ -19,13 +19,12 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-import scipy.optimize
 import scipy.sparse
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
 from . import geometry
-from .posegraph import corner_disagreement
+from .posegraph import corner_disagreement, robust_least_squares
 from .records import PairRegistrations
 
 __all__ = ["TurningFit", "fit_turning_camera", "turning_keyframes", "focal_from_keyframes", "FOCAL_SEARCH_PX",
@@ -53,13 +52,11 @@ class TurningFit:
             the identity).
         focal_px: the focal length ``f`` in frame pixels.
         start_focal_px: the focal length the solve started from (:func:`focal_from_keyframes`).
-        converged: whether the least-squares solve met its tolerance (not its evaluation limit).
     """
 
     keyframes: NDArray[np.float64]
     focal_px: float
     start_focal_px: float
-    converged: bool
 
 
 def focal_from_keyframes(centred: NDArray[np.float64], width: int) -> float:
@@ -91,7 +88,7 @@ def focal_from_keyframes(centred: NDArray[np.float64], width: int) -> float:
 
 
 def fit_turning_camera(initial: NDArray[np.float64], pair_index: NDArray[np.int64], pairs: PairRegistrations,
-                       width: int, height: int, *, max_evaluations: int = 200) -> TurningFit:
+                       width: int, height: int) -> TurningFit:
     """Solve a level's pose graph for a camera turning about its centre.
 
     The same problem as :func:`photonpano.posegraph.refine_keyframes` (a 3x3 grid of
@@ -104,7 +101,8 @@ def fit_turning_camera(initial: NDArray[np.float64], pair_index: NDArray[np.int6
     (gauge). Rotations start from the initial keyframes (the nearest rotation to
     ``K^-1 H K``, Markley's method in :meth:`scipy.spatial.transform.Rotation.from_matrix`)
     and the focal length from :func:`focal_from_keyframes`; the solve is
-    :func:`scipy.optimize.least_squares` (``trf``) on the pairs' sparse Jacobian.
+    :func:`~photonpano.posegraph.robust_least_squares` on the pairs' sparse Jacobian (forward
+    differences, seven per pair whatever the graph's width).
 
     Args:
         initial: (G, 3, 3) float64 keyframe homographies (frame to panorama), e.g. the
@@ -114,7 +112,6 @@ def fit_turning_camera(initial: NDArray[np.float64], pair_index: NDArray[np.int6
             The graph must connect every keyframe (bridge failed consecutive pairs).
         width: frame width in pixels.
         height: frame height in pixels.
-        max_evaluations: residual evaluations at most.
 
     Returns:
         The fit (:class:`TurningFit`).
@@ -139,36 +136,54 @@ def fit_turning_camera(initial: NDArray[np.float64], pair_index: NDArray[np.int6
     weight = np.sqrt(np.maximum(pairs.inliers[use], 1) / max(float(np.median(pairs.inliers[use])), 1.0))
 
     def keyframe_rotations(x: NDArray[np.float64]) -> tuple[NDArray[np.float64], float]:
-        """(G, 3, 3) rotations (the first the identity) and the focal length of unknowns ``x``."""
-        vectors_g = np.concatenate([np.zeros((1, 3)), x[:-1].reshape(g - 1, 3)])
-        return Rotation.from_rotvec(vectors_g).as_matrix(), float(np.exp(x[-1]))
+        """(G, 3) rotation vectors (the first zero) and the focal length of unknowns ``x``."""
+        return np.concatenate([np.zeros((1, 3)), x[:-1].reshape(g - 1, 3)]), float(np.exp(x[-1]))
+
+    def pair_residuals(vector_a: NDArray[np.float64], vector_b: NDArray[np.float64],
+                       focal: float) -> NDArray[np.float64]:
+        """(E, 18) weighted ``M x - K R_a^T R_b K^-1 x`` in frame a's pixels, given each pair's two rotations."""
+        turn = np.swapaxes(Rotation.from_rotvec(vector_a).as_matrix(), 1, 2) @ Rotation.from_rotvec(vector_b).as_matrix(
+        )
+        relative = np.diag([focal, focal, 1.0]) @ turn @ np.diag([1 / focal, 1 / focal, 1.0])
+        return ((measured - geometry.apply(relative, grid)) * weight[:, None, None]).reshape(len(a), 18)
 
     def residuals(x: NDArray[np.float64]) -> NDArray[np.float64]:
-        """(E * 18,) weighted ``M x - K R_a^T R_b K^-1 x`` in frame a's pixels."""
-        rot, focal = keyframe_rotations(x)
-        kf = np.diag([focal, focal, 1.0])
-        relative = kf @ np.swapaxes(rot[a], 1, 2) @ rot[b] @ np.diag([1 / focal, 1 / focal, 1.0])
-        return ((measured - geometry.apply(relative, grid)) * weight[:, None, None]).ravel()
+        vectors_g, focal = keyframe_rotations(x)
+        return pair_residuals(vectors_g[a], vectors_g[b], focal).ravel()
 
-    # Each pair's 18 residuals depend on its two keyframes' rotations and on the focal length.
-    rows = np.arange(18 * len(a))
-    pair_of_row = rows // 18
-    columns, entries = [np.full(len(rows), 3 * (g - 1))], [rows]
-    for node in (a, b):
-        free = node[pair_of_row] > 0
-        for axis in range(3):
-            columns.append(3 * (node[pair_of_row][free] - 1) + axis)
-            entries.append(rows[free])
-    row_index, column_index = np.concatenate(entries), np.concatenate(columns)
-    sparsity = scipy.sparse.csr_matrix((np.ones(len(row_index), np.int8), (row_index, column_index)),
-                                       shape=(len(rows), 3 * (g - 1) + 1))
+    # Each pair's 18 residuals depend on its two keyframes' rotations and on the focal length:
+    # 7 forward differences per pair, all pairs at once, whatever the graph's width.
+    rows = np.arange(18 * len(a)).reshape(len(a), 18)
+    keyframe_columns = [(node[:, None] - 1) * 3 + np.arange(3) for node in (a, b)]  # (E, 3) each; -3..-1: gauge
+
+    def jacobian(x: NDArray[np.float64]) -> scipy.sparse.csr_matrix:
+        vectors_g, focal = keyframe_rotations(x)
+        base = pair_residuals(vectors_g[a], vectors_g[b], focal)
+        step = 1e-7
+        entries, row_index, column_index = [], [], []
+        for side, columns in enumerate(keyframe_columns):
+            for axis in range(3):
+                moved = [vectors_g[a].copy(), vectors_g[b].copy()]
+                moved[side][:, axis] += step
+                free = columns[:, axis] >= 0
+                entries.append(((pair_residuals(*moved, focal) - base) / step)[free])
+                row_index.append(rows[free])
+                column_index.append(np.broadcast_to(columns[free, axis, None], rows[free].shape))
+        entries.append((pair_residuals(vectors_g[a], vectors_g[b], focal * np.exp(step)) - base) / step)
+        row_index.append(rows)
+        column_index.append(np.full(rows.shape, 3 * (g - 1)))
+        return scipy.sparse.csr_matrix((np.concatenate([e.ravel() for e in entries]),
+                                        (np.concatenate([r.ravel() for r in row_index]),
+                                         np.concatenate([c.ravel() for c in column_index]))),
+                                       shape=(rows.size, 3 * (g - 1) + 1))
+
     start = np.concatenate([vectors[1:].ravel(), [np.log(start_focal)]])
-    solution = scipy.optimize.least_squares(residuals, start, jac_sparsity=sparsity, loss="soft_l1", f_scale=1.0,
-                                            x_scale="jac", method="trf", max_nfev=max_evaluations)
-    rot, focal = keyframe_rotations(solution.x)
-    kf = np.diag([focal, focal, 1.0])
-    turned = geometry.from_centre(kf @ rot @ np.diag([1 / focal, 1 / focal, 1.0]), width, height)
-    return TurningFit(geometry.normalize(initial[0] @ turned), focal, start_focal, bool(solution.status > 0))
+    solution = robust_least_squares(lambda x: (residuals(x), jacobian(x)), start)
+    vectors, focal = keyframe_rotations(solution)
+    rot = Rotation.from_rotvec(vectors).as_matrix()
+    turned = geometry.from_centre(np.diag([focal, focal, 1.0]) @ rot @ np.diag([1 / focal, 1 / focal, 1.0]),
+                                  width, height)
+    return TurningFit(geometry.normalize(initial[0] @ turned), focal, start_focal)
 
 
 def turning_keyframes(solved: NDArray[np.float64], pair_index: NDArray[np.int64], graph: PairRegistrations,
@@ -180,7 +195,7 @@ def turning_keyframes(solved: NDArray[np.float64], pair_index: NDArray[np.int64]
     registered (failed, or rejected as outliers) are bridged by ``solved``'s own steps
     with a token weight of one inlier, as the eight-parameter solve bridges them, so that
     the graph connects every keyframe. The fit (:func:`fit_turning_camera`) is kept where
-    it converged and the median corner disagreement (:func:`~photonpano.posegraph.corner_disagreement`,
+    the median corner disagreement (:func:`~photonpano.posegraph.corner_disagreement`,
     pixels) of its pair maps with the ``trusted`` registrations is at most
     :data:`TURNING_DISAGREEMENT_RATIO` times ``solved``'s.
 
@@ -194,8 +209,8 @@ def turning_keyframes(solved: NDArray[np.float64], pair_index: NDArray[np.int64]
 
     Returns:
         ``(keyframes, figures)``: the fit's keyframes where kept, else ``solved``; and
-        ``{"kept", "focal_px", "start_focal_px", "converged", "disagreement_px",
-        "free_disagreement_px"}`` (``run.json``'s ``registration_check.turning_camera``).
+        ``{"kept", "focal_px", "start_focal_px", "disagreement_px", "free_disagreement_px"}``
+        (``run.json``'s ``registration_check.turning_camera``).
     """
     steps = len(solved) - 1
     bridge = ~graph.ok[:steps]
@@ -210,7 +225,7 @@ def turning_keyframes(solved: NDArray[np.float64], pair_index: NDArray[np.int64]
         return float(np.median(corner_disagreement(graph.homographies[trusted], relative, width, height)))
 
     turned, free = disagreement(fit.keyframes), disagreement(solved)
-    kept = fit.converged and bool(np.isfinite(turned)) and turned <= TURNING_DISAGREEMENT_RATIO * free
+    kept = bool(np.isfinite(turned)) and turned <= TURNING_DISAGREEMENT_RATIO * free
     figures = {"kept": kept, "focal_px": round(fit.focal_px, 2), "start_focal_px": round(fit.start_focal_px, 2),
-               "converged": fit.converged, "disagreement_px": round(turned, 4), "free_disagreement_px": round(free, 4)}
+               "disagreement_px": round(turned, 4), "free_disagreement_px": round(free, 4)}
     return (fit.keyframes if kept else solved), figures

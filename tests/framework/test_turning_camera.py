@@ -65,7 +65,6 @@ def test_a_tripod_pan_measured_with_noisy_keystones_is_recovered_as_a_turning_ca
     fit = fit_turning_camera(free, index, found, W, H)
     free_error = trajectory_error(free, truth, W, H).rmse_px
     turned_error = trajectory_error(fit.keyframes, truth, W, H).rmse_px
-    assert fit.converged
     assert abs(fit.focal_px / FOCAL - 1) < 0.03, fit
     assert free_error > 1.0, free_error
     assert turned_error < 0.5 * free_error, (turned_error, free_error)
