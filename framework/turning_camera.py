@@ -166,7 +166,7 @@ def fit_turning_camera(initial: NDArray[np.float64], pair_index: NDArray[np.int6
                 moved = [vectors_g[a].copy(), vectors_g[b].copy()]
                 moved[side][:, axis] += step
                 free = columns[:, axis] >= 0
-                entries.append(((pair_residuals(*moved, focal) - base) / step)[free])
+                entries.append(((pair_residuals(moved[0], moved[1], focal) - base) / step)[free])
                 row_index.append(rows[free])
                 column_index.append(np.broadcast_to(columns[free, axis, None], rows[free].shape))
         entries.append((pair_residuals(vectors_g[a], vectors_g[b], focal * np.exp(step)) - base) / step)
