@@ -177,9 +177,9 @@ class LevelCheck:
     def turns(self) -> bool:
         """Whether the level's camera turns out of the image plane, as on a tripod.
 
-        So its rescues decided (``"perspective"``, :meth:`settle`), or its registered pairs'
-        keystones are steady (:func:`~photonpano.schemes.pairwise.drop_unsteady_perspective`'s
-        ``steady``).
+        True where its rescues decided ``"perspective"`` (:meth:`settle`) or its registered
+        pairs' keystones are steady (:func:`~photonpano.schemes.pairwise.drop_unsteady_perspective`'s
+        ``steady``): a keystone of 1 px or more at the corners that carries a signal.
         """
         return self.rescue_motion == "perspective" or bool((self.pair_perspective or {}).get("steady"))
 
