@@ -200,7 +200,7 @@ def spec_model(host: PluginHost) -> type[PipelineSpec]:
             "rotation per keyframe (a camera turning about its centre, H = K R K^-1, as OpenCV's stitching "
             "module's ray bundle adjustment), kept where it agrees with the pairs within 1.5x of the free "
             "solution (photonpano.turning_camera; run.json `registration_check.turning_camera`); tripod pans: "
-            "the outdoor camera 0.650 -> 0.322 px, Hubble 1.47 -> 0.43, coffee 0.371 -> 0.219. homography: every "
+            "the outdoor camera 0.650 -> 0.327 px, Hubble 1.47 -> 0.43, coffee 0.371 -> 0.222. homography: every "
             "keyframe its own homography (the paper's).")),
         "registration_binning": (Annotated[Union[Literal["auto"], Annotated[int, Field(ge=1, le=8)]],  # noqa: UP007
                                         Field(description=

@@ -37,8 +37,9 @@ FOCAL_SEARCH_PX = (0.2, 50.0)
 TURNING_DISAGREEMENT_RATIO = 1.5
 """Most a turning camera's median corner disagreement with a level's registered pairs may exceed the
 eight-parameter solution's, as a factor, for :func:`turning_keyframes` to keep it. Tripod pans (the
-suite's recipe with ``source.pan_model: rotation``, 29 photographs): 0.99-1.44; where the turn's
-model does not hold the fit (a checkerboard and a phantom whose level 1 is all rescues): 2.9 and 4.2."""
+suite's recipe with ``source.pan_model: rotation``, 28 photographs whose level turns): 0.99-1.44
+on 25; where the turn's model does not hold the pairs (the horse, a checkerboard and a phantom,
+whose level 1 is all rescues): 2.3, 2.9 and 4.2 (docs/accuracy.md, "A camera turning about its centre")."""
 
 
 @dataclass(frozen=True)
