@@ -143,12 +143,13 @@ def fit_turning_camera(initial: NDArray[np.float64], pair_index: NDArray[np.int6
     def pair_residuals(vector_a: NDArray[np.float64], vector_b: NDArray[np.float64],
                        focal: float) -> NDArray[np.float64]:
         """(E, 18) weighted ``M x - K R_a^T R_b K^-1 x`` in frame a's pixels, given each pair's two rotations."""
-        turn = np.swapaxes(Rotation.from_rotvec(vector_a).as_matrix(), 1, 2) @ Rotation.from_rotvec(vector_b).as_matrix(
-        )
-        relative = np.diag([focal, focal, 1.0]) @ turn @ np.diag([1 / focal, 1 / focal, 1.0])
+        turn_a, turn_b = Rotation.from_rotvec(vector_a).as_matrix(), Rotation.from_rotvec(vector_b).as_matrix()
+        camera, camera_inv = np.diag([focal, focal, 1.0]), np.diag([1 / focal, 1 / focal, 1.0])
+        relative = camera @ np.swapaxes(turn_a, 1, 2) @ turn_b @ camera_inv
         return ((measured - geometry.apply(relative, grid)) * weight[:, None, None]).reshape(len(a), 18)
 
     def residuals(x: NDArray[np.float64]) -> NDArray[np.float64]:
+        """(E * 18,) weighted residuals of unknowns ``x``."""
         vectors_g, focal = keyframe_rotations(x)
         return pair_residuals(vectors_g[a], vectors_g[b], focal).ravel()
 
@@ -158,6 +159,7 @@ def fit_turning_camera(initial: NDArray[np.float64], pair_index: NDArray[np.int6
     keyframe_columns = [(node[:, None] - 1) * 3 + np.arange(3) for node in (a, b)]  # (E, 3) each; -3..-1: gauge
 
     def jacobian(x: NDArray[np.float64]) -> scipy.sparse.csr_matrix:
+        """(E * 18, 3 (G - 1) + 1) Jacobian of :func:`residuals` at ``x``."""
         vectors_g, focal = keyframe_rotations(x)
         base = pair_residuals(vectors_g[a], vectors_g[b], focal)
         step = 1e-7
