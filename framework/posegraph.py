@@ -19,7 +19,7 @@ from .errors import StageError
 from .records import PairRegistrations
 
 __all__ = ["chain_keyframes", "refine_keyframes", "robust_least_squares", "PairJacobian", "NormalMatrix",
-           "pairs_at_offsets", "corner_disagreement"]
+           "pairs_at_offsets", "corner_disagreement", "median_disagreement"]
 
 MAX_BAND_BYTES = 2 ** 28
 """Largest band storage of a :class:`NormalMatrix` (256 MiB); wider bands (loop closures) stay sparse."""
@@ -344,3 +344,22 @@ def corner_disagreement(a: NDArray[np.float64], b: NDArray[np.float64], width: i
     """Largest corner distance in pixels between (P, 3, 3) homographies ``a`` and ``b``."""
     c = geometry.corners(width, height)
     return np.linalg.norm(geometry.apply(a, c) - geometry.apply(b, c), axis=-1).max(axis=-1)
+
+
+def median_disagreement(keyframes: NDArray[np.float64], pair_index: NDArray[np.int64], pairs: PairRegistrations,
+                        use: NDArray[np.bool_], width: int, height: int) -> float:
+    """Median :func:`corner_disagreement` (pixels) of the ``use`` pairs' homographies with the keyframes' maps.
+
+    Args:
+        keyframes: (G, 3, 3) float64 keyframe homographies.
+        pair_index: (P, 2) int64 keyframe indices ``(a, b)`` of each pair.
+        pairs: the P registrations (homography b to a).
+        use: (P,) bool the pairs to compare (at least one).
+        width: frame width in pixels.
+        height: frame height in pixels.
+
+    Returns:
+        The median, in pixels of frame a (NaN where the keyframes are not finite).
+    """
+    relative = np.linalg.inv(keyframes[pair_index[use, 0]]) @ keyframes[pair_index[use, 1]]
+    return float(np.median(corner_disagreement(pairs.homographies[use], relative, width, height)))

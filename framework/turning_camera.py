@@ -24,7 +24,7 @@ from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
 from . import geometry
-from .posegraph import corner_disagreement, robust_least_squares
+from .posegraph import median_disagreement, robust_least_squares
 from .records import PairRegistrations
 
 __all__ = ["TurningFit", "fit_turning_camera", "turning_keyframes", "focal_from_keyframes", "FOCAL_SEARCH_PX",
@@ -198,7 +198,7 @@ def turning_keyframes(solved: NDArray[np.float64], pair_index: NDArray[np.int64]
     registered (failed, or rejected as outliers) are bridged by ``solved``'s own steps
     with a token weight of one inlier, as the eight-parameter solve bridges them, so that
     the graph connects every keyframe. The fit (:func:`fit_turning_camera`) is kept where
-    the median corner disagreement (:func:`~photonpano.posegraph.corner_disagreement`,
+    the median corner disagreement (:func:`~photonpano.posegraph.median_disagreement`,
     pixels) of its pair maps with the ``trusted`` registrations is at most
     :data:`TURNING_DISAGREEMENT_RATIO` times ``solved``'s.
 
@@ -223,11 +223,7 @@ def turning_keyframes(solved: NDArray[np.float64], pair_index: NDArray[np.int64]
     fit = fit_turning_camera(solved, pair_index, PairRegistrations(homographies, graph.matches, inliers, ok),
                              width, height)
 
-    def disagreement(keyframes: NDArray[np.float64]) -> float:
-        relative = np.linalg.inv(keyframes[pair_index[trusted, 0]]) @ keyframes[pair_index[trusted, 1]]
-        return float(np.median(corner_disagreement(graph.homographies[trusted], relative, width, height)))
-
-    turned, free = disagreement(fit.keyframes), disagreement(solved)
+    turned, free = (median_disagreement(k, pair_index, graph, trusted, width, height) for k in (fit.keyframes, solved))
     kept = bool(np.isfinite(turned)) and turned <= TURNING_DISAGREEMENT_RATIO * free
     figures = {"kept": kept, "focal_px": round(fit.focal_px, 2), "start_focal_px": round(fit.start_focal_px, 2),
                "disagreement_px": round(turned, 4), "free_disagreement_px": round(free, 4)}

@@ -21,7 +21,7 @@ from .. import geometry
 from ..errors import StageError
 from ..guards import plausible
 from ..locator import Locator, LocatorContext
-from ..posegraph import chain_keyframes, corner_disagreement, pairs_at_offsets, refine_keyframes
+from ..posegraph import chain_keyframes, corner_disagreement, median_disagreement, pairs_at_offsets, refine_keyframes
 from ..records import LocateResult, MergedFrames, PairRegistrations
 from ..turning_camera import turning_keyframes
 from ..watchdog import watched
@@ -242,8 +242,7 @@ def locate_keyframes(locator: Locator, merge: Callable[[NDArray[np.int64]], Merg
     trusted = pairs.ok
     if trusted.any():
         def disagreement(k: NDArray[np.float64]) -> float:
-            relative = np.linalg.inv(k[pair_index[trusted, 0]]) @ k[pair_index[trusted, 1]]
-            return float(np.median(corner_disagreement(graph.homographies[trusted], relative, width, height)))
+            return median_disagreement(k, pair_index, graph, trusted, width, height)
 
         if not np.isfinite(disagreement(solved)) or disagreement(solved) > disagreement(keyframes):
             solved = keyframes
