@@ -17,15 +17,17 @@ it agrees with the pairs nearly as well as the free solution.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
-import scipy.sparse
 from numpy.typing import NDArray
-from scipy.spatial.transform import Rotation
 
 from . import geometry
 from .posegraph import median_disagreement, robust_least_squares
 from .records import PairRegistrations
+
+if TYPE_CHECKING:
+    import scipy.sparse
 
 __all__ = ["TurningFit", "fit_turning_camera", "turning_keyframes", "focal_from_keyframes", "FOCAL_SEARCH_PX",
            "TURNING_DISAGREEMENT_RATIO"]
@@ -120,6 +122,9 @@ def fit_turning_camera(initial: NDArray[np.float64], pair_index: NDArray[np.int6
     Raises:
         ValueError: for fewer than two keyframes or no registered pair.
     """
+    import scipy.sparse  # here, not at import: most levels do not turn (scipy.spatial and sparse: 0.13 s)
+    from scipy.spatial.transform import Rotation
+
     g = len(initial)
     use = pairs.ok & (pair_index[:, 0] != pair_index[:, 1])
     if g < 2 or not use.any():
