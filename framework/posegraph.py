@@ -19,7 +19,7 @@ from .errors import StageError
 from .records import PairRegistrations
 
 __all__ = ["chain_keyframes", "refine_keyframes", "robust_least_squares", "PairJacobian", "NormalMatrix",
-           "pairs_at_offsets", "corner_disagreement", "median_disagreement"]
+           "pairs_at_offsets", "corner_disagreement", "median_disagreement", "pair_weights"]
 
 MAX_BAND_BYTES = 2 ** 28
 """Largest band storage of a :class:`NormalMatrix` (256 MiB); wider bands (loop closures) stay sparse."""
@@ -94,7 +94,7 @@ def refine_keyframes(initial: NDArray[np.float64], pair_index: NDArray[np.int64]
     gx, gy = np.meshgrid(np.linspace(0, width - 1, 3), np.linspace(0, height - 1, 3))
     grid = np.stack([gx.ravel(), gy.ravel()], axis=1)  # (9, 2) points of frame b
     mapped = geometry.apply(pairs.homographies[use], grid)  # (E, 9, 2) points of frame a
-    weight = np.sqrt(np.maximum(pairs.inliers[use], 1) / max(np.median(pairs.inliers[use]), 1))
+    weight = pair_weights(pairs.inliers[use])
     # Each keyframe is solved as a small update of its starting value, K_g = initial_g @ H(d_g):
     # the 8 parameters of d_g are all of order 1e-3 and well conditioned, whereas the
     # absolute parameters of keyframes far along a pan (hundreds of pixels) are not.
@@ -327,6 +327,18 @@ def robust_least_squares(linearise: Callable[[NDArray[np.float64]], tuple[NDArra
         if converged:
             break
     return x
+
+
+def pair_weights(inliers: NDArray[np.int64]) -> NDArray[np.float64]:
+    """Each pair's weight in a pose graph: the square root of its inliers over their median (each at least 1).
+
+    Args:
+        inliers: (E,) int64 inlier counts of the registered pairs (E >= 1).
+
+    Returns:
+        (E,) float64 weights of the pairs' residuals.
+    """
+    return np.sqrt(np.maximum(inliers, 1) / max(float(np.median(inliers)), 1.0))
 
 
 def pairs_at_offsets(count: int, offsets: tuple[int, ...]) -> NDArray[np.int64]:

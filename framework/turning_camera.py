@@ -23,7 +23,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from . import geometry
-from .posegraph import median_disagreement, robust_least_squares
+from .posegraph import median_disagreement, pair_weights, robust_least_squares
 from .records import PairRegistrations
 
 if TYPE_CHECKING:
@@ -139,7 +139,7 @@ def fit_turning_camera(initial: NDArray[np.float64], pair_index: NDArray[np.int6
     vectors = Rotation.from_matrix(rotations).as_rotvec()
     grid = geometry.pixel_grid(width, height, 3) - np.array([(width - 1) / 2, (height - 1) / 2])  # about the centre
     measured = geometry.apply(geometry.about_centre(pairs.homographies[use], width, height), grid)  # (E, 9, 2)
-    weight = np.sqrt(np.maximum(pairs.inliers[use], 1) / max(float(np.median(pairs.inliers[use])), 1.0))
+    weight = pair_weights(pairs.inliers[use])
 
     def keyframe_rotations(x: NDArray[np.float64]) -> tuple[NDArray[np.float64], float]:
         """(G, 3) rotation vectors (the first zero) and the focal length of unknowns ``x``."""
