@@ -211,7 +211,8 @@ def turning_keyframes(solved: NDArray[np.float64], pair_index: NDArray[np.int64]
         solved: (G, 3, 3) float64 the eight-parameter pose graph's keyframes.
         pair_index: (P, 2) int64 keyframe indices ``(a, b)``, the G - 1 consecutive pairs first.
         graph: the P registrations the pose graph was solved on (``ok`` as it used them).
-        trusted: (P,) bool the registrations measured and not rejected (the disagreement's pairs).
+        trusted: (P,) bool the registrations measured and not rejected (the disagreement's
+            pairs; at least one).
         width: frame width in pixels.
         height: frame height in pixels.
 
@@ -219,6 +220,9 @@ def turning_keyframes(solved: NDArray[np.float64], pair_index: NDArray[np.int64]
         ``(keyframes, figures)``: the fit's keyframes where kept, else ``solved``; and
         ``{"kept", "focal_px", "start_focal_px", "disagreement_px", "free_disagreement_px"}``
         (``run.json``'s ``registration_check.turning_camera``).
+
+    Raises:
+        ValueError: for fewer than two keyframes (:func:`fit_turning_camera`).
     """
     steps = len(solved) - 1
     bridge = ~graph.ok[:steps]
