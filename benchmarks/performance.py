@@ -34,6 +34,7 @@ Usage::
     python benchmarks/performance.py --path pan,zigzag,shake   # one row per path
     python benchmarks/performance.py --scene office,city,dark --path pan,zigzag,shake  # 9 rows
     python benchmarks/performance.py --scene highcontrast_hubble   # any suite photo, by its stem
+    python benchmarks/performance.py --scene /tmp/outside/rocket.png   # or any photo, by its path
     python benchmarks/performance.py --scaling        # 12.5k, 25k, 50k, 100k, 200k frames
     python benchmarks/performance.py --set locator.max_features=2000   # spec overrides
     python benchmarks/performance.py --path zigzag --scene texture_gravel --timeline  # where the time goes
@@ -44,6 +45,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import hashlib
 import json
 import resource
 import subprocess
@@ -64,18 +66,28 @@ SCENES = {"office": {}, "city": {"photo": str(PHOTOS / "city_madison.jpg")},
 
 
 def scene_settings(scene: str) -> dict:
-    """Simulate settings of ``scene``: one of :data:`SCENES`, or the stem of an evaluation-suite photo.
+    """Simulate settings of ``scene``: one of :data:`SCENES`, the stem of an evaluation-suite photo, or a photo's path.
 
     Raises:
-        SystemExit: for a name that is neither (naming the choices).
+        SystemExit: for a name that is none of these (naming the choices).
     """
     if scene in SCENES:
         return SCENES[scene]
     photo = PHOTOS / f"{scene}.jpg"
     if not photo.exists():
+        if Path(scene).is_file():
+            return {"photo": str(Path(scene).resolve())}
         choices = sorted(SCENES) + sorted(p.stem for p in PHOTOS.glob("*.jpg"))
-        raise SystemExit(f"--scene {scene!r}: expected one of {', '.join(choices)}")
+        raise SystemExit(f"--scene {scene!r}: expected one of {', '.join(choices)}, or a photo's path")
     return {"photo": str(photo)}
+
+
+def scene_key(scene: str) -> str:
+    """The cache's name for ``scene``: itself, or for a photo's path its stem and a hash of its bytes."""
+    photo = scene_settings(scene).get("photo")
+    if scene in SCENES or photo is None or Path(photo).parent == PHOTOS:
+        return scene
+    return f"{Path(photo).stem}-{hashlib.sha256(Path(photo).read_bytes()).hexdigest()[:12]}"
 
 
 def simulation(path: str, frames: int, scene: str = "office") -> dict:
@@ -87,7 +99,7 @@ def cube_path(frames: int, camera: str = "pan", scene: str = "office") -> Path:
     """Return the cached cube for ``frames`` frames of ``scene`` on path ``camera``, simulating it first if needed."""
     from photonpano.plugins.sources.simulate import SimulateConfig
 
-    path = CACHE / (f"{camera}_{frames}.npy" if scene == "office" else f"{scene}_{camera}_{frames}.npy")
+    path = CACHE / (f"{camera}_{frames}.npy" if scene == "office" else f"{scene_key(scene)}_{camera}_{frames}.npy")
     if not path.exists():
         CACHE.mkdir(exist_ok=True)
         partial = path.with_suffix(".partial.npy")
@@ -267,7 +279,7 @@ def main() -> None:
     parser.add_argument("--frames", type=int, default=100_000)
     parser.add_argument("--path", default="pan", help="camera path(s), comma-separated: pan, zigzag, shake")
     parser.add_argument("--scene", default="office",
-                        help="scene(s), comma-separated: office, city, dark or a suite photo's stem")
+                        help="scene(s), comma-separated: office, city, dark, a suite photo's stem or a photo's path")
     parser.add_argument("--scaling", action="store_true", help="print the 12.5k..200k scaling table")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                         help="spec override, as in `photonpano run --set` (repeatable)")

@@ -31,3 +31,20 @@ def test_repeated_runs_print_their_medians(capsys):
     line = capsys.readouterr().out
     assert "median of 3 runs: wall 14.0 s (15.6, 13.0, 14.0), CPU 23.0 s, floor 7.00 s" in line, line
     assert "pipeline/floor 2.0x" in line and "at most 640 MB" in line and line.count("0.051") == 1, line
+
+
+def test_a_scene_is_a_named_scene_a_suite_photo_or_any_photo_by_its_path(tmp_path):
+    """``--scene``: named scenes and suite stems keep their cache names; a path's name is its stem and content hash."""
+    import pytest
+
+    performance = load_benchmark("performance")
+    assert performance.scene_key("city") == "city" and performance.scene_key("interior_clock") == "interior_clock"
+    photo = tmp_path / "rocket.png"
+    photo.write_bytes(b"one")
+    assert performance.scene_settings(str(photo)) == {"photo": str(photo.resolve())}
+    first = performance.scene_key(str(photo))
+    assert first.startswith("rocket-")
+    photo.write_bytes(b"two")  # another photo at the same path is another capture
+    assert performance.scene_key(str(photo)) != first
+    with pytest.raises(SystemExit, match="or a photo's path"):
+        performance.scene_settings(str(tmp_path / "missing.png"))
