@@ -84,10 +84,10 @@ def scene_settings(scene: str) -> dict:
 
 def scene_key(scene: str) -> str:
     """The cache's name for ``scene``: itself, or for a photo's path its stem and a hash of its bytes."""
-    photo = scene_settings(scene).get("photo")
-    if scene in SCENES or photo is None or Path(photo).parent == PHOTOS:
+    photo = Path(scene_settings(scene).get("photo", ""))
+    if scene in SCENES or photo.parent == PHOTOS:
         return scene
-    return f"{Path(photo).stem}-{hashlib.sha256(Path(photo).read_bytes()).hexdigest()[:12]}"
+    return f"{photo.stem}-{hashlib.sha256(photo.read_bytes()).hexdigest()[:12]}"
 
 
 def simulation(path: str, frames: int, scene: str = "office") -> dict:

@@ -3,6 +3,7 @@
 import time
 
 import numpy as np
+import pytest
 from capture_helpers import load_benchmark
 
 
@@ -35,8 +36,6 @@ def test_repeated_runs_print_their_medians(capsys):
 
 def test_a_scene_is_a_named_scene_a_suite_photo_or_any_photo_by_its_path(tmp_path):
     """``--scene``: named scenes and suite stems keep their cache names; a path's name is its stem and content hash."""
-    import pytest
-
     performance = load_benchmark("performance")
     assert performance.scene_key("city") == "city" and performance.scene_key("interior_clock") == "interior_clock"
     photo = tmp_path / "rocket.png"
