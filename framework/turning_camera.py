@@ -153,40 +153,38 @@ def fit_turning_camera(initial: NDArray[np.float64], pair_index: NDArray[np.int6
         relative = camera @ np.swapaxes(turn_a, 1, 2) @ turn_b @ camera_inv
         return ((measured - geometry.apply(relative, grid)) * weight[:, None, None]).reshape(len(a), 18)
 
-    def residuals(x: NDArray[np.float64]) -> NDArray[np.float64]:
-        """(E * 18,) weighted residuals of unknowns ``x``."""
-        vectors_g, focal = keyframe_rotations(x)
-        return pair_residuals(vectors_g[a], vectors_g[b], focal).ravel()
-
     # Each pair's 18 residuals depend on its two keyframes' rotations and on the focal length:
     # 7 forward differences per pair, all pairs at once, whatever the graph's width.
     rows = np.arange(18 * len(a)).reshape(len(a), 18)
     keyframe_columns = [(node[:, None] - 1) * 3 + np.arange(3) for node in (a, b)]  # (E, 3) each; -3..-1: gauge
 
-    def jacobian(x: NDArray[np.float64]) -> scipy.sparse.csr_matrix:
-        """(E * 18, 3 (G - 1) + 1) Jacobian of :func:`residuals` at ``x``."""
+    def linearise(x: NDArray[np.float64]) -> tuple[NDArray[np.float64], scipy.sparse.csr_matrix]:
+        """(E * 18,) weighted residuals of unknowns ``x`` and their (E * 18, 3 (G - 1) + 1) Jacobian."""
         vectors_g, focal = keyframe_rotations(x)
-        base = pair_residuals(vectors_g[a], vectors_g[b], focal)
+        ends = (vectors_g[a], vectors_g[b])
+        base = pair_residuals(*ends, focal)
         step = 1e-7
         entries, row_index, column_index = [], [], []
         for side, columns in enumerate(keyframe_columns):
             for axis in range(3):
-                moved = [vectors_g[a].copy(), vectors_g[b].copy()]
+                moved = list(ends)
+                moved[side] = moved[side].copy()
                 moved[side][:, axis] += step
                 free = columns[:, axis] >= 0
                 entries.append(((pair_residuals(moved[0], moved[1], focal) - base) / step)[free])
                 row_index.append(rows[free])
                 column_index.append(np.broadcast_to(columns[free, axis, None], rows[free].shape))
-        entries.append((pair_residuals(vectors_g[a], vectors_g[b], focal * np.exp(step)) - base) / step)
+        entries.append((pair_residuals(*ends, focal * np.exp(step)) - base) / step)
         row_index.append(rows)
         column_index.append(np.full(rows.shape, 3 * (g - 1)))
-        return scipy.sparse.csr_matrix((np.concatenate([e.ravel() for e in entries]),
-                                        (np.concatenate([r.ravel() for r in row_index]),
-                                         np.concatenate([c.ravel() for c in column_index]))),
-                                       shape=(rows.size, 3 * (g - 1) + 1))
+        jacobian = scipy.sparse.csr_matrix((np.concatenate([e.ravel() for e in entries]),
+                                            (np.concatenate([r.ravel() for r in row_index]),
+                                             np.concatenate([c.ravel() for c in column_index]))),
+                                           shape=(rows.size, 3 * (g - 1) + 1))
+        return base.ravel(), jacobian
 
     start = np.concatenate([vectors[1:].ravel(), [np.log(start_focal)]])
-    solution = robust_least_squares(lambda x: (residuals(x), jacobian(x)), start)
+    solution = robust_least_squares(linearise, start)
     vectors, focal = keyframe_rotations(solution)
     rot = Rotation.from_rotvec(vectors).as_matrix()
     turned = geometry.from_centre(np.diag([focal, focal, 1.0]) @ rot @ np.diag([1 / focal, 1 / focal, 1.0]),
